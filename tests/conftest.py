@@ -1,0 +1,39 @@
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+
+from uabs_rl.config import PROJECT_ROOT, register_configs, to_container
+
+CONF_DIR = str(PROJECT_ROOT / "conf")
+
+# A small but real SUMO case: 20 vehicles, 60 s recorded after 10 s of warm-up.
+SMALL_TRACES = [
+    "scenario.sumo.fleet_size=20",
+    "traces.train.n_sims=2",
+    "traces.train.duration_s=60",
+    "traces.train.warmup_s=10",
+    "traces.eval.n_sims=1",
+    "traces.eval.duration_s=60",
+    "traces.eval.warmup_s=10",
+]
+
+
+def compose_cfg(config_name: str, overrides: list[str]):
+    """Compose a config exactly as the CLI would, and return it as dataclasses."""
+    register_configs()
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        cfg = compose(config_name=config_name, overrides=overrides)
+    return to_container(cfg)
+
+
+@pytest.fixture(scope="session")
+def trace_cache(tmp_path_factory) -> Path:
+    return tmp_path_factory.mktemp("trace_cache")
+
+
+@pytest.fixture(scope="session")
+def small_traces_cfg(trace_cache):
+    return compose_cfg("traces", SMALL_TRACES + [f"traces.cache_dir={trace_cache}"])

@@ -1,0 +1,163 @@
+"""Typed config schemas (Hydra ConfigStore) and the checks that run at start-up.
+
+Every yaml under ``conf/`` is validated against these dataclasses, so a misspelt key
+or a value of the wrong type fails when the config is composed. Value checks that a
+type cannot express (a fleet of 0, an area that does not contain the network, ...)
+live in ``validate_*`` functions and raise :class:`ConfigError` naming the key.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields, is_dataclass
+from pathlib import Path
+from typing import Any
+
+from hydra.core.config_store import ConfigStore
+from omegaconf import DictConfig, OmegaConf
+
+PROJECT_ROOT = Path(__file__).resolve().parents[1]
+
+
+class ConfigError(ValueError):
+    """A config value is invalid; the message names the key and the fix."""
+
+
+@dataclass
+class AreaConfig:
+    """Service-area rectangle in SUMO network coordinates (metres)."""
+
+    x_min: float = 0.0  # lower-left corner, x (east)
+    y_min: float = 0.0  # lower-left corner, y (north)
+    width: float = 350.0  # W
+    height: float = 170.0  # H
+
+
+@dataclass
+class SumoConfig:
+    """Where the vehicles come from: a network plus a fleet and/or routes."""
+
+    net_file: str = "sumo/manhattan/manhattan.net.xml"  # relative to cwd or the project root
+    fleet_size: int = 80  # |G|: vehicles that get a new random destination at each route's end
+    # extra .rou.xml files: vehicles that enter and leave
+    route_files: list[str] = field(default_factory=list)
+    sumocfg: str | None = None  # a .sumocfg; replaces net_file/route_files when set
+    extra_args: list[str] = field(default_factory=list)  # passed verbatim to sumo
+
+
+@dataclass
+class SplitConfig:
+    """One set of traces: simulations with seeds first_seed .. first_seed + n_sims - 1."""
+
+    first_seed: int = 0
+    n_sims: int = 8
+    duration_s: float = 3600.0  # recorded seconds per simulation (after warm-up)
+    warmup_s: float = 60.0  # simulated seconds skipped before recording
+
+
+@dataclass
+class TracesConfig:
+    """Training and held-out evaluation traces, and where they are cached."""
+
+    # 8 h of training traces: 1000 random 80 s windows rarely overlap much.
+    train: SplitConfig = field(default_factory=SplitConfig)
+    # held-out traces from other SUMO seeds, never seen in training
+    eval: SplitConfig = field(
+        default_factory=lambda: SplitConfig(first_seed=10_000, n_sims=2, duration_s=600.0)
+    )
+    cache_dir: str = "${oc.env:UABS_RL_CACHE,'~/.cache/uabs_rl'}/traces"  # trace cache location
+    workers: int = 0  # SUMO processes in parallel; 0 = one per core
+
+
+@dataclass
+class ScenarioConfig:
+    """The city and its timing (vehicles, area, δt)."""
+
+    name: str = "manhattan"
+    area: AreaConfig = field(default_factory=AreaConfig)
+    dt: float = 1.0  # δt, seconds per step (SUMO step length and sampling period)
+    sumo: SumoConfig = field(default_factory=SumoConfig)
+
+
+@dataclass
+class TracesAppConfig:
+    """Top-level config of ``uabs-traces``."""
+
+    scenario: ScenarioConfig = field(default_factory=ScenarioConfig)
+    traces: TracesConfig = field(default_factory=TracesConfig)
+    split: str = "all"  # which traces to build: train, eval or all
+
+
+def register_configs() -> None:
+    cs = ConfigStore.instance()
+    cs.store(group="scenario", name="scenario_schema", node=ScenarioConfig)
+    cs.store(name="traces_app_schema", node=TracesAppConfig)
+
+
+def resolve_path(value: str, key: str) -> Path:
+    """Resolve a config path against the cwd, then the project root; fail naming ``key``."""
+    p = Path(value).expanduser()
+    candidates = [p] if p.is_absolute() else [Path.cwd() / p, PROJECT_ROOT / p]
+    for c in candidates:
+        if c.is_file():
+            return c.resolve()
+    tried = ", ".join(str(c) for c in candidates)
+    raise ConfigError(f"{key}: file not found: {value!r} (looked at {tried}). "
+                      f"Set {key} to an existing file.")
+
+
+def validate_scenario_traces(scenario: Any, traces: Any) -> None:
+    """Value checks for the trace pipeline, each naming the offending key."""
+    sumo = scenario.sumo
+    if scenario.dt <= 0:
+        raise ConfigError(f"scenario.dt must be > 0 seconds, got {scenario.dt}.")
+    if scenario.area.width <= 0 or scenario.area.height <= 0:
+        raise ConfigError(
+            f"scenario.area.width/height must be > 0, got {scenario.area.width} x "
+            f"{scenario.area.height}.")
+    if sumo.fleet_size < 0:
+        raise ConfigError(f"scenario.sumo.fleet_size must be >= 0, got {sumo.fleet_size}.")
+    if sumo.fleet_size == 0 and not sumo.route_files and not sumo.sumocfg:
+        raise ConfigError(
+            "scenario.sumo.fleet_size is 0 and no scenario.sumo.route_files or "
+            "scenario.sumo.sumocfg is given: there would be no vehicle. Set "
+            "scenario.sumo.fleet_size >= 1 or give routes.")
+    for name in ("train", "eval"):
+        split = getattr(traces, name)
+        if split.n_sims < 1:
+            raise ConfigError(f"traces.{name}.n_sims must be >= 1, got {split.n_sims}.")
+        if split.duration_s < scenario.dt:
+            raise ConfigError(f"traces.{name}.duration_s must be >= scenario.dt, got "
+                              f"{split.duration_s}.")
+        if split.warmup_s < 0:
+            raise ConfigError(f"traces.{name}.warmup_s must be >= 0, got {split.warmup_s}.")
+    tr, ev = traces.train, traces.eval
+    train_seeds = set(range(tr.first_seed, tr.first_seed + tr.n_sims))
+    eval_seeds = set(range(ev.first_seed, ev.first_seed + ev.n_sims))
+    if train_seeds & eval_seeds:
+        raise ConfigError(
+            f"traces.eval.first_seed={ev.first_seed} makes held-out seeds overlap the "
+            f"training seeds {min(train_seeds)}..{max(train_seeds)}: evaluation traces "
+            f"must never be seen in training. Move traces.eval.first_seed past them.")
+    if traces.workers < 0:
+        raise ConfigError(f"traces.workers must be >= 0, got {traces.workers}.")
+
+
+def _check_known_keys(obj: Any, node: Any, prefix: str) -> None:
+    """Refuse keys a dataclass does not have (``+key=...`` would otherwise vanish)."""
+    if not (is_dataclass(obj) and isinstance(node, DictConfig)):
+        return
+    known = {f.name for f in fields(obj)}
+    for key in node.keys():
+        if key not in known:
+            raise ConfigError(f"unknown config key {prefix}{key}: {type(obj).__name__} has "
+                              f"{sorted(known)}. Remove it or fix its spelling.")
+        _check_known_keys(getattr(obj, key), node._get_node(key), f"{prefix}{key}.")
+
+
+def to_container(cfg: Any) -> Any:
+    """Resolved dataclasses from a composed DictConfig; unknown keys are an error."""
+    if isinstance(cfg, DictConfig):
+        obj = OmegaConf.to_object(cfg)
+        _check_known_keys(obj, cfg, "")
+        return obj
+    return cfg

@@ -1,0 +1,195 @@
+"""Run one SUMO simulation through libsumo and sample every vehicle's position.
+
+Runs in a worker process (libsumo holds one simulation per process), so this module
+imports neither torch nor the rest of the package.
+
+Vehicles come from two sources that can be combined:
+
+* a **fleet** of ``fleet_size`` vehicles, each inserted on a random route and given a
+  new random destination (``vehicle.changeTarget``) when it reaches the last edge of
+  its route, so the count stays steady (random-trip insertion jams or drains a small
+  grid); fleet vehicle ``i`` always occupies slot ``i``;
+* route files or a ``.sumocfg``: vehicles that enter and leave; each gets a free slot
+  while present. A freed slot is reused only after one step without anyone in it, so
+  a consumer sees a new vehicle as a new presence run.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+FLEET_PREFIX = "uabs_fleet_"
+_INVALID = 1e9  # libsumo returns -2**30 for a vehicle that is teleporting
+
+
+class SumoRunError(RuntimeError):
+    """SUMO failed; the message names the seed and the inputs."""
+
+
+@dataclass
+class SimRequest:
+    seed: int
+    net_file: str | None
+    route_files: list[str]
+    sumocfg: str | None
+    fleet_size: int
+    dt: float
+    warmup_steps: int
+    steps: int
+    origin: tuple[float, float]
+    extra_args: list[str]
+
+
+@dataclass
+class SimResult:
+    seed: int
+    positions: np.ndarray  # [steps, slots, 2] float32, relative to the area origin
+    present: np.ndarray  # [steps, slots] bool
+    teleports: int  # vehicle-steps spent teleporting (held at their last position)
+    seconds: float
+
+
+def _sumo_command(req: SimRequest) -> list[str]:
+    cmd = ["sumo"]
+    if req.sumocfg:
+        cmd += ["-c", req.sumocfg]
+    else:
+        cmd += ["-n", req.net_file]
+        if req.route_files:
+            cmd += ["-r", ",".join(req.route_files)]
+    cmd += ["--seed", str(req.seed), "--step-length", str(req.dt), "--begin", "0",
+            "--no-step-log", "true", "--no-warnings", "true", "--duration-log.disable", "true"]
+    return cmd + list(req.extra_args)
+
+
+class _Fleet:
+    """Keeps ``size`` vehicles driving: a new random destination at each route's end."""
+
+    def __init__(self, ls, size: int, rng: np.random.Generator):
+        self.ls, self.rng = ls, rng
+        self.edges = [e for e in ls.edge.getIDList()
+                      if not e.startswith(":") and ls.edge.getLaneNumber(e) > 0]
+        if len(self.edges) < 2:
+            raise SumoRunError("the network has fewer than 2 drivable edges: no route possible")
+        self.route_len: dict[str, int] = {}
+        for i in range(size):
+            vid = f"{FLEET_PREFIX}{i}"
+            edges = self._random_route()
+            ls.route.add(f"{vid}_route", edges)
+            ls.vehicle.add(vid, f"{vid}_route", departPos="random", departSpeed="max",
+                           departLane="best")
+            self.route_len[vid] = len(edges)
+
+    def _random_route(self) -> list[str]:
+        for _ in range(100):
+            a, b = self.rng.choice(len(self.edges), 2, replace=False)
+            route = self.ls.simulation.findRoute(self.edges[a], self.edges[b])
+            if route.edges:
+                return list(route.edges)
+        raise SumoRunError("found no connected pair of edges in 100 tries: is the network "
+                           "connected?")
+
+    def retarget(self, vid: str, route_index: int) -> None:
+        if route_index < self.route_len[vid] - 1:
+            return
+        current = self.ls.vehicle.getRoadID(vid)
+        for _ in range(100):
+            target = self.edges[self.rng.integers(len(self.edges))]
+            if target == current:
+                continue
+            try:
+                self.ls.vehicle.changeTarget(vid, target)
+            except self.ls.TraCIException:
+                continue  # unreachable from here: draw another
+            self.route_len[vid] = len(self.ls.vehicle.getRoute(vid))
+            return
+
+
+class _Slots:
+    """Maps vehicle ids to tensor slots: fleet ids fixed, others reuse freed slots."""
+
+    def __init__(self, fleet_size: int):
+        self.fleet_size = fleet_size
+        self.slot: dict[str, int] = {}
+        self.free: list[int] = []
+        self.cooling: list[int] = []
+        self.next = fleet_size
+
+    def get(self, vid: str) -> int:
+        if vid.startswith(FLEET_PREFIX):
+            return int(vid[len(FLEET_PREFIX):])
+        if vid not in self.slot:
+            if self.free:
+                self.slot[vid] = self.free.pop()
+            else:
+                self.slot[vid], self.next = self.next, self.next + 1
+        return self.slot[vid]
+
+    def end_step(self, gone: list[str]) -> None:
+        self.free += self.cooling  # slots empty for a whole step are reusable
+        self.cooling = [self.slot.pop(v) for v in gone if v in self.slot]
+
+
+def run_simulation(req: SimRequest) -> SimResult:
+    """Simulate ``warmup_steps + steps`` steps and record the last ``steps``."""
+    import libsumo as ls  # imported here: a worker process holds one simulation
+
+    start = time.perf_counter()
+    try:
+        ls.start(_sumo_command(req))
+    except ls.TraCIException as e:
+        raise SumoRunError(f"SUMO did not start (seed {req.seed}, command "
+                           f"{' '.join(_sumo_command(req))}): {e}") from e
+    try:
+        return _record(ls, req, start)
+    except ls.TraCIException as e:
+        raise SumoRunError(f"SUMO failed during the simulation (seed {req.seed}): {e}") from e
+    finally:
+        ls.close()
+
+
+def _record(ls, req: SimRequest, start: float) -> SimResult:
+    rng = np.random.default_rng(req.seed)
+    fleet = _Fleet(ls, req.fleet_size, rng) if req.fleet_size > 0 else None
+    slots = _Slots(req.fleet_size)
+    ls.simulation.subscribe([ls.VAR_DEPARTED_VEHICLES_IDS, ls.VAR_ARRIVED_VEHICLES_IDS])
+    rows: list[tuple[np.ndarray, np.ndarray]] = []
+    teleports, ox, oy = 0, req.origin[0], req.origin[1]
+    last_xy: dict[str, tuple[float, float]] = {}
+    for t in range(req.warmup_steps + req.steps):
+        ls.simulationStep()
+        sim = ls.simulation.getSubscriptionResults()
+        for vid in sim[ls.VAR_DEPARTED_VEHICLES_IDS]:
+            ls.vehicle.subscribe(vid, [ls.VAR_POSITION, ls.VAR_ROUTE_INDEX])
+        idx, xy = [], []
+        for vid, d in ls.vehicle.getAllSubscriptionResults().items():
+            if fleet is not None and vid.startswith(FLEET_PREFIX):
+                fleet.retarget(vid, d[ls.VAR_ROUTE_INDEX])
+            x, y = d[ls.VAR_POSITION]
+            if abs(x) > _INVALID or abs(y) > _INVALID:
+                # Mid-teleport (SUMO resolves a rare gridlock): the vehicle stays where it
+                # was stuck until it reappears, so the fleet count never drops.
+                teleports += 1
+                if vid not in last_xy:
+                    continue
+                x, y = last_xy[vid]
+            last_xy[vid] = (x, y)
+            idx.append(slots.get(vid))
+            xy.append((x - ox, y - oy))
+        arrived = list(sim[ls.VAR_ARRIVED_VEHICLES_IDS])
+        for vid in arrived:
+            last_xy.pop(vid, None)
+        slots.end_step(arrived)
+        if t >= req.warmup_steps:
+            rows.append((np.asarray(idx, dtype=np.int64), np.asarray(xy, dtype=np.float32)))
+    n_slots = max([slots.next] + [int(i.max()) + 1 for i, _ in rows if len(i)])
+    positions = np.zeros((req.steps, n_slots, 2), dtype=np.float32)
+    present = np.zeros((req.steps, n_slots), dtype=bool)
+    for t, (i, xy) in enumerate(rows):
+        if len(i):
+            positions[t, i] = xy
+            present[t, i] = True
+    return SimResult(req.seed, positions, present, teleports, time.perf_counter() - start)

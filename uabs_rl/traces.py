@@ -1,0 +1,302 @@
+"""Vehicle traces: run SUMO once, cache padded position tensors, load them back.
+
+A split (``train`` or ``eval``) is a :class:`TraceSet` of ``n_sims`` simulations:
+``positions [n_sims, steps, max_vehicles, 2]`` (metres, relative to the area's
+lower-left corner) and ``present [n_sims, steps, max_vehicles]``. Each split is
+cached in one file whose name is a hash of everything that changes it (network and
+route file contents, fleet size, seeds, durations, δt, area, SUMO version, format).
+A cache file is written atomically and checked on load (keys, shapes, dtypes, a
+checksum of the data); a corrupt or truncated one is reported and rebuilt.
+
+CLI: ``uabs-traces`` (Hydra; same ``scenario``/``traces`` overrides as training).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import multiprocessing as mp
+import os
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from uabs_rl.config import ConfigError, resolve_path, validate_scenario_traces
+from uabs_rl.sumo_sim import SimRequest, SimResult, SumoRunError, run_simulation
+
+log = logging.getLogger(__name__)
+
+FORMAT_VERSION = 2
+SPLITS = ("train", "eval")
+
+
+class TraceCacheError(RuntimeError):
+    """A cache file is unreadable or inconsistent."""
+
+
+@dataclass
+class TraceSet:
+    positions: torch.Tensor  # [n_sims, steps, max_vehicles, 2] float32, metres from area origin
+    present: torch.Tensor  # [n_sims, steps, max_vehicles] bool
+    meta: dict[str, Any]
+    source: str = "built"  # "built" (SUMO ran) or "cache"; not stored in the file
+
+    @property
+    def n_sims(self) -> int:
+        return self.positions.shape[0]
+
+    @property
+    def steps(self) -> int:
+        return self.positions.shape[1]
+
+    @property
+    def max_vehicles(self) -> int:
+        return self.positions.shape[2]
+
+    def summary(self) -> str:
+        n = self.present.sum(-1).float()
+        return (f"{self.meta['split']}: {self.n_sims} sims x {self.steps} steps x "
+                f"{self.max_vehicles} slots, vehicles present per step "
+                f"{n.mean():.1f} (min {n.min():.0f}, max {n.max():.0f})")
+
+
+# ----------------------------------------------------------------------------- keys
+def _sha256_file(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _sumo_version() -> str:
+    from importlib.metadata import version
+
+    return version("eclipse-sumo")
+
+
+def _inputs(scenario: Any) -> dict[str, Any]:
+    """Resolved input files of the scenario, with the config key that names each."""
+    sumo = scenario.sumo
+    if sumo.sumocfg:
+        return {"sumocfg": resolve_path(sumo.sumocfg, "scenario.sumo.sumocfg"),
+                "net_file": None, "route_files": []}
+    routes = [resolve_path(r, f"scenario.sumo.route_files[{i}]")
+              for i, r in enumerate(sumo.route_files)]
+    return {"sumocfg": None, "net_file": resolve_path(sumo.net_file, "scenario.sumo.net_file"),
+            "route_files": routes}
+
+
+def split_key(scenario: Any, split_cfg: Any, split: str) -> tuple[str, dict[str, Any]]:
+    """Cache key and the description it hashes: every parameter that changes traces."""
+    files = _inputs(scenario)
+    hashed = [p for p in [files["sumocfg"], files["net_file"], *files["route_files"]] if p]
+    desc = {
+        "format": FORMAT_VERSION,
+        "split": split,
+        "sumo_version": _sumo_version(),
+        "input_sha256": {p.name: _sha256_file(p) for p in hashed},
+        "fleet_size": scenario.sumo.fleet_size,
+        "extra_args": list(scenario.sumo.extra_args),
+        "area": [scenario.area.x_min, scenario.area.y_min,
+                 scenario.area.width, scenario.area.height],
+        "dt": scenario.dt,
+        "first_seed": split_cfg.first_seed,
+        "n_sims": split_cfg.n_sims,
+        "duration_s": split_cfg.duration_s,
+        "warmup_s": split_cfg.warmup_s,
+    }
+    digest = hashlib.sha256(json.dumps(desc, sort_keys=True).encode()).hexdigest()[:16]
+    return f"{scenario.name}-{split}-{digest}", desc
+
+
+# ----------------------------------------------------------------------------- file io
+def _checksum(positions: torch.Tensor, present: torch.Tensor) -> str:
+    h = hashlib.sha256(positions.contiguous().numpy().tobytes())
+    h.update(present.contiguous().numpy().tobytes())
+    return h.hexdigest()
+
+
+def save_traceset(ts: TraceSet, path: Path) -> None:
+    """Write atomically: a crash never leaves a half-written cache file behind."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    meta = dict(ts.meta, checksum=_checksum(ts.positions, ts.present))
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    torch.save({"positions": ts.positions, "present": ts.present,
+                "meta_json": json.dumps(meta)}, tmp)
+    os.replace(tmp, path)
+
+
+def load_traceset(path: Path) -> TraceSet:
+    """Load and verify a cache file; raise :class:`TraceCacheError` if it is not sound."""
+    try:
+        blob = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # truncated zip, wrong format, ...
+        raise TraceCacheError(f"cannot read {path}: {type(e).__name__}: {e}") from e
+    if not isinstance(blob, dict) or not {"positions", "present", "meta_json"} <= blob.keys():
+        raise TraceCacheError(f"{path} lacks the keys positions/present/meta_json")
+    pos, pres = blob["positions"], blob["present"]
+    try:
+        meta = json.loads(blob["meta_json"])
+    except (TypeError, json.JSONDecodeError) as e:
+        raise TraceCacheError(f"{path} has unreadable metadata: {e}") from e
+    if pos.dtype != torch.float32 or pres.dtype != torch.bool or pos.ndim != 4 \
+            or pos.shape[:3] != pres.shape or pos.shape[-1] != 2:
+        raise TraceCacheError(f"{path} has inconsistent tensors: positions "
+                              f"{tuple(pos.shape)} {pos.dtype}, present {tuple(pres.shape)} "
+                              f"{pres.dtype}")
+    if meta.get("checksum") != _checksum(pos, pres):
+        raise TraceCacheError(f"{path} fails its checksum: the data was altered or damaged")
+    return TraceSet(pos, pres, meta, source="cache")
+
+
+# ----------------------------------------------------------------------------- build
+def check_area_contains_network(scenario: Any, net_file: Path | None) -> None:
+    """Every lane (internal ones too) must lie inside the area: vehicles stay inside."""
+    if net_file is None:
+        return
+    import sumolib
+
+    net = sumolib.net.readNet(str(net_file), withInternal=True)
+    xs, ys = [], []
+    for edge in net.getEdges(withInternal=True):
+        for lane in edge.getLanes():
+            for x, y in lane.getShape():
+                xs.append(x)
+                ys.append(y)
+    a = scenario.area
+    lo_x, lo_y, hi_x, hi_y = min(xs), min(ys), max(xs), max(ys)
+    if lo_x < a.x_min or lo_y < a.y_min or hi_x > a.x_min + a.width \
+            or hi_y > a.y_min + a.height:
+        raise ConfigError(
+            f"scenario.area (x {a.x_min}..{a.x_min + a.width}, y {a.y_min}.."
+            f"{a.y_min + a.height}) does not contain the network's lanes (x {lo_x:.1f}.."
+            f"{hi_x:.1f}, y {lo_y:.1f}..{hi_y:.1f}) of {net_file}. Set scenario.area.x_min/"
+            f"y_min/width/height to a rectangle that contains them.")
+
+
+def _requests(scenario: Any, split_cfg: Any) -> list[SimRequest]:
+    files = _inputs(scenario)
+    dt = float(scenario.dt)
+    return [SimRequest(
+        seed=split_cfg.first_seed + i,
+        net_file=str(files["net_file"]) if files["net_file"] else None,
+        route_files=[str(p) for p in files["route_files"]],
+        sumocfg=str(files["sumocfg"]) if files["sumocfg"] else None,
+        fleet_size=int(scenario.sumo.fleet_size),
+        dt=dt,
+        warmup_steps=int(round(split_cfg.warmup_s / dt)),
+        steps=int(round(split_cfg.duration_s / dt)),
+        origin=(float(scenario.area.x_min), float(scenario.area.y_min)),
+        extra_args=list(scenario.sumo.extra_args),
+    ) for i in range(split_cfg.n_sims)]
+
+
+def _run_all(requests: list[SimRequest], workers: int, desc: str) -> list[SimResult]:
+    n = min(len(requests), workers or os.cpu_count() or 1)
+    bar = tqdm(total=len(requests), desc=desc, unit="sim", leave=False)
+    try:
+        if n <= 1:
+            results = []
+            for r in requests:
+                results.append(run_simulation(r))
+                bar.update()
+            return results
+        # spawn: libsumo holds one simulation per process, never share a forked one
+        with ProcessPoolExecutor(n, mp_context=mp.get_context("spawn")) as pool:
+            futures = [pool.submit(run_simulation, r) for r in requests]
+            for f in futures:
+                f.add_done_callback(lambda _: bar.update())
+            return [f.result() for f in futures]
+    finally:
+        bar.close()
+
+
+def _stack(results: list[SimResult]) -> tuple[torch.Tensor, torch.Tensor]:
+    steps = results[0].positions.shape[0]
+    slots = max(r.positions.shape[1] for r in results)
+    pos = np.zeros((len(results), steps, slots, 2), dtype=np.float32)
+    pres = np.zeros((len(results), steps, slots), dtype=bool)
+    for i, r in enumerate(results):
+        pos[i, :, : r.positions.shape[1]] = r.positions
+        pres[i, :, : r.present.shape[1]] = r.present
+    return torch.from_numpy(pos), torch.from_numpy(pres)
+
+
+def build_split(scenario: Any, split_cfg: Any, split: str, workers: int = 0) -> TraceSet:
+    """Run SUMO for every seed of the split and stack the traces (no caching)."""
+    files = _inputs(scenario)
+    check_area_contains_network(scenario, files["net_file"])
+    _, desc = split_key(scenario, split_cfg, split)
+    requests = _requests(scenario, split_cfg)
+    t0 = time.perf_counter()
+    try:
+        results = _run_all(requests, workers, f"SUMO {split}")
+    except SumoRunError:
+        raise
+    except Exception as e:  # a worker died: name it, keep the cause
+        raise SumoRunError(f"building {split} traces failed: {type(e).__name__}: {e}") from e
+    pos, pres = _stack(results)
+    meta = dict(desc, seeds=[r.seed for r in results],
+                teleport_vehicle_steps=sum(r.teleports for r in results),
+                build_seconds=round(time.perf_counter() - t0, 3))
+    return TraceSet(pos, pres, meta)
+
+
+def cache_path(scenario: Any, traces_cfg: Any, split: str) -> Path:
+    key, _ = split_key(scenario, getattr(traces_cfg, split), split)
+    return Path(str(traces_cfg.cache_dir)).expanduser() / f"{key}.pt"
+
+
+def get_traces(scenario: Any, traces_cfg: Any, split: str, verbose: bool = True) -> TraceSet:
+    """The split's traces: from the cache when sound, else built with SUMO and cached."""
+    if split not in SPLITS:
+        raise ConfigError(f"split must be one of {SPLITS}, got {split!r}.")
+    validate_scenario_traces(scenario, traces_cfg)
+    path = cache_path(scenario, traces_cfg, split)
+    if path.exists():
+        try:
+            ts = load_traceset(path)
+            if verbose:
+                log.info("traces %s: cache hit %s", split, path)
+            return ts
+        except TraceCacheError as e:
+            log.warning("trace cache file is damaged, rebuilding it: %s", e)
+    ts = build_split(scenario, getattr(traces_cfg, split), split, traces_cfg.workers)
+    save_traceset(ts, path)
+    if verbose:
+        log.info("traces %s built in %.2f s -> %s\n  %s", split, ts.meta["build_seconds"], path,
+                 ts.summary())
+    return ts
+
+
+# ----------------------------------------------------------------------------- CLI
+def _app(cfg) -> None:
+    from uabs_rl.config import to_container
+
+    cfg = to_container(cfg)
+    splits = SPLITS if cfg.split == "all" else (cfg.split,)
+    for split in splits:
+        t0 = time.perf_counter()
+        ts = get_traces(cfg.scenario, cfg.traces, split, verbose=False)
+        how = "built with SUMO" if ts.source == "built" else "loaded from cache"
+        print(f"{how} in {time.perf_counter() - t0:.2f} s: {ts.summary()}\n  "
+              f"{cache_path(cfg.scenario, cfg.traces, split)}")
+
+
+def main() -> None:
+    """Entry point of ``uabs-traces``."""
+    import hydra
+
+    from uabs_rl.config import register_configs
+
+    register_configs()
+    hydra.main(version_base="1.3", config_path=str(Path(__file__).parents[1] / "conf"),
+               config_name="traces")(_app)()
+
+
+if __name__ == "__main__":
+    main()
