@@ -64,18 +64,55 @@ class TracesConfig:
     eval: SplitConfig = field(
         default_factory=lambda: SplitConfig(first_seed=10_000, n_sims=2, duration_s=600.0)
     )
-    cache_dir: str = "${oc.env:UABS_RL_CACHE,'~/.cache/uabs_rl'}/traces"  # trace cache location
+    cache_dir: str | None = None  # null = $UABS_RL_CACHE/traces, default ~/.cache/uabs_rl/traces
     workers: int = 0  # SUMO processes in parallel; 0 = one per core
 
 
 @dataclass
 class ScenarioConfig:
-    """The city and its timing (vehicles, area, δt)."""
+    """The city, its vehicles, and the UABS fleet flying over it (SPEC §1, §4, §5)."""
 
     name: str = "manhattan"
     area: AreaConfig = field(default_factory=AreaConfig)
     dt: float = 1.0  # δt, seconds per step (SUMO step length and sampling period)
     sumo: SumoConfig = field(default_factory=SumoConfig)
+    n_uabs: int = 3  # M, the agents
+    altitude: float = 100.0  # h (m), all UABS
+    speed: float = 20.0  # v (m/s): each action moves v·δt
+    episode_steps: int = 80  # T
+    window_steps: int = 10  # N, service window length [decision: the paper gives none]
+    nhat_s: int = 5  # N̂_s, served steps per window to be satisfied [decision]
+    lambda_s: float = 10.0  # λ_s, proximity penalty
+    lambda_c: float = 1000.0  # λ_c, collision penalty
+    collision_distance: float = 1.0  # closer than this is a collision (m)
+    safety_distance: float | None = None  # d_th (m); null = 2·h·tan(φ/2) ≈ 72.8 m [decision]
+    lattice: bool = True  # positions on a lattice of pitch v·δt [decision]; false = continuous
+    safe_start: bool = True  # the inner UABS starts ≥ d_th from the others [decision]
+    priority_obs_scale: float = 10.0  # b_t is divided by this in the observation
+    time_is_terminal: bool = True  # t/T is observed: t = T ends the MDP, no bootstrap [decision]
+
+
+@dataclass
+class ChannelConfig:
+    """3GPP TR 38.901 UMa uplink, GUE to UABS, with a k×k beam grid (SPEC §3)."""
+
+    name: str = "uma"
+    carrier_ghz: float = 30.0  # f_c
+    ue_height: float = 1.5  # h_UT (m)
+    tx_power_dbm: float = 14.0  # P_tx
+    tx_gain_db: float = 0.0  # G_tx
+    noise_dbm: float = -106.4  # P_n
+    snr_threshold_db: float = -13.7  # SNR_th
+    fov_deg: float = 40.0  # φ
+    n_beams: int = 9  # B, a square number (3×3 grid)
+    los_mode: str = "sample"  # sample (Bernoulli per link per step) | expected | los [decision]
+    shadow_fading: bool = False  # log-normal shadowing, σ below [decision: off]
+    shadow_sigma_los_db: float = 4.0
+    shadow_sigma_nlos_db: float = 6.0
+    outside_beam_gain_db: float | None = None  # null = ideal beams, no service outside [decision]
+
+
+LOS_MODES = ("sample", "expected", "los")
 
 
 @dataclass
@@ -90,6 +127,7 @@ class TracesAppConfig:
 def register_configs() -> None:
     cs = ConfigStore.instance()
     cs.store(group="scenario", name="scenario_schema", node=ScenarioConfig)
+    cs.store(group="channel", name="channel_schema", node=ChannelConfig)
     cs.store(name="traces_app_schema", node=TracesAppConfig)
 
 
@@ -161,3 +199,38 @@ def to_container(cfg: Any) -> Any:
         _check_known_keys(obj, cfg, "")
         return obj
     return cfg
+
+
+def validate_env(scenario: Any, channel: Any) -> None:
+    """Value checks for the environment, each naming the offending key."""
+    checks = [
+        (scenario.n_uabs >= 1, "scenario.n_uabs", "must be >= 1", scenario.n_uabs),
+        (scenario.altitude > channel.ue_height, "scenario.altitude",
+         "must exceed channel.ue_height", scenario.altitude),
+        (scenario.speed > 0, "scenario.speed", "must be > 0", scenario.speed),
+        (scenario.episode_steps >= 1, "scenario.episode_steps", "must be >= 1",
+         scenario.episode_steps),
+        (scenario.window_steps >= 1, "scenario.window_steps", "must be >= 1",
+         scenario.window_steps),
+        (1 <= scenario.nhat_s <= scenario.window_steps, "scenario.nhat_s",
+         "must be in 1..scenario.window_steps", scenario.nhat_s),
+        (scenario.collision_distance > 0, "scenario.collision_distance", "must be > 0",
+         scenario.collision_distance),
+        (scenario.safety_distance is None or scenario.safety_distance
+         >= scenario.collision_distance, "scenario.safety_distance",
+         "must be null or >= scenario.collision_distance", scenario.safety_distance),
+        (scenario.priority_obs_scale > 0, "scenario.priority_obs_scale", "must be > 0",
+         scenario.priority_obs_scale),
+        (min(scenario.area.width, scenario.area.height) >= scenario.speed * scenario.dt,
+         "scenario.area", "must be at least v·δt wide and high so every UABS can move",
+         (scenario.area.width, scenario.area.height)),
+        (channel.carrier_ghz > 0, "channel.carrier_ghz", "must be > 0", channel.carrier_ghz),
+        (0 < channel.fov_deg < 180, "channel.fov_deg", "must be in (0, 180)", channel.fov_deg),
+        (channel.n_beams >= 1 and round(channel.n_beams ** 0.5) ** 2 == channel.n_beams,
+         "channel.n_beams", "must be a square number (k x k beam grid)", channel.n_beams),
+        (channel.los_mode in LOS_MODES, "channel.los_mode", f"must be one of {LOS_MODES}",
+         channel.los_mode),
+    ]
+    for ok, key, rule, value in checks:
+        if not ok:
+            raise ConfigError(f"{key} {rule}, got {value!r}.")

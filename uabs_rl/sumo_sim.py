@@ -16,6 +16,8 @@ Vehicles come from two sources that can be combined:
 
 from __future__ import annotations
 
+import pickle
+import sys
 import time
 from dataclasses import dataclass
 
@@ -193,3 +195,29 @@ def _record(ls, req: SimRequest, start: float) -> SimResult:
             positions[t, i] = xy
             present[t, i] = True
     return SimResult(req.seed, positions, present, teleports, time.perf_counter() - start)
+
+
+def _worker_main(argv: list[str]) -> int:
+    """``python -m uabs_rl.sumo_sim REQUEST.pkl RESULT.npz``: one simulation in its own
+    process (libsumo holds one simulation per process)."""
+    req_path, out_path = argv
+    with open(req_path, "rb") as f:
+        req = pickle.load(f)
+    try:
+        res = run_simulation(req)
+    except SumoRunError as e:
+        print(f"SumoRunError: {e}", file=sys.stderr)
+        return 2
+    np.savez(out_path, positions=res.positions, present=res.present,
+             teleports=res.teleports, seconds=res.seconds)
+    return 0
+
+
+def load_result(seed: int, path: str) -> SimResult:
+    with np.load(path) as z:
+        return SimResult(seed, z["positions"], z["present"], int(z["teleports"]),
+                         float(z["seconds"]))
+
+
+if __name__ == "__main__":
+    sys.exit(_worker_main(sys.argv[1:]))

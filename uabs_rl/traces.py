@@ -16,10 +16,13 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-import multiprocessing as mp
 import os
+import pickle
+import subprocess
+import sys
+import tempfile
 import time
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -29,7 +32,7 @@ import torch
 from tqdm.auto import tqdm
 
 from uabs_rl.config import ConfigError, resolve_path, validate_scenario_traces
-from uabs_rl.sumo_sim import SimRequest, SimResult, SumoRunError, run_simulation
+from uabs_rl.sumo_sim import SimRequest, SimResult, SumoRunError, load_result, run_simulation
 
 log = logging.getLogger(__name__)
 
@@ -195,7 +198,21 @@ def _requests(scenario: Any, split_cfg: Any) -> list[SimRequest]:
     ) for i in range(split_cfg.n_sims)]
 
 
+def _run_in_subprocess(req: SimRequest, tmp: Path) -> SimResult:
+    req_path, out_path = tmp / f"req{req.seed}.pkl", tmp / f"out{req.seed}.npz"
+    req_path.write_bytes(pickle.dumps(req))
+    proc = subprocess.run([sys.executable, "-m", "uabs_rl.sumo_sim", str(req_path),
+                           str(out_path)], capture_output=True, text=True)
+    if proc.returncode != 0:
+        tail = (proc.stderr or proc.stdout).strip().splitlines()[-5:]
+        raise SumoRunError(f"the SUMO worker for seed {req.seed} exited with code "
+                           f"{proc.returncode}: " + " | ".join(tail))
+    return load_result(req.seed, str(out_path))
+
+
 def _run_all(requests: list[SimRequest], workers: int, desc: str) -> list[SimResult]:
+    """Run the simulations, ``workers`` at a time (0 = one per core). Parallel runs are
+    separate processes: libsumo holds one simulation per process."""
     n = min(len(requests), workers or os.cpu_count() or 1)
     bar = tqdm(total=len(requests), desc=desc, unit="sim", leave=False)
     try:
@@ -205,9 +222,8 @@ def _run_all(requests: list[SimRequest], workers: int, desc: str) -> list[SimRes
                 results.append(run_simulation(r))
                 bar.update()
             return results
-        # spawn: libsumo holds one simulation per process, never share a forked one
-        with ProcessPoolExecutor(n, mp_context=mp.get_context("spawn")) as pool:
-            futures = [pool.submit(run_simulation, r) for r in requests]
+        with tempfile.TemporaryDirectory(prefix="uabs_sumo_") as tmp, ThreadPoolExecutor(n) as pool:
+            futures = [pool.submit(_run_in_subprocess, r, Path(tmp)) for r in requests]
             for f in futures:
                 f.add_done_callback(lambda _: bar.update())
             return [f.result() for f in futures]
@@ -235,10 +251,8 @@ def build_split(scenario: Any, split_cfg: Any, split: str, workers: int = 0) -> 
     t0 = time.perf_counter()
     try:
         results = _run_all(requests, workers, f"SUMO {split}")
-    except SumoRunError:
-        raise
-    except Exception as e:  # a worker died: name it, keep the cause
-        raise SumoRunError(f"building {split} traces failed: {type(e).__name__}: {e}") from e
+    except SumoRunError as e:
+        raise SumoRunError(f"building {split} traces failed: {e}") from e
     pos, pres = _stack(results)
     meta = dict(desc, seeds=[r.seed for r in results],
                 teleport_vehicle_steps=sum(r.teleports for r in results),
@@ -246,9 +260,16 @@ def build_split(scenario: Any, split_cfg: Any, split: str, workers: int = 0) -> 
     return TraceSet(pos, pres, meta)
 
 
+def cache_dir(traces_cfg: Any) -> Path:
+    """``traces.cache_dir``, or ``$UABS_RL_CACHE/traces`` (default ``~/.cache/uabs_rl``)."""
+    if traces_cfg.cache_dir:
+        return Path(str(traces_cfg.cache_dir)).expanduser()
+    return Path(os.environ.get("UABS_RL_CACHE", "~/.cache/uabs_rl")).expanduser() / "traces"
+
+
 def cache_path(scenario: Any, traces_cfg: Any, split: str) -> Path:
     key, _ = split_key(scenario, getattr(traces_cfg, split), split)
-    return Path(str(traces_cfg.cache_dir)).expanduser() / f"{key}.pt"
+    return cache_dir(traces_cfg) / f"{key}.pt"
 
 
 def get_traces(scenario: Any, traces_cfg: Any, split: str, verbose: bool = True) -> TraceSet:

@@ -1,0 +1,96 @@
+"""Physics against hand-computed values (SPEC §3, §4, §5)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from uabs_rl import channel as ch
+
+T = torch.tensor
+
+
+def test_los_probability_hand_values():
+    # d2D <= 18 m: always LoS
+    assert ch.los_probability(T([0.0, 10.0, 18.0])).tolist() == [1.0, 1.0, 1.0]
+    # d2D = 50: 18/50 + exp(-50/63)(1 - 18/50) = 0.36 + 0.45219 * 0.64 = 0.64940
+    # d2D = 100: 0.18 + exp(-100/63) * 0.82 = 0.18 + 0.20452 * 0.82 = 0.34767
+    got = ch.los_probability(T([50.0, 100.0]))
+    assert got.tolist() == pytest.approx([0.649402, 0.347671], abs=1e-5)
+    # h_UT = 18 m: C' = (5/10)^1.5 = 0.35355; at 100 m the factor is
+    # 1 + 0.35355 * 1.25 * 1^3 * exp(-100/150) = 1.22690 -> 0.34767 * 1.22690 = 0.42656
+    assert ch.los_probability(T([100.0]), h_ut=18.0).item() == pytest.approx(0.426558, abs=1e-5)
+
+
+def test_pathloss_below_the_uabs():
+    # d2D = 0, h = 100, h_UT = 1.5: d3D = 98.5, log10(98.5) = 1.99344
+    # LoS:  28 + 22 * 1.99344 + 20 log10(30) = 28 + 43.8556 + 29.5424 = 101.398
+    # NLoS: 13.54 + 39.08 * 1.99344 + 29.5424 = 120.986 (> LoS, so NLoS = 120.986)
+    d2d, d3d = T([0.0]), T([98.5])
+    assert ch.pathloss_los(d2d, d3d, 100.0, 1.5, 30.0).item() == pytest.approx(101.398, abs=1e-3)
+    assert ch.pathloss_nlos(d2d, d3d, 100.0, 1.5, 30.0).item() == pytest.approx(120.986, abs=1e-3)
+
+
+def test_pathloss_at_40_m():
+    # d3D = sqrt(40^2 + 98.5^2) = 106.312, log10 = 2.02658
+    # LoS: 28 + 22 * 2.02658 + 29.5424 = 102.127; NLoS: 13.54 + 39.08 * 2.02658 + 29.5424 = 122.281
+    d2d, d3d = T([40.0]), T([math.hypot(40.0, 98.5)])
+    assert ch.pathloss_los(d2d, d3d, 100.0, 1.5, 30.0).item() == pytest.approx(102.127, abs=1e-3)
+    assert ch.pathloss_nlos(d2d, d3d, 100.0, 1.5, 30.0).item() == pytest.approx(122.281, abs=1e-3)
+
+
+def test_pathloss_beyond_the_breakpoint():
+    # h = 10, h_UT = 1.5, 3.5 GHz: d'BP = 4 * 9 * 0.5 * 3.5e9 / c = 210.145 m
+    assert ch.breakpoint_distance(10.0, 1.5, 3.5) == pytest.approx(210.145, abs=1e-3)
+    # paper's heights, 30 GHz: 4 * 99 * 0.5 * 30e9 / 299792458 = 19813.7 m: PL1 everywhere
+    assert ch.breakpoint_distance(100.0, 1.5, 30.0) == pytest.approx(19813.7, abs=0.1)
+    # d2D = 500: d3D = 500.072; PL2 = 28 + 40 log10(500.072) + 20 log10(3.5)
+    #            - 9 log10(210.145^2 + 8.5^2) = 105.031 (PL1 would be 98.260)
+    d2d, d3d = T([500.0]), T([math.hypot(500.0, 8.5)])
+    assert ch.pathloss_los(d2d, d3d, 10.0, 1.5, 3.5).item() == pytest.approx(105.031, abs=1e-3)
+
+
+def test_snr():
+    # 14 + 0 + 38.48 - 120.986 - (-106.4) = 37.894 dB
+    got = ch.snr_db(T([120.986]), 14.0, 0.0, 38.4792, -106.4).item()
+    assert got == pytest.approx(37.893, abs=1e-3)
+
+
+def test_derived_beam_quantities():
+    # Φ_beam = 2π(1 - cos 20°)/9 = 0.042102 sr; in "degrees": 0.042102 * 57.2958 = 2.41230
+    assert ch.beam_solid_angle(40.0, 9) == pytest.approx(0.0421025, abs=1e-6)
+    # G = 41000 / 2.41230^2 = 7045.8 -> 38.479 dB (Table 1 rounds it to 38 dB)
+    assert ch.beam_gain_db(40.0, 9) == pytest.approx(38.479, abs=1e-3)
+    # cos θ_b = 1 - Φ/(2π) = 0.993299, θ_b = 6.636°, r_b = 100 tan θ_b = 11.635 m
+    assert ch.beam_footprint_radius(100.0, 40.0, 9) == pytest.approx(11.635, abs=1e-3)
+    # d_th = 2 * 100 * tan 20° = 72.794 m
+    assert ch.safety_distance(100.0, 40.0) == pytest.approx(72.794, abs=1e-3)
+    # coverage bound: 3 * 9 * π * 11.6351^2 / (350 * 170) = 11483 / 59500 = 0.1930
+    assert ch.coverage_bound(3, 9, 11.6351, 350 * 170) == pytest.approx(0.1930, abs=1e-4)
+
+
+def test_beam_centres_layout():
+    c = ch.beam_centres(10.0, 9)
+    assert c[0].tolist() == [-20.0, 20.0]  # row 0 north, col 0 west
+    assert c[4].tolist() == [0.0, 0.0]
+    assert c[8].tolist() == [20.0, -20.0]
+
+
+def test_vehicle_lands_in_the_right_beam():
+    r = ch.beam_footprint_radius(100.0, 40.0, 9)  # 11.635
+    p = 2 * r
+    dx = T([0.0, p, -p, 0.0, 0.9 * r, 3.5 * r, 1.0])
+    dy = T([0.0, p, -p, r + 0.5, 0.9 * r, 0.0, -p - 1.0])
+    inside, idx = ch.assign_beams(dx, dy, r, 9)
+    # centre -> 4; NE centre -> 2; SW centre -> 6; just north of the centre beam's rim
+    # lies 11.135 m from the north centre -> beam 1; (0.9r, 0.9r) is 1.27 r from every
+    # centre -> outside; 3.5 r east is beyond the grid -> outside; (1, -p-1) -> beam 7
+    assert inside.tolist() == [True, True, True, True, False, False, True]
+    assert idx[inside].tolist() == [4, 2, 6, 1, 7]
+
+
+def test_non_square_beam_count_is_refused():
+    with pytest.raises(ValueError, match="square"):
+        ch.beam_centres(10.0, 8)

@@ -1,0 +1,120 @@
+"""Physics as plain tensor functions: 3GPP TR 38.901 UMa channel, beams, service.
+
+Everything here is batched elementwise math on tensors (any shape), so a test can
+call it with hand-computed inputs and the environment calls it on ``[E, M, V]``
+link tensors. Distances in metres, frequencies in GHz, powers in dB/dBm.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+SPEED_OF_LIGHT = 299_792_458.0
+
+
+# ----------------------------------------------------------------------------- UMa
+def los_probability(d2d: torch.Tensor, h_ut: float = 1.5) -> torch.Tensor:
+    """TR 38.901 Table 7.4.2-1, UMa: ρ_L as a function of the horizontal distance."""
+    c_prime = 0.0 if h_ut <= 13.0 else ((h_ut - 13.0) / 10.0) ** 1.5
+    d = d2d.clamp_min(18.0)  # the formula is used beyond 18 m only
+    p = (18.0 / d + torch.exp(-d / 63.0) * (1.0 - 18.0 / d)) * (
+        1.0 + c_prime * 1.25 * (d / 100.0) ** 3 * torch.exp(-d / 150.0))
+    return torch.where(d2d <= 18.0, torch.ones_like(p), p)
+
+
+def breakpoint_distance(h_bs: float, h_ut: float, fc_ghz: float) -> float:
+    """d'_BP = 4 h'_BS h'_UT f_c / c with effective heights h' = h − 1 m."""
+    return 4.0 * (h_bs - 1.0) * (h_ut - 1.0) * fc_ghz * 1e9 / SPEED_OF_LIGHT
+
+
+def pathloss_los(d2d: torch.Tensor, d3d: torch.Tensor, h_bs: float, h_ut: float,
+                 fc_ghz: float) -> torch.Tensor:
+    """TR 38.901 Table 7.4.1-1, UMa LoS: PL1 up to the breakpoint, PL2 beyond."""
+    d_bp = breakpoint_distance(h_bs, h_ut, fc_ghz)
+    log_fc = 20.0 * math.log10(fc_ghz)
+    pl1 = 28.0 + 22.0 * torch.log10(d3d) + log_fc
+    pl2 = (28.0 + 40.0 * torch.log10(d3d) + log_fc
+           - 9.0 * math.log10(d_bp ** 2 + (h_bs - h_ut) ** 2))
+    return torch.where(d2d <= d_bp, pl1, pl2)
+
+
+def pathloss_nlos(d2d: torch.Tensor, d3d: torch.Tensor, h_bs: float, h_ut: float,
+                  fc_ghz: float) -> torch.Tensor:
+    """TR 38.901 Table 7.4.1-1, UMa NLoS: max(PL_LoS, PL'_NLoS)."""
+    pl_nlos = (13.54 + 39.08 * torch.log10(d3d) + 20.0 * math.log10(fc_ghz)
+               - 0.6 * (h_ut - 1.5))
+    return torch.maximum(pathloss_los(d2d, d3d, h_bs, h_ut, fc_ghz), pl_nlos)
+
+
+def snr_db(pathloss_db: torch.Tensor, tx_power_dbm: float, tx_gain_db: float,
+           rx_gain_db: float | torch.Tensor, noise_dbm: float) -> torch.Tensor:
+    """SNR = P_tx + G_tx + G_rx − PL − P_n."""
+    return tx_power_dbm + tx_gain_db + rx_gain_db - pathloss_db - noise_dbm
+
+
+# ----------------------------------------------------------------------------- beams
+def beam_solid_angle(fov_deg: float, n_beams: int) -> float:
+    """Φ_beam = 2π(1 − cos(φ/2)) / B, steradians."""
+    return 2.0 * math.pi * (1.0 - math.cos(math.radians(fov_deg) / 2.0)) / n_beams
+
+
+def beam_gain_db(fov_deg: float, n_beams: int) -> float:
+    """G = 41000 / (Φ_beam · 360/(2π))², in dB (38.5 dB for φ = 40°, B = 9)."""
+    phi_deg2 = beam_solid_angle(fov_deg, n_beams) * 360.0 / (2.0 * math.pi)
+    return 10.0 * math.log10(41000.0 / phi_deg2 ** 2)
+
+
+def beam_footprint_radius(altitude: float, fov_deg: float, n_beams: int) -> float:
+    """r_b = h tan θ_b with θ_b the half-angle of a cone of solid angle Φ_beam (≈ 11.6 m)."""
+    cos_theta = 1.0 - beam_solid_angle(fov_deg, n_beams) / (2.0 * math.pi)
+    return altitude * math.tan(math.acos(cos_theta))
+
+
+def safety_distance(altitude: float, fov_deg: float) -> float:
+    """d_th = 2 h tan(φ/2): twice the coverage radius (≈ 72.8 m for the defaults)."""
+    return 2.0 * altitude * math.tan(math.radians(fov_deg) / 2.0)
+
+
+def beam_grid_side(n_beams: int) -> int:
+    k = math.isqrt(n_beams)
+    if k * k != n_beams:
+        raise ValueError(f"n_beams must be a square (k x k grid), got {n_beams}")
+    return k
+
+
+def beam_centres(r_b: float, n_beams: int = 9) -> torch.Tensor:
+    """[B, 2] ground offsets of the beam centres: pitch 2 r_b, index = k·row + col,
+    row 0 to the north (+y), col 0 to the west (−x)."""
+    k = beam_grid_side(n_beams)
+    half = (k - 1) / 2.0
+    rows, cols = torch.meshgrid(torch.arange(k), torch.arange(k), indexing="ij")
+    x = (cols.flatten() - half) * 2.0 * r_b
+    y = (half - rows.flatten()) * 2.0 * r_b
+    return torch.stack([x, y], dim=-1)
+
+
+def assign_beams(dx: torch.Tensor, dy: torch.Tensor, r_b: float,
+                 n_beams: int = 9) -> tuple[torch.Tensor, torch.Tensor]:
+    """Footprint membership of ground offsets (dx, dy) from the UABS's ground point.
+
+    Returns ``(inside, index)``: ``inside`` is True where the point lies in a beam's
+    circular footprint (radius r_b); ``index`` is the nearest beam centre (the beam a
+    point in two touching footprints belongs to). Centres form a square lattice, so the
+    nearest one is a per-axis rounding.
+    """
+    k = beam_grid_side(n_beams)
+    half = (k - 1) / 2.0
+    pitch = 2.0 * r_b
+    col = torch.round(dx / pitch + half).clamp(0, k - 1)
+    row = torch.round(half - dy / pitch).clamp(0, k - 1)
+    cx = (col - half) * pitch
+    cy = (half - row) * pitch
+    inside = (dx - cx) ** 2 + (dy - cy) ** 2 <= r_b * r_b
+    return inside, (row * k + col).long()
+
+
+def coverage_bound(n_uabs: int, n_beams: int, r_b: float, area_m2: float) -> float:
+    """Largest share of the area under footprints at one step (ideal beams, no overlap)."""
+    return min(1.0, n_uabs * n_beams * math.pi * r_b ** 2 / area_m2)
