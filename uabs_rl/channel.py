@@ -95,24 +95,33 @@ def beam_centres(r_b: float, n_beams: int = 9) -> torch.Tensor:
     return torch.stack([x, y], dim=-1)
 
 
-def assign_beams(dx: torch.Tensor, dy: torch.Tensor, r_b: float,
-                 n_beams: int = 9) -> tuple[torch.Tensor, torch.Tensor]:
-    """Footprint membership of ground offsets (dx, dy) from the UABS's ground point.
+def assign_beams(dx: torch.Tensor, dy: torch.Tensor, r_b: float, n_beams: int = 9,
+                 index_offset: torch.Tensor | float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """Footprint membership of ground offsets (dx east, dy north) from the UABS's
+    ground point.
 
     Returns ``(inside, index)``: ``inside`` is True where the point lies in a beam's
     circular footprint (radius r_b); ``index`` is the nearest beam centre (the beam a
-    point in two touching footprints belongs to). Centres form a square lattice, so the
-    nearest one is a per-axis rounding.
+    point in two touching footprints belongs to), plus ``index_offset``.
     """
     k = beam_grid_side(n_beams)
     half = (k - 1) / 2.0
-    pitch = 2.0 * r_b
-    col = torch.round(dx / pitch + half).clamp(0, k - 1)
-    row = torch.round(half - dy / pitch).clamp(0, k - 1)
-    cx = (col - half) * pitch
-    cy = (half - row) * pitch
-    inside = (dx - cx) ** 2 + (dy - cy) ** 2 <= r_b * r_b
-    return inside, (row * k + col).long()
+    inv_pitch = 1.0 / (2.0 * r_b)
+    return beam_cells(dx * inv_pitch + half, half - dy * inv_pitch, k, index_offset)
+
+
+def beam_cells(gx: torch.Tensor, gy: torch.Tensor, k: int,
+               index_offset: torch.Tensor | float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`assign_beams` in beam-grid coordinates: ``gx`` (column, grows east) and
+    ``gy`` (row, grows south) in units of the pitch 2 r_b, centre beam at
+    ((k−1)/2, (k−1)/2). Centres form a square lattice, so the nearest one is a per-axis
+    rounding; a point is inside when within half a pitch (= r_b) of it. Consumes
+    ``gx`` and ``gy`` (modified in place)."""
+    col = gx.round().clamp_(0, k - 1)
+    row = gy.round().clamp_(0, k - 1)
+    fx, fy = gx.sub_(col), gy.sub_(row)
+    inside = torch.addcmul(fx * fx, fy, fy) <= 0.25  # (r_b / pitch)^2
+    return inside, (col.add_(index_offset).add_(row, alpha=k)).long()
 
 
 def coverage_bound(n_uabs: int, n_beams: int, r_b: float, area_m2: float) -> float:

@@ -39,6 +39,7 @@ N_ACTIONS = 4
 ACTION_NAMES = ("up", "right", "down", "left")  # +y, +x, −y, −x
 _UNIT_MOVES = torch.tensor([[0.0, 1.0], [1.0, 0.0], [0.0, -1.0], [-1.0, 0.0]])
 
+AGENT_OUT = ("observation", "action_mask", "position", "beam_priority", "reward")
 DIAG_KEYS = (  # every one is a float [n_envs]
     "served_fraction", "collisions", "proximity", "fallbacks", "illegal_moves",
     "min_pair_distance", "closest_approach",
@@ -112,6 +113,65 @@ class EnvParams:
         return 3 + 2 * self.n_uabs + self.n_beams
 
 
+class ServiceRadii:
+    """Horizontal distances within which a link's SNR reaches SNR_th, for one receive
+    gain: ``r_los`` if LoS, ``r_nlos`` if NLoS, ``r_exp`` with the expected path loss.
+    Valid without shadowing (the path loss then grows with distance)."""
+
+    def __init__(self, p: EnvParams, gain_db: float, reach: float):
+        self.p = p
+        f = lambda pl: ch.snr_db(pl, p.tx_dbm, p.tx_gain_db, gain_db, p.noise_dbm)  # noqa: E731
+
+        def pl(kind: str):
+            def fn(d: torch.Tensor) -> torch.Tensor:
+                d3 = (d * d + (p.altitude - p.h_ut) ** 2).sqrt()
+                los = ch.pathloss_los(d, d3, p.altitude, p.h_ut, p.fc_ghz)
+                nlos = ch.pathloss_nlos(d, d3, p.altitude, p.h_ut, p.fc_ghz)
+                rho = ch.los_probability(d, p.h_ut)
+                return {"los": los, "nlos": nlos, "exp": rho * los + (1 - rho) * nlos}[kind]
+            return fn
+
+        self.r_los, self.r_nlos, self.r_exp = (
+            _radius(lambda d, k=k: f(pl(k)(d)) >= p.snr_th_db) for k in ("los", "nlos", "exp"))
+        # a LoS draw can change the outcome only between the two radii, within reach
+        self.needs_draw = p.los_mode == "sample" and self.r_nlos < min(self.r_los, reach)
+
+    def always_within(self, reach: float) -> bool:
+        """True if every link up to ``reach`` metres is served whatever its LoS state."""
+        r = {"los": self.r_los, "expected": self.r_exp}.get(self.p.los_mode, self.r_nlos)
+        return r >= reach
+
+    def served(self, d2: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
+        """Served flags from squared horizontal distances ``d2``."""
+        mode = self.p.los_mode
+        if mode == "los":
+            return d2 <= self.r_los ** 2
+        if mode == "expected":
+            return d2 <= self.r_exp ** 2
+        sure = d2 <= self.r_nlos ** 2
+        if not self.needs_draw:
+            return sure
+        maybe = d2 <= self.r_los ** 2
+        los = torch.rand(d2.shape, generator=gen, device=d2.device) < ch.los_probability(
+            d2.sqrt(), self.p.h_ut)
+        return sure | (maybe & los)
+
+
+def _radius(ok, hi: float = 1e6, iters: int = 80) -> float:
+    """Largest d in [0, hi] with ok(d), for ok true up to a point and false beyond
+    (-1 if never, inf if always)."""
+    t = lambda d: bool(ok(torch.tensor([d], dtype=torch.float64)).item())  # noqa: E731
+    if not t(0.0):
+        return -1.0
+    if t(hi):
+        return math.inf
+    lo = 0.0
+    for _ in range(iters):
+        mid = (lo + hi) / 2
+        lo, hi = (mid, hi) if t(mid) else (lo, mid)
+    return lo
+
+
 class StepMath:
     """The environment's tensor math, free of TensorDict. All state is ``[E, ...]``."""
 
@@ -126,7 +186,21 @@ class StepMath:
         self.lattice_lo = (self.area - (n - 1).float() * p.step_m) / 2.0
         self.arange_n1 = torch.arange(p.window_steps + 1, device=device)
         self.eye = torch.eye(p.n_uabs, dtype=torch.bool, device=device)
-        self.agent_offset = (torch.arange(p.n_uabs, device=device) * p.n_beams)[None, :, None]
+        # beam index space of all agents: agent u's beams are u·B .. u·B + B − 1
+        self.agent_offset = (torch.arange(p.n_uabs, device=device, dtype=torch.float32)
+                             * p.n_beams)[None, :, None]
+        # Without shadowing the SNR falls monotonically with distance, so "served" is
+        # "closer than a radius" (per LoS state): exact, and far cheaper than the SNR.
+        self.radii: dict[float, ServiceRadii] = {}
+        if not p.shadow:
+            gains = [p.gain_db] + ([p.outside_gain_db] if p.outside_gain_db is not None else [])
+            reach = 3.0 * p.r_b * math.sqrt(2.0) if p.outside_gain_db is None else math.hypot(
+                p.width, p.height)  # farthest link that can be a candidate
+            self.radii = {g: ServiceRadii(p, g, reach) for g in gains}
+        self.always_served = p.outside_gain_db is None and bool(self.radii) and \
+            self.radii[p.gain_db].always_within(reach)
+        self.beam_k = ch.beam_grid_side(p.n_beams)
+        self.inv_pitch = 1.0 / (2.0 * p.r_b)
 
     # ------------------------------------------------------------------ start
     def lattice_point(self, ix: torch.Tensor, iy: torch.Tensor) -> torch.Tensor:
@@ -175,9 +249,10 @@ class StepMath:
 
     # ------------------------------------------------------------------ geometry
     def boundary_mask(self, pos: torch.Tensor) -> torch.Tensor:
-        """[E, M, 4] True where the move keeps the UABS inside the area."""
-        nxt = pos[:, :, None, :] + self.moves  # [E, M, 4, 2]
-        return ((nxt >= 0) & (nxt <= self.area)).all(-1)
+        """[E, M, 4] True where the move (up, right, down, left) keeps the UABS inside."""
+        x, y, s = pos[..., 0], pos[..., 1], self.p.step_m
+        return torch.stack([y + s <= self.p.height, x + s <= self.p.width,
+                            y - s >= 0.0, x - s >= 0.0], dim=-1)
 
     def pair_distances(self, pos: torch.Tensor) -> torch.Tensor:
         """[E, M, M] distances, +inf on the diagonal."""
@@ -195,19 +270,34 @@ class StepMath:
     # ------------------------------------------------------------------ service
     def links(self, pos: torch.Tensor, veh: torch.Tensor, present: torch.Tensor,
               gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Footprint membership ``inside [E,M,V]``, beam index ``[E,M,V]`` and served
-        flags ``[E,V]`` for vehicles ``veh [E,V,2]`` under UABS at ``pos [E,M,2]``."""
-        p = self.p
-        rel = veh[:, None, :, :] - pos[:, :, None, :]  # [E, M, V, 2]
-        dx, dy = rel.unbind(-1)
-        inside, beam = ch.assign_beams(dx, dy, p.r_b, p.n_beams)
-        inside = inside & present[:, None, :]
-        snr = self.snr(dx * dx + dy * dy, gen)
-        gain = p.gain_db if p.outside_gain_db is None else torch.where(
-            inside, p.gain_db, p.outside_gain_db)
-        candidate = inside if p.outside_gain_db is None else present[:, None, :].expand_as(inside)
-        served = (candidate & (snr + gain >= p.snr_th_db)).any(1)
-        return inside, beam, served
+        """Footprint membership ``inside [E,M,V]``, beam index ``[E,M,V]`` (all agents'
+        beams in one index space: u·B + i) and served flags ``[E,V]``, for vehicles
+        ``veh [E,2,V]`` (planar) under UABS at ``pos [E,M,2]``."""
+        p, k, half, inv = self.p, self.beam_k, (self.beam_k - 1) / 2.0, self.inv_pitch
+        # beam-grid coordinates of every link, from [E,V] and [E,M] pieces: one
+        # [E,M,V] subtraction per axis
+        vx, vy = veh[:, 0, :] * inv, veh[:, 1, :] * inv
+        ux, uy = pos[..., 0] * inv - half, pos[..., 1] * inv + half
+        gx = vx[:, None, :] - ux[:, :, None]
+        gy = uy[:, :, None] - vy[:, None, :]
+        if not self.always_served:
+            d2 = ((gx - half) ** 2 + (gy - half) ** 2) * (2.0 * p.r_b) ** 2
+        inside, beam = ch.beam_cells(gx, gy, k, self.agent_offset)
+        inside &= present[:, None, :]
+        if self.always_served:  # every link inside a footprint reaches SNR_th
+            return inside, beam, inside.any(1)
+        if p.outside_gain_db is None:  # ideal beams: only links inside a footprint
+            ok = self.radii[p.gain_db].served(d2, gen) if self.radii else \
+                self.snr(d2, gen) + p.gain_db >= p.snr_th_db
+            return inside, beam, (inside & ok).any(1)
+        if self.radii:
+            ok_in = self.radii[p.gain_db].served(d2, gen)
+            ok_out = self.radii[p.outside_gain_db].served(d2, gen)
+        else:
+            snr = self.snr(d2, gen)
+            ok_in = snr + p.gain_db >= p.snr_th_db
+            ok_out = snr + p.outside_gain_db >= p.snr_th_db
+        return inside, beam, torch.where(inside, ok_in, ok_out).any(1) & present
 
     def snr(self, d2d_sq: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
         """SNR in dB without the receive gain, per link (LoS state per ``los_mode``)."""
@@ -232,10 +322,11 @@ class StepMath:
 
     def beam_sums(self, inside: torch.Tensor, beam: torch.Tensor,
                   priority: torch.Tensor) -> torch.Tensor:
-        """b: [E, M, B] sum of the priorities of the vehicles under each beam."""
+        """b: [E, M, B] sum of the priorities of the vehicles under each beam
+        (``beam`` indexes all agents' beams at once, as ``links`` returns it)."""
         e, m, v = inside.shape
-        idx = (beam + self.agent_offset).reshape(e, m * v)
-        src = (inside * priority[:, None, :]).reshape(e, m * v)
+        idx = beam.reshape(e, m * v)
+        src = torch.where(inside, priority[:, None, :], 0.0).reshape(e, m * v)
         b = torch.zeros(e, m * self.p.n_beams, device=priority.device, dtype=priority.dtype)
         return b.scatter_add_(1, idx, src).view(e, m, self.p.n_beams)
 
@@ -248,10 +339,11 @@ class StepMath:
         t = st["t"]
         start = (t % n == 0)[:, None]  # a window starts: p = 1, counts restart
         arrived = present & ~st["prev_present"]  # a vehicle (re)appears: p = 1
-        p_new = torch.where(start | arrived, torch.ones_like(st["priority"]),
-                            st["priority"] + served.float())
-        st["priority"] = torch.where(present, p_new, torch.zeros_like(p_new))
-        st["served_count"] = torch.where(start, served.long(), st["served_count"] + served.long())
+        served_f = served.float()
+        p_new = (st["priority"] + served_f).masked_fill_(start | arrived, 1.0)
+        st["priority"] = p_new.masked_fill_(~present, 0.0)
+        count = served.long()
+        st["served_count"] = torch.where(start, count, st["served_count"] + count)
         st["window_full"] = torch.where(start, present, st["window_full"] & present)
         st["prev_present"] = present
         ended = (st["window_full"] & (t % n == n - 1)[:, None]).float()  # [E, V]
@@ -273,8 +365,8 @@ class StepMath:
         p = self.p
         coll = dist < p.collision_distance
         prox = dist < p.d_th
-        r = torch.where(coll.any(-1), -p.lambda_c,
-                        torch.where(prox.any(-1), -p.lambda_s, b.sum(-1)))
+        r = b.sum(-1).masked_fill_(prox.any(-1), -p.lambda_s).masked_fill_(coll.any(-1),
+                                                                          -p.lambda_c)
         return r, coll.flatten(1).sum(-1) / 2.0, prox.flatten(1).sum(-1) / 2.0
 
     def observation(self, pos: torch.Tensor, t: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -284,6 +376,66 @@ class StepMath:
         tt = (t.float() / self.p.episode_steps)[:, None, None].expand(e, m, 1)
         fleet = norm.reshape(e, 1, 2 * m).expand(e, m, 2 * m)
         return torch.cat([norm, tt, fleet, b / self.p.obs_scale], dim=-1)
+
+
+    # ------------------------------------------------------------------ one step
+    def step(self, st: dict[str, torch.Tensor], action: torch.Tensor, veh_pos: torch.Tensor,
+             veh_present: torch.Tensor, gen: torch.Generator,
+             fallback: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """Advance the state ``st`` in place by one step; return the flat outputs.
+        ``action [E, M]``; ``fallback [E, M]`` flags agents whose mask was empty."""
+        action = action.long()
+        old = st["pos"]
+        legal = self.boundary_mask(old).gather(-1, action[..., None]).squeeze(-1)  # [E, M]
+        new = torch.where(legal[..., None], old + self.moves[action], old)
+        st["pos"] = new
+        st["t"] = st["t"] + 1
+        veh, present = vehicles_at(st, veh_pos, veh_present)
+        inside, beam, served = self.links(new, veh, present, gen)
+        self.update_service(st, served, present)
+        st["b"] = self.beam_sums(inside, beam, st["priority"])
+        dist = self.pair_distances(new)
+        reward, n_coll, n_prox = self.rewards(st["b"], dist)
+        n_fb = (fallback.float().flatten(1).sum(-1) if fallback is not None
+                else torch.zeros_like(n_coll))
+        st["ep_return"] = st["ep_return"] + reward.sum(-1)
+        st["ep_collisions"] = st["ep_collisions"] + n_coll
+        st["ep_proximity"] = st["ep_proximity"] + n_prox
+        st["ep_fallbacks"] = st["ep_fallbacks"] + n_fb
+        step_diag = {"collisions": n_coll, "proximity": n_prox, "fallbacks": n_fb,
+                     "illegal_moves": (~legal).float().sum(-1),
+                     "min_pair_distance": dist.flatten(1).amin(-1).clamp_max(1e6),
+                     "closest_approach": self.closest_approach(old, new).clamp_max(1e6)}
+        out = self.outputs(st, served, present, step_diag)
+        out["reward"] = reward[..., None]
+        return out
+
+    def outputs(self, st: dict[str, torch.Tensor], served: torch.Tensor,
+                present: torch.Tensor, diag: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """Observation, masks, flags and diagnostics of the current state."""
+        p = self.p
+        done = (st["t"] >= p.episode_steps)[:, None]  # [E, 1]
+        never = torch.zeros_like(done)
+        pg_curve = self.pg_curve(st["n_windows"], st["ns_hist"])
+        return dict(
+            diag, observation=self.observation(st["pos"], st["t"], st["b"]),
+            action_mask=self.boundary_mask(st["pos"]), position=st["pos"],
+            beam_priority=st["b"], done=done,
+            terminated=done if p.time_is_terminal else never,
+            truncated=never if p.time_is_terminal else done,
+            served_fraction=served.float().sum(-1) / present.float().sum(-1).clamp_min(1.0),
+            ep_return=st["ep_return"], ep_collisions=st["ep_collisions"],
+            ep_proximity=st["ep_proximity"], ep_fallbacks=st["ep_fallbacks"],
+            pg=pg_curve[:, p.nhat_s - 1], pg_curve=pg_curve)
+
+
+def vehicles_at(st: dict[str, torch.Tensor], veh_pos: torch.Tensor,
+                veh_present: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Vehicle positions [E, 2, V] (planar) and presence [E, V] at each env's step."""
+    s, steps = veh_pos.shape[:2]
+    row = st["sim"] * steps + st["start"] + st["t"]  # flat row: index_select beats fancy indexing
+    return (veh_pos.view(s * steps, *veh_pos.shape[2:]).index_select(0, row),
+            veh_present.view(s * steps, -1).index_select(0, row))
 
 
 class UABSEnv(EnvBase):
@@ -310,7 +462,8 @@ class UABSEnv(EnvBase):
         self.mode = mode
         self.n_envs = n_envs
         self._check_traces(traces, scenario)
-        self.register_buffer("veh_pos", traces.positions.to(device))  # [S, steps, V, 2]
+        # planar layout [S, steps, 2, V]: x and y rows stay contiguous per step
+        self.register_buffer("veh_pos", traces.positions.transpose(-1, -2).contiguous().to(device))
         self.register_buffer("veh_present", traces.present.to(device))  # [S, steps, V]
         self._windows = self._eval_windows(n_eval_windows) if mode == "eval" else None
         self.rng = torch.Generator(device=device)
@@ -344,7 +497,7 @@ class UABSEnv(EnvBase):
         return torch.stack([k % s, (k // s) * (self.params.episode_steps + 1)], dim=-1)
 
     def _empty_state(self) -> dict[str, torch.Tensor]:
-        e, m, v = self.n_envs, self.params.n_uabs, self.veh_pos.shape[2]
+        e, m, v = self.n_envs, self.params.n_uabs, self.veh_pos.shape[3]
         n, dev = self.params.window_steps, self.device
         z = lambda *s, dt=torch.float32: torch.zeros(*s, dtype=dt, device=dev)  # noqa: E731
         return {
@@ -391,10 +544,6 @@ class UABSEnv(EnvBase):
         self._state["cursor"] = torch.arange(self.n_envs, device=self.device)
 
     # ------------------------------------------------------------------ traces
-    def _vehicles(self, st: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
-        idx = st["start"] + st["t"]
-        return self.veh_pos[st["sim"], idx], self.veh_present[st["sim"], idx]
-
     def _draw_windows(self, st: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
         if self.mode == "eval":
             w = self._windows[st["cursor"] % self._windows.shape[0]]
@@ -415,7 +564,7 @@ class UABSEnv(EnvBase):
         fresh = self._empty_state()
         fresh["sim"], fresh["start"] = self._draw_windows(st)
         fresh["pos"] = self.math.start_positions(self.n_envs, self.rng)
-        veh, present = self._vehicles(fresh)
+        veh, present = vehicles_at(fresh, self.veh_pos, self.veh_present)
         inside, beam, served = self.math.links(fresh["pos"], veh, present, self.rng)
         self.math.update_service(fresh, served, present)
         fresh["b"] = self.math.beam_sums(inside, beam, fresh["priority"])
@@ -427,56 +576,25 @@ class UABSEnv(EnvBase):
         if self.mode == "eval":  # the next reset of env i takes window i + n_envs, ...
             st["cursor"] = st["cursor"] + mask.long() * self.n_envs
         zeros = torch.zeros(self.n_envs, device=self.device)
-        return self._output(st, served, present, {k: zeros for k in DIAG_KEYS})
+        return self._pack(self.math.outputs(st, served, present,
+                                            {k: zeros for k in DIAG_KEYS}))
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        st, mth = self._state, self.math
-        action = tensordict.get(ACTION).long()
-        old = st["pos"]
-        legal = mth.boundary_mask(old).gather(-1, action[..., None]).squeeze(-1)  # [E, M]
-        new = torch.where(legal[..., None], old + mth.moves[action], old)
-        st["pos"] = new
-        st["t"] = st["t"] + 1
-        veh, present = self._vehicles(st)
-        inside, beam, served = mth.links(new, veh, present, self.rng)
-        mth.update_service(st, served, present)
-        st["b"] = mth.beam_sums(inside, beam, st["priority"])
-        dist = mth.pair_distances(new)
-        reward, n_coll, n_prox = mth.rewards(st["b"], dist)
         fb = tensordict.get(FALLBACK, None)
-        n_fb = fb.float().flatten(1).sum(-1) if fb is not None else torch.zeros_like(n_coll)
-        st["ep_return"] = st["ep_return"] + reward.sum(-1)
-        st["ep_collisions"] = st["ep_collisions"] + n_coll
-        st["ep_proximity"] = st["ep_proximity"] + n_prox
-        st["ep_fallbacks"] = st["ep_fallbacks"] + n_fb
-        step_diag = {"collisions": n_coll, "proximity": n_prox, "fallbacks": n_fb,
-                     "illegal_moves": (~legal).float().sum(-1),
-                     "min_pair_distance": dist.flatten(1).amin(-1).clamp_max(1e6),
-                     "closest_approach": mth.closest_approach(old, new).clamp_max(1e6)}
-        out = self._output(st, served, present, step_diag)
-        out.set(REWARD, reward[..., None])
-        return out
+        out = self.math.step(self._state, tensordict.get(ACTION), self.veh_pos,
+                             self.veh_present, self.rng, fb)
+        return self._pack(out)
 
-    def _output(self, st: dict[str, torch.Tensor], served: torch.Tensor,
-                present: torch.Tensor, diag: dict[str, torch.Tensor]) -> TensorDict:
-        e, m, p, mth = self.n_envs, self.params.n_uabs, self.params, self.math
-        done = (st["t"] >= p.episode_steps)[:, None]  # [E, 1]
-        terminated = done if p.time_is_terminal else torch.zeros_like(done)
-        truncated = torch.zeros_like(done) if p.time_is_terminal else done
-        pg_curve = mth.pg_curve(st["n_windows"], st["ns_hist"])
-        diag = dict(diag, served_fraction=served.float().sum(-1)
-                    / present.float().sum(-1).clamp_min(1.0),
-                    ep_return=st["ep_return"], ep_collisions=st["ep_collisions"],
-                    ep_proximity=st["ep_proximity"], ep_fallbacks=st["ep_fallbacks"],
-                    pg=pg_curve[:, p.nhat_s - 1])
+    def _pack(self, out: dict[str, torch.Tensor]) -> TensorDict:
+        """The step math's flat outputs as the env's TensorDict (see the specs)."""
+        e, m = self.n_envs, self.params.n_uabs
         flags = lambda f: f[:, None, :].expand(e, m, 1)  # noqa: E731
-        agents = TensorDict({
-            "observation": mth.observation(st["pos"], st["t"], st["b"]),
-            "action_mask": mth.boundary_mask(st["pos"]),
-            "position": st["pos"], "beam_priority": st["b"],
-            "done": flags(done), "terminated": flags(terminated), "truncated": flags(truncated),
-        }, batch_size=(e, m), device=self.device)
+        agents = {k: out[k] for k in AGENT_OUT if k in out}
+        agents.update(done=flags(out["done"]), terminated=flags(out["terminated"]),
+                      truncated=flags(out["truncated"]))
         return TensorDict({
-            AGENTS: agents, "done": done, "terminated": terminated, "truncated": truncated,
-            DIAG: TensorDict(dict(diag, pg_curve=pg_curve), batch_size=(e,), device=self.device),
+            AGENTS: TensorDict(agents, batch_size=(e, m), device=self.device),
+            "done": out["done"], "terminated": out["terminated"], "truncated": out["truncated"],
+            DIAG: TensorDict({k: out[k] for k in (*DIAG_KEYS, "pg_curve")}, batch_size=(e,),
+                             device=self.device),
         }, batch_size=(e,), device=self.device)

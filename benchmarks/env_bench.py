@@ -1,0 +1,84 @@
+"""Environment throughput: ``UABSEnv.step`` against the same step math as raw tensors.
+
+    python benchmarks/env_bench.py                 # n_envs 1, 64, 1024 on CPU
+    python benchmarks/env_bench.py --n-envs 64 --device cuda
+
+Prints env steps/s and agent-steps/s for each n_envs, for the raw step math
+(``StepMath.step`` on plain tensors, no TensorDict) and for ``env.step`` (TensorDict,
+TorchRL's checks), and the ratio of their costs. Default scenario, traces and channel.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import torch
+
+from uabs_rl.config import ChannelConfig, ScenarioConfig, TracesConfig
+from uabs_rl.env import ACTION, UABSEnv
+from uabs_rl.traces import get_traces
+
+
+def _time(fn, steps: int, episodes: int) -> float:
+    """Seconds per step: the fastest of ``episodes`` episodes of ``steps`` steps (resets
+    excluded; the minimum is the figure least disturbed by other load on the machine)."""
+    best = float("inf")
+    for _ in range(episodes):
+        run = fn()
+        t0 = time.perf_counter()
+        for _ in range(steps):
+            run()
+        best = min(best, time.perf_counter() - t0)
+    return best / steps
+
+
+def bench(n_envs: int, device: str, episodes: int, scenario, channel, traces) -> dict:
+    env = UABSEnv(scenario, channel, traces, n_envs=n_envs, device=device, seed=0)
+    m, steps = scenario.n_uabs, scenario.episode_steps
+    actions = torch.randint(0, 4, (steps, n_envs, m), device=device)
+
+    def raw():
+        env.reset()
+        st, i = env._state, iter(range(steps))
+        return lambda: env.math.step(st, actions[next(i)], env.veh_pos, env.veh_present,
+                                     env.rng)
+
+    def wrapped():
+        td = env.reset()
+        i = iter(range(steps))
+
+        def one():
+            nonlocal td
+            td = env.step(td.set(ACTION, actions[next(i)]))["next"]
+        return one
+
+    for fn in (raw, wrapped):  # warm-up
+        _time(fn, steps, 1)
+    t_raw = _time(raw, steps, episodes)
+    t_env = _time(wrapped, steps, episodes)
+    return {"n_envs": n_envs, "raw_sps": 1 / t_raw, "env_sps": 1 / t_env,
+            "raw_asps": n_envs * m / t_raw, "env_asps": n_envs * m / t_env,
+            "ratio": t_env / t_raw}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--n-envs", type=int, nargs="+", default=[1, 64, 1024])
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--episodes", type=int, default=5)
+    args = ap.parse_args()
+    scenario, channel, traces_cfg = ScenarioConfig(), ChannelConfig(), TracesConfig()
+    traces = get_traces(scenario, traces_cfg, "train")
+    print(f"device={args.device} threads={torch.get_num_threads()} M={scenario.n_uabs} "
+          f"vehicles={traces.max_vehicles} T={scenario.episode_steps}")
+    print(f"{'n_envs':>7} {'raw steps/s':>12} {'env steps/s':>12} {'raw agent-steps/s':>18} "
+          f"{'env agent-steps/s':>18} {'env/raw cost':>13}")
+    for n in args.n_envs:
+        r = bench(n, args.device, args.episodes, scenario, channel, traces)
+        print(f"{r['n_envs']:>7} {r['raw_sps']:>12.0f} {r['env_sps']:>12.0f} "
+              f"{r['raw_asps']:>18,.0f} {r['env_asps']:>18,.0f} {r['ratio']:>13.2f}")
+
+
+if __name__ == "__main__":
+    main()

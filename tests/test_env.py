@@ -1,0 +1,252 @@
+"""UABSEnv: specs, determinism, resets, masks, rewards and the P_g bookkeeping."""
+
+from __future__ import annotations
+
+import copy
+
+import pytest
+import torch
+from torchrl.envs.utils import check_env_specs
+
+from uabs_rl.config import ChannelConfig, ConfigError, ScenarioConfig
+from uabs_rl.env import ACTION, DIAG, MASK, POSITION, REWARD, EnvParams, StepMath, UABSEnv
+from uabs_rl.traces import get_traces
+
+EP = 20  # episode length for the small traces (60 s)
+
+
+@pytest.fixture(scope="module")
+def train(small_traces_cfg):
+    return get_traces(small_traces_cfg.scenario, small_traces_cfg.traces, "train")
+
+
+@pytest.fixture(scope="module")
+def held_out(small_traces_cfg):
+    return get_traces(small_traces_cfg.scenario, small_traces_cfg.traces, "eval")
+
+
+def scenario(small_traces_cfg, **kw) -> ScenarioConfig:
+    sc = copy.deepcopy(small_traces_cfg.scenario)
+    sc.episode_steps = EP
+    for k, v in kw.items():
+        setattr(sc, k, v)
+    return sc
+
+
+def random_legal(td):
+    mask = td[MASK]
+    flat = mask.reshape(-1, mask.shape[-1]).float()
+    a = torch.multinomial(flat, 1).reshape(mask.shape[:-1])
+    td.set(ACTION, a)
+    return td
+
+
+def rollout(env, steps, seed):
+    env.set_seed(seed)
+    torch.manual_seed(seed)
+    return env.rollout(steps, policy=random_legal, break_when_any_done=False)
+
+
+@pytest.mark.parametrize("n_envs", [1, 8])
+@pytest.mark.parametrize("m", [1, 3, 5])
+def test_check_env_specs(small_traces_cfg, train, n_envs, m):
+    env = UABSEnv(scenario(small_traces_cfg, n_uabs=m), ChannelConfig(), train, n_envs=n_envs)
+    check_env_specs(env, seed=0)
+    assert env.observation_spec["agents", "observation"].shape == (n_envs, m, 3 + 2 * m + 9)
+
+
+def test_seeded_rollouts_are_identical(small_traces_cfg, train):
+    env = UABSEnv(scenario(small_traces_cfg), ChannelConfig(), train, n_envs=4)
+    a, b = rollout(env, 2 * EP, seed=3), rollout(env, 2 * EP, seed=3)
+    assert (a == b).all()
+    c = rollout(env, 2 * EP, seed=4)
+    assert not torch.equal(a["next", "agents", "reward"], c["next", "agents", "reward"])
+
+
+def test_boundary_mask_keeps_every_uabs_inside(small_traces_cfg, train):
+    sc = scenario(small_traces_cfg)
+    env = UABSEnv(sc, ChannelConfig(), train, n_envs=16)
+    td = rollout(env, 3 * EP, seed=0)
+    pos = td["next", POSITION]
+    assert (pos[..., 0] >= 0).all() and (pos[..., 0] <= sc.area.width).all()
+    assert (pos[..., 1] >= 0).all() and (pos[..., 1] <= sc.area.height).all()
+    assert (td["next", DIAG, "illegal_moves"] == 0).all()
+    assert td[MASK].any(-1).all()  # never an all-False row
+    # on the lattice: pitch 20 m, centred (5 m from the edges in 350 x 170)
+    assert torch.allclose(torch.remainder(pos - 5.0, 20.0), torch.zeros_like(pos), atol=1e-4)
+
+
+def test_an_illegal_move_is_refused_and_counted(small_traces_cfg, train):
+    env = UABSEnv(scenario(small_traces_cfg, n_uabs=1), ChannelConfig(), train, n_envs=1)
+    td = env.reset()
+    env._state["pos"][:] = torch.tensor([[[5.0, 5.0]]])  # lower-left lattice corner
+    td.set(ACTION, torch.tensor([[3]]))  # left: out of the area
+    out = env.step(td)
+    assert out["next", POSITION].tolist() == [[[5.0, 5.0]]]
+    assert out["next", DIAG, "illegal_moves"].item() == 1
+    assert out["next", MASK].tolist() == [[[True, True, False, False]]]
+
+
+def test_partial_reset_resets_only_flagged_envs(small_traces_cfg, train):
+    env = UABSEnv(scenario(small_traces_cfg), ChannelConfig(), train, n_envs=4)
+    env.set_seed(0)
+    td = env.reset()
+    for _ in range(5):
+        td = env.step(random_legal(td))["next"]
+    before = {k: v.clone() for k, v in env._state.items()}
+    flag = torch.tensor([True, False, True, False])
+    out = env.reset(td.set("_reset", flag[:, None]))
+    st = env._state
+    assert st["t"].tolist() == [0, 5, 0, 5]
+    for k in ("pos", "priority", "ep_return", "sim", "start"):
+        assert torch.equal(st[k][~flag], before[k][~flag]), k
+    assert (st["ep_return"][flag] == 0).all()
+    assert torch.equal(out[POSITION][~flag], before["pos"][~flag])
+
+
+def test_start_positions(small_traces_cfg, train):
+    sc = scenario(small_traces_cfg, n_uabs=4)
+    p = EnvParams.from_config(sc, ChannelConfig())
+    mth = StepMath(p, torch.device("cpu"))
+    pos = mth.start_positions(500, torch.Generator().manual_seed(0))
+    ring = pos[:, 1:]
+    on_edge = (ring[..., 0] == 5) | (ring[..., 0] == 345) | (ring[..., 1] == 5) \
+        | (ring[..., 1] == 165)
+    assert on_edge.all()  # the others on the perimeter (lattice ring)
+    d_inner = (pos[:, :1] - ring).norm(dim=-1).amin(-1)
+    assert (d_inner >= p.d_th).float().mean() > 0.99  # safe start (best of 32 draws)
+    assert pos[:, 0].std(0).min() > 30  # the inner one is spread over the area
+
+
+def test_reward_cases_from_constructed_positions(small_traces_cfg):
+    p = EnvParams.from_config(scenario(small_traces_cfg), ChannelConfig())
+    mth = StepMath(p, torch.device("cpu"))
+    b = torch.tensor([[[1.0] * 9, [2.0] * 9, [3.0] * 9]])  # ||b||_1 = 9, 18, 27
+    far = torch.tensor([[[0.0, 0.0], [200.0, 0.0], [0.0, 150.0]]])
+    near = torch.tensor([[[0.0, 0.0], [50.0, 0.0], [300.0, 150.0]]])  # 50 m < d_th
+    hit = torch.tensor([[[0.0, 0.0], [0.5, 0.0], [300.0, 150.0]]])  # 0.5 m < 1 m
+    r, coll, prox = mth.rewards(b, mth.pair_distances(far))  # (a)
+    assert r.tolist() == [[9.0, 18.0, 27.0]] and coll.item() == 0 and prox.item() == 0
+    r, coll, prox = mth.rewards(b, mth.pair_distances(near))  # (b)
+    assert r.tolist() == [[-10.0, -10.0, 27.0]] and coll.item() == 0 and prox.item() == 1
+    r, coll, prox = mth.rewards(b, mth.pair_distances(hit))  # (c): collision wins
+    assert r.tolist() == [[-1000.0, -1000.0, 27.0]] and coll.item() == 1 and prox.item() == 1
+
+
+def test_collision_through_the_env(small_traces_cfg, train):
+    """Two UABS moved into the same cell: −λ_c for both, one collision event."""
+    env = UABSEnv(scenario(small_traces_cfg, n_uabs=2), ChannelConfig(), train, n_envs=1)
+    td = env.reset()
+    env._state["pos"][:] = torch.tensor([[[105.0, 85.0], [145.0, 85.0]]])
+    td.set(ACTION, torch.tensor([[1, 3]]))  # right, left: both end at (125, 85)
+    out = env.step(td)["next"]
+    assert out[REWARD].squeeze(-1).tolist() == [[-1000.0, -1000.0]]
+    assert out[DIAG, "collisions"].item() == 1 and out[DIAG, "ep_collisions"].item() == 1
+    assert out[DIAG, "min_pair_distance"].item() == 0.0
+
+
+def test_swap_is_seen_by_the_closest_approach(small_traces_cfg, train):
+    """Two UABS swapping cells never share a sampled position but cross on the way."""
+    env = UABSEnv(scenario(small_traces_cfg, n_uabs=2), ChannelConfig(), train, n_envs=1)
+    td = env.reset()
+    env._state["pos"][:] = torch.tensor([[[105.0, 85.0], [125.0, 85.0]]])
+    out = env.step(td.set(ACTION, torch.tensor([[1, 3]])))["next"]
+    assert out[DIAG, "min_pair_distance"].item() == 20.0
+    assert out[DIAG, "closest_approach"].item() == 0.0
+
+
+def _service_state(n_veh: int, n: int) -> dict[str, torch.Tensor]:
+    return {"t": torch.zeros(1, dtype=torch.long), "priority": torch.zeros(1, n_veh),
+            "served_count": torch.zeros(1, n_veh, dtype=torch.long),
+            "window_full": torch.zeros(1, n_veh, dtype=torch.bool),
+            "prev_present": torch.zeros(1, n_veh, dtype=torch.bool),
+            "n_windows": torch.zeros(1, n_veh), "ns_hist": torch.zeros(1, n_veh, n + 1)}
+
+
+def test_priorities_and_pg_over_a_known_served_pattern(small_traces_cfg):
+    sc = scenario(small_traces_cfg, window_steps=4, nhat_s=2)
+    mth = StepMath(EnvParams.from_config(sc, ChannelConfig()), torch.device("cpu"))
+    st = _service_state(3, 4)
+    served = torch.tensor([  # t = 0..7, vehicles 0, 1, 2
+        [1, 0, 1], [1, 0, 1], [0, 0, 1], [1, 0, 0],
+        [1, 0, 1], [1, 1, 1], [1, 0, 1], [1, 0, 1]], dtype=torch.bool)
+    present = torch.ones(8, 3, dtype=torch.bool)
+    present[1, 2] = False  # vehicle 2 misses a step of window 1: that window does not count
+    priorities = []
+    for t in range(8):
+        st["t"] = torch.tensor([t])
+        mth.update_service(st, served[t][None] & present[t][None], present[t][None])
+        priorities.append(st["priority"][0].tolist())
+    # vehicle 0: p = 1 at t = 0 (window start), +1 when served: 2, 2, 3; new window: 1, 2, 3, 4
+    assert [p[0] for p in priorities] == [1, 2, 2, 3, 1, 2, 3, 4]
+    assert [p[1] for p in priorities] == [1, 1, 1, 1, 1, 2, 2, 2]
+    # vehicle 2: absent at t = 1 (p = 0), back at t = 2 (p = 1 again)
+    assert [p[2] for p in priorities] == [1, 0, 1, 1, 1, 2, 3, 4]
+    # N_s per window: v0 = 3, 4; v1 = 0, 1; v2 = (not counted), 4
+    assert st["n_windows"][0].tolist() == [2, 2, 1]
+    curve = mth.pg_curve(st["n_windows"], st["ns_hist"])[0]
+    # N̂_s = 1: (2/2 + 1/2 + 1/1) / 3 = 0.8333; 2: (1 + 0 + 1)/3; 3: (1 + 0 + 1)/3;
+    # 4: (1/2 + 0 + 1)/3 = 0.5
+    assert curve.tolist() == pytest.approx([2.5 / 3, 2 / 3, 2 / 3, 0.5])
+
+
+def test_pg_curve_of_a_constructed_served_matrix(small_traces_cfg):
+    sc = scenario(small_traces_cfg, window_steps=2, nhat_s=1)
+    mth = StepMath(EnvParams.from_config(sc, ChannelConfig()), torch.device("cpu"))
+    st = _service_state(2, 2)
+    served = torch.tensor([[1, 1], [1, 0], [0, 0], [1, 1]], dtype=torch.bool)
+    for t in range(4):
+        st["t"] = torch.tensor([t])
+        mth.update_service(st, served[t][None], torch.ones(1, 2, dtype=torch.bool))
+    # v0: N_s = 2, 1 -> share(≥1) = 1, share(≥2) = 0.5 ; v1: N_s = 1, 1 -> 1, 0
+    assert mth.pg_curve(st["n_windows"], st["ns_hist"])[0].tolist() == [1.0, 0.25]
+
+
+def test_episode_ends_at_T_and_tallies(small_traces_cfg, train):
+    env = UABSEnv(scenario(small_traces_cfg), ChannelConfig(), train, n_envs=2)
+    td = rollout(env, EP, seed=1)
+    done = td["next", "done"].squeeze(-1)
+    assert not done[:, :-1].any() and done[:, -1].all()
+    assert torch.equal(td["next", "agents", "terminated"][:, -1],
+                       torch.ones(2, 3, 1, dtype=torch.bool))
+    ret = td["next", REWARD].sum((1, 2, 3))
+    assert torch.allclose(td["next", DIAG, "ep_return"][:, -1], ret)
+    # b_t (the reward's source) sums the priorities of present vehicles under the beams
+    assert (td["next", "agents", "beam_priority"] >= 0).all()
+    assert td["next", DIAG, "served_fraction"].max() <= 1.0
+
+
+def test_eval_mode_walks_fixed_windows(small_traces_cfg, held_out):
+    env = UABSEnv(scenario(small_traces_cfg), ChannelConfig(), held_out, n_envs=2,
+                  mode="eval", n_eval_windows=2)
+    a = rollout(env, EP, seed=0)
+    b = rollout(env, EP, seed=0)
+    assert (a == b).all()
+    assert env._windows.tolist() == [[0, 0], [0, EP + 1]]
+    with pytest.raises(ConfigError, match="n_eval_windows"):
+        UABSEnv(scenario(small_traces_cfg), ChannelConfig(), held_out, n_envs=2,
+                mode="eval", n_eval_windows=3)
+
+
+def test_traces_too_short_for_an_episode(small_traces_cfg, train):
+    with pytest.raises(ConfigError, match="episode_steps"):
+        UABSEnv(scenario(small_traces_cfg, episode_steps=80), ChannelConfig(), train)
+
+
+@pytest.mark.parametrize("key,value", [("n_uabs", 0), ("speed", -1.0), ("nhat_s", 11)])
+def test_invalid_env_values_name_the_key(small_traces_cfg, train, key, value):
+    with pytest.raises(ConfigError, match=f"scenario.{key}"):
+        UABSEnv(scenario(small_traces_cfg, **{key: value}), ChannelConfig(), train)
+
+
+def test_los_modes_and_outside_gain(small_traces_cfg, train):
+    served = {}
+    for mode, outside in [("los", None), ("expected", None), ("sample", None),
+                          ("sample", 0.0)]:
+        chn = ChannelConfig(los_mode=mode, outside_beam_gain_db=outside)
+        env = UABSEnv(scenario(small_traces_cfg), chn, train, n_envs=4)
+        served[(mode, outside)] = rollout(env, EP, 0)["next", DIAG, "served_fraction"].mean()
+    # ideal beams at these powers: everyone inside a footprint is served whatever the LoS
+    assert served[("los", None)] == served[("expected", None)] == served[("sample", None)]
+    # the literal "0 dB outside the beam" reading serves far more vehicles
+    assert served[("sample", 0.0)] > 3 * served[("sample", None)]
