@@ -8,6 +8,7 @@ import pytest
 import torch
 from torchrl.envs.utils import check_env_specs
 
+from uabs_rl.channel import los_probability
 from uabs_rl.config import ChannelConfig, ConfigError, ScenarioConfig
 from uabs_rl.env import ACTION, DIAG, MASK, POSITION, REWARD, EnvParams, StepMath, UABSEnv
 from uabs_rl.traces import get_traces
@@ -250,3 +251,35 @@ def test_los_modes_and_outside_gain(small_traces_cfg, train):
     assert served[("los", None)] == served[("expected", None)] == served[("sample", None)]
     # the literal "0 dB outside the beam" reading serves far more vehicles
     assert served[("sample", 0.0)] > 3 * served[("sample", None)]
+
+
+@pytest.mark.parametrize("los_mode", ["los", "expected"])
+@pytest.mark.parametrize("threshold", [-13.7, 30.0, 45.0])
+def test_service_radius_equals_the_snr_rule(small_traces_cfg, los_mode, threshold):
+    """The distance-threshold shortcut gives exactly the SNR >= SNR_th decisions."""
+    chn = ChannelConfig(los_mode=los_mode, snr_threshold_db=threshold)
+    mth = StepMath(EnvParams.from_config(scenario(small_traces_cfg), chn), torch.device("cpu"))
+    radii = mth.radii[mth.p.gain_db]
+    d2 = torch.linspace(0.0, 400.0, 20001) ** 2
+    gen = torch.Generator().manual_seed(0)
+    by_snr = mth.snr(d2, gen) + mth.p.gain_db >= threshold
+    by_radius = radii.served(d2, gen)
+    assert torch.equal(by_snr, by_radius)
+    if threshold == 45.0:  # a real cut inside the range: both rules see it
+        assert by_snr.any() and not by_snr.all()
+
+
+def test_sampled_los_draws_only_where_they_matter(small_traces_cfg):
+    defaults = StepMath(EnvParams.from_config(scenario(small_traces_cfg), ChannelConfig()),
+                        torch.device("cpu"))
+    assert defaults.always_served  # ideal beams at Table 1 powers: footprint = service
+    chn = ChannelConfig(snr_threshold_db=45.0)  # LoS reaches farther than NLoS now
+    mth = StepMath(EnvParams.from_config(scenario(small_traces_cfg), chn), torch.device("cpu"))
+    radii = mth.radii[mth.p.gain_db]
+    assert radii.needs_draw and radii.r_nlos < radii.r_los
+    d = torch.tensor([radii.r_nlos * 0.99, (radii.r_nlos + radii.r_los) / 2,
+                      radii.r_los * 1.01]).repeat(4000)
+    served = radii.served(d ** 2, torch.Generator().manual_seed(0)).view(4000, 3).float()
+    rho = los_probability(d[1:2]).item()
+    assert served[:, 0].all() and not served[:, 2].any()
+    assert abs(served[:, 1].mean().item() - rho) < 0.03  # Bernoulli(ρ_L) in between
