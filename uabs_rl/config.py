@@ -116,6 +116,35 @@ LOS_MODES = ("sample", "expected", "los")
 
 
 @dataclass
+class MaskingConfig:
+    """Anti-collision mechanism (SPEC §6)."""
+
+    mode: str = "rank"  # penalty | flat | rank
+    flat_margin: float | None = None  # flat: unsafe below d_th + this; null = v·δt (paper)
+    collider_margin: float | None = None  # rank: colliders below d_th + this; null = 2·v·δt
+    # [decision] next-state mask of the double-DQN target in rank mode: "greedy" = the
+    # masks a greedy rank selection would apply at s'; "boundary" = boundary mask only
+    rank_next_mask: str = "greedy"
+
+
+MASKING_MODES = ("penalty", "flat", "rank")
+RANK_NEXT_MASKS = ("greedy", "boundary")
+
+
+def validate_masking(masking: Any) -> None:
+    if masking.mode not in MASKING_MODES:
+        raise ConfigError(f"masking.mode must be one of {MASKING_MODES}, got "
+                          f"{masking.mode!r}. Select it with masking=penalty|flat|rank.")
+    if masking.rank_next_mask not in RANK_NEXT_MASKS:
+        raise ConfigError(f"masking.rank_next_mask must be one of {RANK_NEXT_MASKS}, got "
+                          f"{masking.rank_next_mask!r}.")
+    for key in ("flat_margin", "collider_margin"):
+        v = getattr(masking, key)
+        if v is not None and v < 0:
+            raise ConfigError(f"masking.{key} must be null or >= 0, got {v}.")
+
+
+@dataclass
 class TracesAppConfig:
     """Top-level config of ``uabs-traces``."""
 
@@ -128,6 +157,7 @@ def register_configs() -> None:
     cs = ConfigStore.instance()
     cs.store(group="scenario", name="scenario_schema", node=ScenarioConfig)
     cs.store(group="channel", name="channel_schema", node=ChannelConfig)
+    cs.store(group="masking", name="masking_schema", node=MaskingConfig)
     cs.store(name="traces_app_schema", node=TracesAppConfig)
 
 

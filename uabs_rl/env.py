@@ -433,7 +433,10 @@ def vehicles_at(st: dict[str, torch.Tensor], veh_pos: torch.Tensor,
                 veh_present: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Vehicle positions [E, 2, V] (planar) and presence [E, V] at each env's step."""
     s, steps = veh_pos.shape[:2]
-    row = st["sim"] * steps + st["start"] + st["t"]  # flat row: index_select beats fancy indexing
+    # a window holds T + 1 steps; an env stepped past its end without a reset (TorchRL
+    # expects a reset) sees its vehicles frozen at the window's last step
+    t = st["t"].clamp_max(steps - 1 - st["start"])
+    row = st["sim"] * steps + st["start"] + t  # flat row: index_select beats fancy indexing
     return (veh_pos.view(s * steps, *veh_pos.shape[2:]).index_select(0, row),
             veh_present.view(s * steps, -1).index_select(0, row))
 

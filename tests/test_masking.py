@@ -1,0 +1,242 @@
+"""Anti-collision: the safety guarantee over random states, masks, exploration, ranks."""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from tensordict import TensorDict
+
+from uabs_rl.config import ChannelConfig, ConfigError, MaskingConfig, ScenarioConfig
+from uabs_rl.env import ACTION, BEAM_PRIORITY, DIAG, FALLBACK, MASK, POSITION, EnvParams, StepMath
+from uabs_rl.make import make_env, make_selector
+from uabs_rl.masking import (
+    COLLIDERS,
+    RANK_ORDER,
+    MaskedActionSelector,
+    SafetyTransform,
+    apply_fallback,
+    epsilon_greedy,
+    flat_unsafe,
+    next_state_mask,
+    potential_colliders,
+    rank_order,
+    rank_select,
+)
+from uabs_rl.traces import get_traces
+
+E = 64  # random states per hypothesis example
+
+
+def step_math(width: float, height: float, m: int) -> StepMath:
+    sc = ScenarioConfig(n_uabs=m)
+    sc.area.width, sc.area.height = width, height
+    return StepMath(EnvParams.from_config(sc, ChannelConfig()), torch.device("cpu"))
+
+
+def random_state(mth: StepMath, gen: torch.Generator, lattice: bool):
+    """Positions anywhere in the area (safe or not), Q-values and beam scores."""
+    m = mth.p.n_uabs
+    if lattice:
+        ix = torch.randint(0, int(mth.lattice_n[0]), (E, m), generator=gen)
+        iy = torch.randint(0, int(mth.lattice_n[1]), (E, m), generator=gen)
+        pos = mth.lattice_point(ix.float(), iy.float())
+    else:
+        pos = torch.rand(E, m, 2, generator=gen) * mth.area
+    q = torch.randn(E, m, 4, generator=gen)
+    b = torch.rand(E, m, 9, generator=gen).round() * torch.randint(0, 5, (E, m, 1), generator=gen)
+    return pos, q, b
+
+
+def select(mode: str, mth: StepMath, pos, q, b, eps, gen):
+    """One decision of the whole pipeline: transform rules + selector. Returns the
+    action, the stored mask and the fallback flags."""
+    p = mth.p
+    boundary = mth.boundary_mask(pos)
+    if mode == "flat":
+        unsafe, dist = flat_unsafe(pos, mth.moves, p.d_th + p.step_m)
+        mask, fb = apply_fallback(boundary & ~unsafe, boundary, dist)
+        return epsilon_greedy(q, mask, eps, gen), mask, fb
+    order = rank_order(b)
+    coll = potential_colliders(pos, p.d_th + 2 * p.step_m)
+    return rank_select(q, boundary, pos, order, coll, mth.moves, p.d_th, eps, gen)
+
+
+AREAS = st.sampled_from([(350.0, 170.0), (200.0, 120.0), (160.0, 100.0)])
+
+
+@settings(max_examples=60, deadline=None)
+@given(mode=st.sampled_from(["flat", "rank"]), m=st.integers(2, 6), area=AREAS,
+       lattice=st.booleans(), eps=st.floats(0.0, 1.0), seed=st.integers(0, 2**31 - 1))
+def test_masks_keep_every_pair_apart_unless_a_fallback_is_counted(mode, m, area, lattice,
+                                                                   eps, seed):
+    mth = step_math(*area, m)
+    gen = torch.Generator().manual_seed(seed)
+    pos, q, b = random_state(mth, gen, lattice)
+    action, mask, fb = select(mode, mth, pos, q, b, eps, gen)
+    assert mask.any(-1).all(), "a mask row is all False"
+    assert mask.gather(-1, action[..., None]).all(), "an executed action is illegal"
+    assert mth.boundary_mask(pos).gather(-1, action[..., None]).all()
+    new = pos + mth.moves[action]
+    close = mth.pair_distances(new).flatten(1).amin(-1) < mth.p.d_th  # [E]
+    assert not (close & ~fb.any(-1)).any(), "closer than d_th without a counted fallback"
+
+
+@settings(max_examples=40, deadline=None)
+@given(mode=st.sampled_from(["penalty", "flat", "rank"]), m=st.integers(1, 5),
+       seed=st.integers(0, 2**31 - 1))
+def test_exploration_is_uniform_over_legal_actions_and_greedy_is_best_legal(mode, m, seed):
+    mth = step_math(350.0, 170.0, m)
+    gen = torch.Generator().manual_seed(seed)
+    pos, q, b = random_state(mth, gen, True)
+    if mode == "penalty":
+        mask = mth.boundary_mask(pos)
+        greedy = epsilon_greedy(q, mask, 0.0, gen)
+    else:
+        greedy, mask, _ = select(mode, mth, pos, q, b, 0.0, gen)
+    best = q.masked_fill(~mask, -math.inf).argmax(-1)
+    assert torch.equal(greedy, best)
+
+
+def test_random_choice_is_uniform_over_the_legal_actions():
+    mask = torch.tensor([[True, False, True, True]]).expand(30000, 4)
+    a = epsilon_greedy(torch.zeros(30000, 4), mask, 1.0, torch.Generator().manual_seed(0))
+    counts = torch.bincount(a, minlength=4).float() / 30000
+    assert counts[1] == 0
+    assert torch.allclose(counts[[0, 2, 3]], torch.full((3,), 1 / 3), atol=0.015)
+
+
+def test_top_ranked_agent_takes_its_unmasked_greedy_action():
+    mth = step_math(350.0, 170.0, 4)
+    gen = torch.Generator().manual_seed(0)
+    pos, q, b = random_state(mth, gen, True)
+    action, mask, _ = select("rank", mth, pos, q, b, 0.0, gen)
+    top = rank_order(b)[:, 0]
+    rows = torch.arange(E)
+    boundary = mth.boundary_mask(pos)
+    expected = q[rows, top].masked_fill(~boundary[rows, top], -math.inf).argmax(-1)
+    assert torch.equal(action[rows, top], expected)
+    assert torch.equal(mask[rows, top], boundary[rows, top])
+
+
+def test_swapping_scores_swaps_who_yields():
+    """Two UABS 80 m apart both want to move towards each other: the higher-ranked one
+    does, the other may not (it would end 40 m away) and moves elsewhere."""
+    mth = step_math(350.0, 170.0, 2)
+    pos = torch.tensor([[[125.0, 85.0], [205.0, 85.0]]])
+    q = torch.tensor([[[0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]]])  # right, left
+    hi0 = torch.tensor([[[5.0] * 9, [1.0] * 9]])
+    a, mask, fb = select("rank", mth, pos, q, hi0, 0.0, None)
+    assert a.tolist() == [[1, 1]] and mask[0, 1, 3].item() is False and not fb.any()
+    a, mask, fb = select("rank", mth, pos, q, hi0.flip(1), 0.0, None)
+    assert a.tolist() == [[3, 3]] and mask[0, 0, 1].item() is False and not fb.any()
+
+
+def test_ties_rank_the_lower_index_first():
+    b = torch.tensor([[[1.0] * 9, [2.0] * 9, [1.0] * 9, [2.0] * 9]])
+    assert rank_order(b).tolist() == [[1, 3, 0, 2]]
+
+
+def test_fallback_takes_the_boundary_legal_action_farthest_from_the_others():
+    # agent 0 boxed in the lower-left corner, agent 1 right next to it
+    mth = step_math(350.0, 170.0, 2)
+    pos = torch.tensor([[[5.0, 5.0], [45.0, 25.0]]])
+    boundary = mth.boundary_mask(pos)
+    unsafe, dist = flat_unsafe(pos, mth.moves, mth.p.d_th + mth.p.step_m)
+    mask, fb = apply_fallback(boundary & ~unsafe, boundary, dist)
+    assert fb.tolist() == [[True, True]]
+    # agent 0 can go up (to (5, 25): 40 m from agent 1) or right ((25, 5): 28.3 m): up
+    assert mask[0, 0].tolist() == [True, False, False, False]
+
+
+def scenario(small_traces_cfg, n_uabs=3) -> ScenarioConfig:
+    sc = copy.deepcopy(small_traces_cfg.scenario)
+    sc.episode_steps = 20
+    sc.n_uabs = n_uabs
+    return sc
+
+
+@pytest.fixture(scope="module")
+def train(small_traces_cfg):
+    return get_traces(small_traces_cfg.scenario, small_traces_cfg.traces, "train")
+
+
+def random_rollout(small_traces_cfg, train, mode, steps=160, n_envs=32):
+    mk = MaskingConfig(mode=mode)
+    env = make_env(scenario(small_traces_cfg), ChannelConfig(), mk, train, n_envs=n_envs,
+                   seed=0)
+    sel = make_selector(env, mk, eps=1.0, generator=torch.Generator().manual_seed(0))
+    env.set_seed(0)
+    return env.rollout(steps, policy=sel, break_when_any_done=False)
+
+
+@pytest.mark.parametrize("mode", ["flat", "rank"])
+def test_random_legal_policy_never_collides_under_masking(small_traces_cfg, train, mode):
+    td = random_rollout(small_traces_cfg, train, mode)  # 32 envs x 160 steps
+    diag = td["next", DIAG]
+    assert diag["collisions"].sum() == 0
+    # proximity only on steps that counted a fallback
+    assert not ((diag["proximity"] > 0) & (diag["fallbacks"] == 0)).any()
+    # the stored mask allows the stored (executed) action, and is never all False
+    assert td[MASK].any(-1).all()
+    assert td[MASK].gather(-1, td[ACTION][..., None]).all()
+    assert torch.equal(diag["fallbacks"], td[FALLBACK].float().sum(-1))
+
+
+def test_random_policy_collides_under_penalty(small_traces_cfg, train):
+    """The check that the counters can fail: without masks, random UABS collide."""
+    diag = random_rollout(small_traces_cfg, train, "penalty")["next", DIAG]
+    assert diag["collisions"].sum() > 0 and diag["proximity"].sum() > 0
+    assert diag["fallbacks"].sum() == 0
+
+
+def test_transform_specs_and_unknown_mode(small_traces_cfg, train):
+    from torchrl.envs.utils import check_env_specs
+
+    for mode in ("penalty", "flat", "rank"):
+        env = make_env(scenario(small_traces_cfg), ChannelConfig(), MaskingConfig(mode=mode),
+                       train, n_envs=4)
+        check_env_specs(env, seed=0)
+    with pytest.raises(ConfigError, match="masking.mode"):
+        make_env(scenario(small_traces_cfg), ChannelConfig(), MaskingConfig(mode="soft"),
+                 train)
+    with pytest.raises(ValueError, match="masking mode"):
+        SafetyTransform("soft", 72.8, 20.0, torch.zeros(4, 2))
+    with pytest.raises(ValueError, match="masking mode"):
+        MaskedActionSelector("soft", 72.8, torch.zeros(4, 2))
+
+
+def test_flat_mask_keeps_random_warmup_actions_legal(small_traces_cfg, train):
+    """ActionMask keeps the action spec in sync: env.rand_action respects the flat mask."""
+    env = make_env(scenario(small_traces_cfg), ChannelConfig(), MaskingConfig(mode="flat"),
+                   train, n_envs=16, seed=0)
+    td = env.reset()
+    for _ in range(40):
+        td = env.rand_action(td)
+        assert td[MASK].gather(-1, td[ACTION][..., None]).all()
+        _, td = env.step_and_maybe_reset(td)
+
+
+def test_next_state_masks_for_the_double_dqn_target():
+    mth = step_math(350.0, 170.0, 2)
+    pos = torch.tensor([[[125.0, 85.0], [205.0, 85.0]]])
+    boundary = mth.boundary_mask(pos)
+    b = torch.tensor([[[5.0] * 9, [1.0] * 9]])
+    td = TensorDict({MASK: boundary, POSITION: pos, BEAM_PRIORITY: b,
+                     RANK_ORDER: rank_order(b),
+                     COLLIDERS: potential_colliders(pos, mth.p.d_th + 2 * mth.p.step_m)},
+                    batch_size=[1])
+    q = torch.tensor([[[0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]]])
+    args = (mth.moves, mth.p.d_th)
+    # flat / penalty / rank-boundary: the mask the transform wrote at s'
+    for mode, rule in [("flat", "greedy"), ("penalty", "greedy"), ("rank", "boundary")]:
+        assert torch.equal(next_state_mask(td, mode, rule, q, *args), boundary)
+    # rank-greedy: agent 0 (top) greedily goes right to (145, 85); from (205, 85) agent 1
+    # may then only go right (80 m); up/down end 63.2 m away, left 40 m (< d_th = 72.8)
+    m = next_state_mask(td, "rank", "greedy", q, *args)
+    assert torch.equal(m[0, 0], boundary[0, 0])
+    assert m[0, 1].tolist() == [False, True, False, False]
