@@ -1,11 +1,15 @@
-"""Environment throughput: ``UABSEnv.step`` against the same step math as raw tensors.
+"""Environment throughput: ``UABSEnv.step`` against the same step math as raw tensors,
+and the cost of each anti-collision mode.
 
     python benchmarks/env_bench.py                 # n_envs 1, 64, 1024 on CPU
     python benchmarks/env_bench.py --n-envs 64 --device cuda
 
-Prints env steps/s and agent-steps/s for each n_envs, for the raw step math
+Table 1: env steps/s and agent-steps/s for each n_envs, for the raw step math
 (``StepMath.step`` on plain tensors, no TensorDict) and for ``env.step`` (TensorDict,
-TorchRL's checks), and the ratio of their costs. Default scenario, traces and channel.
+TorchRL's checks), and the ratio of their costs.
+Table 2: per masking mode, one decision + step of the masked env (transform, masked
+ε-greedy selector over random Q-values, env.step) at n_envs 64 and 1024.
+Default scenario, traces and channel. Each figure is the fastest of a few episodes.
 """
 
 from __future__ import annotations
@@ -15,8 +19,10 @@ import time
 
 import torch
 
-from uabs_rl.config import ChannelConfig, ScenarioConfig, TracesConfig
+from uabs_rl.config import ChannelConfig, MaskingConfig, ScenarioConfig, TracesConfig
 from uabs_rl.env import ACTION, UABSEnv
+from uabs_rl.make import make_env, make_selector
+from uabs_rl.masking import ACTION_VALUE
 from uabs_rl.traces import get_traces
 
 
@@ -62,11 +68,34 @@ def bench(n_envs: int, device: str, episodes: int, scenario, channel, traces) ->
             "ratio": t_env / t_raw}
 
 
+def bench_mode(mode: str, n_envs: int, episodes: int, scenario, channel, traces) -> float:
+    """Agent-steps/s of decide (masked selector) + step for one masking mode."""
+    mk = MaskingConfig(mode=mode)
+    env = make_env(scenario, channel, mk, traces, n_envs=n_envs, seed=0)
+    sel = make_selector(env, mk, eps=0.1, generator=torch.Generator().manual_seed(0))
+    steps, m = scenario.episode_steps, scenario.n_uabs
+    q = torch.randn(steps, n_envs, m, 4)
+
+    def episode():
+        td = env.reset()
+        i = iter(range(steps))
+
+        def one():
+            nonlocal td
+            td = env.step(sel(td.set(ACTION_VALUE, q[next(i)])))["next"]
+        return one
+
+    _time(episode, steps, 1)
+    return n_envs * m / _time(episode, steps, episodes)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n-envs", type=int, nargs="+", default=[1, 64, 1024])
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--episodes", type=int, default=5)
+    ap.add_argument("--no-modes", dest="modes", action="store_false",
+                    help="skip the per-masking-mode table")
     args = ap.parse_args()
     scenario, channel, traces_cfg = ScenarioConfig(), ChannelConfig(), TracesConfig()
     traces = get_traces(scenario, traces_cfg, "train")
@@ -78,6 +107,13 @@ def main() -> None:
         r = bench(n, args.device, args.episodes, scenario, channel, traces)
         print(f"{r['n_envs']:>7} {r['raw_sps']:>12.0f} {r['env_sps']:>12.0f} "
               f"{r['raw_asps']:>18,.0f} {r['env_asps']:>18,.0f} {r['ratio']:>13.2f}")
+    if args.modes:
+        print("\nmasking modes: agent-steps/s of select (masked ε-greedy) + env.step")
+        sizes = [n for n in args.n_envs if n > 1] or args.n_envs
+        print(f"{'mode':>8} " + " ".join(f"{f'n_envs={n}':>14}" for n in sizes))
+        for mode in ("penalty", "flat", "rank"):
+            figs = [bench_mode(mode, n, args.episodes, scenario, channel, traces) for n in sizes]
+            print(f"{mode:>8} " + " ".join(f"{f:>14,.0f}" for f in figs))
 
 
 if __name__ == "__main__":
