@@ -153,12 +153,101 @@ class TracesAppConfig:
     split: str = "all"  # which traces to build: train, eval or all
 
 
+@dataclass
+class AlgoConfig:
+    """3DQN: shared dueling double DQN (SPEC §7). Defaults follow the authors' single-UABS
+    3DQN where the paper is silent (see README, "Hyper-parameters")."""
+
+    name: str = "dqn3"
+    hidden: list[int] = field(default_factory=lambda: [256, 256])  # MLP trunk widths
+    lr: float = 1e-4  # Adam learning rate
+    gamma: float = 0.8  # discount γ
+    batch_size: int = 128  # per-agent transitions per update
+    buffer_size: int = 100_000  # replay capacity, per-agent transitions
+    learning_starts: int = 1_000  # transitions stored before the first update
+    update_every: int = 1  # T_u: env steps (per env) between updates
+    target_update: int = 250  # updates between copies of the online net to the target
+    eps_start: float = 1.0  # ε-greedy schedule: linear from eps_start ...
+    eps_end: float = 0.05  # ... to eps_end ...
+    eps_fraction: float = 0.6  # ... over this share of the training env steps
+    grad_clip: float | None = 10.0  # max gradient norm; null = no clipping
+    loss: str = "fused"  # fused (hand-written, same maths) | torchrl (DQNLoss)
+
+
+@dataclass
+class TrainConfig:
+    """Training protocol (SPEC §7, §8)."""
+
+    episodes: int = 1000  # N_t
+    eval_every: int = 20  # N_e: greedy evaluation on held-out traces every N_e episodes
+    eval_windows: int = 10  # held-out windows per evaluation (the paper uses 1)
+    eval_seed: int = 12345  # start positions of every evaluation
+    n_envs: int = 1  # episodes run in parallel per collector step
+    checkpoint_buffer: bool = False  # also save the replay buffer in checkpoints
+    tensorboard: bool = True
+    trajectory_images: bool = True  # an image of the evaluated trajectories per evaluation
+    progress: bool = True  # progress bar
+
+
+@dataclass
+class RunConfig:
+    """Top-level config of ``uabs-train``."""
+
+    scenario: ScenarioConfig = field(default_factory=ScenarioConfig)
+    channel: ChannelConfig = field(default_factory=ChannelConfig)
+    masking: MaskingConfig = field(default_factory=MaskingConfig)
+    algo: AlgoConfig = field(default_factory=AlgoConfig)
+    traces: TracesConfig = field(default_factory=TracesConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    seed: int = 0
+    device: str = "cpu"  # cpu | cuda | cuda:N | auto
+    resume: str | None = None  # a run directory to continue
+
+
+def validate_run(cfg: Any) -> None:
+    """Every start-up check of ``uabs-train``, each naming the offending key."""
+    validate_scenario_traces(cfg.scenario, cfg.traces)
+    validate_env(cfg.scenario, cfg.channel)
+    validate_masking(cfg.masking)
+    a, t = cfg.algo, cfg.train
+    checks = [
+        (a.lr > 0, "algo.lr", "must be > 0", a.lr),
+        (0 <= a.gamma <= 1, "algo.gamma", "must be in [0, 1]", a.gamma),
+        (a.batch_size >= 1, "algo.batch_size", "must be >= 1", a.batch_size),
+        (a.buffer_size >= a.batch_size, "algo.buffer_size", "must be >= algo.batch_size",
+         a.buffer_size),
+        (a.learning_starts >= a.batch_size, "algo.learning_starts",
+         "must be >= algo.batch_size", a.learning_starts),
+        (a.update_every >= 1, "algo.update_every", "must be >= 1", a.update_every),
+        (a.target_update >= 1, "algo.target_update", "must be >= 1", a.target_update),
+        (0 <= a.eps_end <= a.eps_start <= 1, "algo.eps_start/eps_end",
+         "must satisfy 0 <= eps_end <= eps_start <= 1", (a.eps_start, a.eps_end)),
+        (0 < a.eps_fraction <= 1, "algo.eps_fraction", "must be in (0, 1]", a.eps_fraction),
+        (all(h >= 1 for h in a.hidden) and len(a.hidden) >= 1, "algo.hidden",
+         "must be a non-empty list of positive widths", a.hidden),
+        (a.loss in ("fused", "torchrl"), "algo.loss", "must be fused or torchrl", a.loss),
+        (t.episodes >= 1, "train.episodes", "must be >= 1", t.episodes),
+        (t.eval_every >= 1, "train.eval_every", "must be >= 1", t.eval_every),
+        (t.eval_windows >= 1, "train.eval_windows", "must be >= 1", t.eval_windows),
+        (t.n_envs >= 1, "train.n_envs", "must be >= 1", t.n_envs),
+        (t.episodes % t.n_envs == 0, "train.episodes",
+         "must be a multiple of train.n_envs", (t.episodes, t.n_envs)),
+    ]
+    for ok, key, rule, value in checks:
+        if not ok:
+            raise ConfigError(f"{key} {rule}, got {value!r}.")
+    if not (cfg.device in ("cpu", "cuda", "auto") or cfg.device.startswith("cuda:")):
+        raise ConfigError(f"device must be cpu, cuda, cuda:N or auto, got {cfg.device!r}.")
+
+
 def register_configs() -> None:
     cs = ConfigStore.instance()
     cs.store(group="scenario", name="scenario_schema", node=ScenarioConfig)
     cs.store(group="channel", name="channel_schema", node=ChannelConfig)
     cs.store(group="masking", name="masking_schema", node=MaskingConfig)
     cs.store(name="traces_app_schema", node=TracesAppConfig)
+    cs.store(group="algo", name="algo_schema", node=AlgoConfig)
+    cs.store(name="run_schema", node=RunConfig)
 
 
 def resolve_path(value: str, key: str) -> Path:
