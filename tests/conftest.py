@@ -36,4 +36,4 @@ def trace_cache(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="session")
 def small_traces_cfg(trace_cache):
-    return compose_cfg("traces", SMALL_TRACES + [f"traces.cache_dir={trace_cache}"])
+    return compose_cfg("build_traces", SMALL_TRACES + [f"traces.cache_dir={trace_cache}"])

@@ -128,28 +128,28 @@ def test_corrupt_cache_is_detected_and_rebuilt(small_traces_cfg, held_out, damag
 
 
 def test_missing_network_file_names_the_key(trace_cache):
-    cfg = compose_cfg("traces", SMALL_TRACES + [f"traces.cache_dir={trace_cache}",
+    cfg = compose_cfg("build_traces", SMALL_TRACES + [f"traces.cache_dir={trace_cache}",
                                                 "scenario.sumo.net_file=nowhere.net.xml"])
     with pytest.raises(ConfigError, match=r"scenario\.sumo\.net_file.*not found"):
         get_traces(cfg.scenario, cfg.traces, "train")
 
 
 def test_area_that_does_not_contain_the_network_names_the_key(trace_cache):
-    cfg = compose_cfg("traces", SMALL_TRACES + [f"traces.cache_dir={trace_cache}",
+    cfg = compose_cfg("build_traces", SMALL_TRACES + [f"traces.cache_dir={trace_cache}",
                                                 "scenario.area.width=200"])
     with pytest.raises(ConfigError, match=r"scenario\.area .*does not contain"):
         get_traces(cfg.scenario, cfg.traces, "train")
 
 
 def test_fleet_of_zero_names_the_key(trace_cache):
-    cfg = compose_cfg("traces", SMALL_TRACES + [f"traces.cache_dir={trace_cache}",
+    cfg = compose_cfg("build_traces", SMALL_TRACES + [f"traces.cache_dir={trace_cache}",
                                                 "scenario.sumo.fleet_size=0"])
     with pytest.raises(ConfigError, match=r"scenario\.sumo\.fleet_size"):
         get_traces(cfg.scenario, cfg.traces, "train")
 
 
 def test_overlapping_seeds_are_refused(trace_cache):
-    cfg = compose_cfg("traces", SMALL_TRACES + [f"traces.cache_dir={trace_cache}",
+    cfg = compose_cfg("build_traces", SMALL_TRACES + [f"traces.cache_dir={trace_cache}",
                                                 "traces.eval.first_seed=1"])
     with pytest.raises(ConfigError, match=r"traces\.eval\.first_seed"):
         get_traces(cfg.scenario, cfg.traces, "eval")
@@ -163,7 +163,7 @@ def test_overlapping_seeds_are_refused(trace_cache):
 def test_unknown_or_mistyped_option_names_the_key(override, key):
     with pytest.raises((ConfigCompositionException, ConfigKeyError, ValidationError,
                         ConfigError)) as e:
-        compose_cfg("traces", [override])
+        compose_cfg("build_traces", [override])
     assert key in str(e.value) + str(e.value.__cause__)
 
 
@@ -175,7 +175,7 @@ def test_user_scenario_with_route_file(tmp_path, trace_cache):
         '  <flow id="east" begin="0" end="60" period="4" from="A0B0" to="G0H0"/>\n'
         '  <flow id="north" begin="0" end="60" period="6" from="A0A1" to="A3A4"/>\n'
         '</routes>\n')
-    cfg = compose_cfg("traces", [
+    cfg = compose_cfg("build_traces", [
         f"traces.cache_dir={trace_cache}", "scenario.sumo.fleet_size=0",
         f"scenario.sumo.route_files=[{routes}]", "traces.train.n_sims=1",
         "traces.train.duration_s=80", "traces.train.warmup_s=0", "traces.workers=1"])

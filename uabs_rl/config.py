@@ -246,6 +246,7 @@ def register_configs() -> None:
     cs.store(group="channel", name="channel_schema", node=ChannelConfig)
     cs.store(group="masking", name="masking_schema", node=MaskingConfig)
     cs.store(name="traces_app_schema", node=TracesAppConfig)
+    cs.store(group="traces", name="traces_schema", node=TracesConfig)
     cs.store(group="algo", name="algo_schema", node=AlgoConfig)
     cs.store(name="run_schema", node=RunConfig)
 

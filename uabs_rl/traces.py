@@ -316,7 +316,7 @@ def main() -> None:
 
     register_configs()
     hydra.main(version_base="1.3", config_path=str(Path(__file__).parents[1] / "conf"),
-               config_name="traces")(_app)()
+               config_name="build_traces")(_app)()
 
 
 if __name__ == "__main__":

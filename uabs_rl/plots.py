@@ -1,0 +1,95 @@
+"""Figures: evaluated trajectories over the street map, P_g(N̂_s) curves."""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+from matplotlib.collections import LineCollection  # noqa: E402
+from matplotlib.patches import Circle  # noqa: E402
+
+from uabs_rl.channel import beam_centres  # noqa: E402
+
+COLORS = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+
+
+@lru_cache(maxsize=8)
+def lane_segments(net_file: str, x0: float, y0: float) -> np.ndarray:
+    """[K, 2, 2] line segments of every lane (internal ones included), area-relative."""
+    import sumolib
+
+    net = sumolib.net.readNet(net_file, withInternal=True)
+    segs = []
+    for edge in net.getEdges(withInternal=True):
+        for lane in edge.getLanes():
+            shape = np.asarray(lane.getShape(), dtype=float) - (x0, y0)
+            segs += [shape[i:i + 2] for i in range(len(shape) - 1)]
+    return np.asarray(segs)
+
+
+def trajectory_figure(area: Any, uabs: torch.Tensor, vehicles: torch.Tensor,
+                      present: torch.Tensor, r_b: float, n_beams: int,
+                      lanes: np.ndarray | None = None, title: str = "",
+                      instants: tuple[int, ...] | None = None):
+    """One episode: ``uabs [T+1, M, 2]`` paths, ``vehicles [T+1, 2, V]`` (planar) with
+    ``present [T+1, V]`` (drawn at the last instant, with their tracks faint), and beam
+    footprints of every UABS at a few instants."""
+    uabs, vehicles, present = uabs.cpu().numpy(), vehicles.cpu().numpy(), present.cpu().numpy()
+    steps = uabs.shape[0]
+    instants = instants or (0, steps // 2, steps - 1)
+    fig, ax = plt.subplots(figsize=(8, 8 * area.height / area.width + 0.8), dpi=100)
+    if lanes is not None and len(lanes):
+        ax.add_collection(LineCollection(lanes, colors="0.8", linewidths=1.0, zorder=0))
+    for v in range(vehicles.shape[2]):
+        idx = present[:, v]
+        if idx.any():
+            ax.plot(vehicles[idx, 0, v], vehicles[idx, 1, v], color="0.6", lw=0.4, zorder=1)
+    last = present[-1]
+    ax.scatter(vehicles[-1, 0, last], vehicles[-1, 1, last], s=9, color="k", zorder=2,
+               label="vehicles (last step)")
+    centres = beam_centres(r_b, n_beams).numpy()
+    for u in range(uabs.shape[1]):
+        c = COLORS[u % len(COLORS)]
+        ax.plot(uabs[:, u, 0], uabs[:, u, 1], color=c, lw=2, zorder=3, label=f"UABS {u}")
+        ax.plot(*uabs[0, u], "o", color=c, ms=7, zorder=4)
+        ax.plot(*uabs[-1, u], "*", color=c, ms=13, mec="k", zorder=4)
+        for t in instants:
+            for cx, cy in centres + uabs[t, u]:
+                ax.add_patch(Circle((cx, cy), r_b, fill=False, ec=c, lw=0.7,
+                                    alpha=0.3 + 0.7 * t / max(steps - 1, 1), zorder=2))
+    ax.set_xlim(0, area.width)
+    ax.set_ylim(0, area.height)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title(title or "UABS trajectories (o start, * end; beam footprints at "
+                 f"t = {', '.join(map(str, instants))})", fontsize=10)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
+    fig.tight_layout()
+    return fig
+
+
+def pg_curve_figure(curves: dict[str, np.ndarray], title: str = "Satisfied users",
+                    bands: dict[str, np.ndarray] | None = None):
+    """P_g against N̂_s = 1..N, one line per label (optional ± band)."""
+    fig, ax = plt.subplots(figsize=(6, 4), dpi=100)
+    for i, (label, curve) in enumerate(curves.items()):
+        x = np.arange(1, len(curve) + 1)
+        c = COLORS[i % len(COLORS)]
+        ax.plot(x, 100 * np.asarray(curve), marker="o", color=c, label=label)
+        if bands and label in bands:
+            lo, hi = 100 * (curve - bands[label]), 100 * (curve + bands[label])
+            ax.fill_between(x, lo, hi, color=c, alpha=0.2)
+    ax.set_xlabel(r"$\hat{N}_s$ (served steps required per window)")
+    ax.set_ylabel(r"$P_g$ (% satisfied users)")
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    return fig
