@@ -3,11 +3,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from hydra import compose, initialize_config_dir
 
-from uabs_rl.config import PROJECT_ROOT, register_configs, to_container
-
-CONF_DIR = str(PROJECT_ROOT / "conf")
+from uabs_rl.config import compose
 
 # A small but real SUMO case: 20 vehicles, 60 s recorded after 10 s of warm-up.
 SMALL_TRACES = [
@@ -23,10 +20,7 @@ SMALL_TRACES = [
 
 def compose_cfg(config_name: str, overrides: list[str]):
     """Compose a config exactly as the CLI would, and return it as dataclasses."""
-    register_configs()
-    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        cfg = compose(config_name=config_name, overrides=overrides)
-    return to_container(cfg)
+    return compose(config_name, overrides)
 
 
 @pytest.fixture(scope="session")

@@ -15,6 +15,7 @@ from uabs_rl.config import ChannelConfig, ConfigError, MaskingConfig, ScenarioCo
 from uabs_rl.env import ACTION, BEAM_PRIORITY, DIAG, FALLBACK, MASK, POSITION, EnvParams, StepMath
 from uabs_rl.make import make_env, make_selector
 from uabs_rl.masking import (
+    ACTION_VALUE,
     COLLIDERS,
     RANK_ORDER,
     MaskedActionSelector,
@@ -26,6 +27,7 @@ from uabs_rl.masking import (
     potential_colliders,
     rank_order,
     rank_select,
+    uniforms,
 )
 from uabs_rl.traces import get_traces
 
@@ -60,10 +62,14 @@ def select(mode: str, mth: StepMath, pos, q, b, eps, gen):
     if mode == "flat":
         unsafe, dist = flat_unsafe(pos, mth.moves, p.d_th + p.step_m)
         mask, fb = apply_fallback(boundary & ~unsafe, boundary, dist)
-        return epsilon_greedy(q, mask, eps, gen), mask, fb
+        return epsilon_greedy(q, mask, eps, draws(mask, gen)), mask, fb
     order = rank_order(b)
     coll = potential_colliders(pos, p.d_th + 2 * p.step_m)
-    return rank_select(q, boundary, pos, order, coll, mth.moves, p.d_th, eps, gen)
+    return rank_select(q, boundary, pos, order, coll, mth.moves, p.d_th, eps, draws(boundary, gen))
+
+
+def draws(mask, gen):
+    return uniforms(mask.shape[:-1], gen, mask.device)
 
 
 AREAS = st.sampled_from([(350.0, 170.0), (200.0, 120.0), (160.0, 100.0)])
@@ -95,7 +101,7 @@ def test_exploration_is_uniform_over_legal_actions_and_greedy_is_best_legal(mode
     pos, q, b = random_state(mth, gen, True)
     if mode == "penalty":
         mask = mth.boundary_mask(pos)
-        greedy = epsilon_greedy(q, mask, 0.0, gen)
+        greedy = epsilon_greedy(q, mask, 0.0, draws(mask, gen))
     else:
         greedy, mask, _ = select(mode, mth, pos, q, b, 0.0, gen)
     best = q.masked_fill(~mask, -math.inf).argmax(-1)
@@ -104,7 +110,8 @@ def test_exploration_is_uniform_over_legal_actions_and_greedy_is_best_legal(mode
 
 def test_random_choice_is_uniform_over_the_legal_actions():
     mask = torch.tensor([[True, False, True, True]]).expand(30000, 4)
-    a = epsilon_greedy(torch.zeros(30000, 4), mask, 1.0, torch.Generator().manual_seed(0))
+    u = draws(mask, torch.Generator().manual_seed(0))
+    a = epsilon_greedy(torch.zeros(30000, 4), mask, 1.0, u)
     counts = torch.bincount(a, minlength=4).float() / 30000
     assert counts[1] == 0
     assert torch.allclose(counts[[0, 2, 3]], torch.full((3,), 1 / 3), atol=0.015)
@@ -240,3 +247,25 @@ def test_next_state_masks_for_the_double_dqn_target():
     m = next_state_mask(td, "rank", "greedy", q, *args)
     assert torch.equal(m[0, 0], boundary[0, 0])
     assert m[0, 1].tolist() == [False, True, False, False]
+
+
+def test_compiled_env_and_selector_match_eager(small_traces_cfg, train):
+    """train.compile: the compiled step math and selection give identical rollouts."""
+    out = {}
+    for comp in (False, True):
+        mk = MaskingConfig(mode="rank")
+        env = make_env(scenario(small_traces_cfg), ChannelConfig(), mk, train, n_envs=4,
+                       seed=0, compile=comp)
+        sel = make_selector(env, mk, eps=0.3, generator=torch.Generator().manual_seed(0),
+                            compile=comp)
+        env.set_seed(0)
+        q = torch.randn(4, 3, 4, generator=torch.Generator().manual_seed(1))
+        out[comp] = env.rollout(50, fixed_q_policy(sel, q), break_when_any_done=False)
+    assert out[True]["next", DIAG, "ep_return"].abs().sum() > 0
+    assert (out[False] == out[True]).all()
+
+
+def fixed_q_policy(sel, q):
+    def policy(td):
+        return sel(td.set(ACTION_VALUE, q))
+    return policy

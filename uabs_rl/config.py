@@ -187,6 +187,7 @@ class TrainConfig:
     tensorboard: bool = True
     trajectory_images: bool = True  # an image of the evaluated trajectories per evaluation
     progress: bool = True  # progress bar
+    compile: bool = True  # torch.compile the env step and the action selection
 
 
 @dataclass
@@ -249,6 +250,21 @@ def register_configs() -> None:
     cs.store(group="traces", name="traces_schema", node=TracesConfig)
     cs.store(group="algo", name="algo_schema", node=AlgoConfig)
     cs.store(name="run_schema", node=RunConfig)
+
+
+CONF_DIR = PROJECT_ROOT / "conf"
+
+
+def compose(config_name: str = "config", overrides: list[str] | None = None) -> Any:
+    """Compose a config as the CLI would (``config`` for uabs-train, ``build_traces``
+    for uabs-traces) and return it as checked dataclasses: for notebooks and scripts."""
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+
+    register_configs()
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = hydra_compose(config_name=config_name, overrides=list(overrides or []))
+    return to_container(cfg)
 
 
 def resolve_path(value: str, key: str) -> Path:

@@ -17,7 +17,8 @@ from uabs_rl.traces import TraceSet, get_traces
 
 def make_env(scenario: Any, channel: Any, masking: Any, traces: TraceSet | Any,
              split: str = "train", n_envs: int = 1, device: str | torch.device = "cpu",
-             n_eval_windows: int | None = None, seed: int | None = None) -> TransformedEnv:
+             n_eval_windows: int | None = None, seed: int | None = None,
+             compile: bool = False) -> TransformedEnv:
     """``UABSEnv`` over the ``split`` traces, wrapped with the masking transform and
     TorchRL's ``ActionMask`` (so ``env.rand_action()`` respects the written mask).
 
@@ -26,15 +27,16 @@ def make_env(scenario: Any, channel: Any, masking: Any, traces: TraceSet | Any,
     if not isinstance(traces, TraceSet):
         traces = get_traces(scenario, traces, split)
     base = UABSEnv(scenario, channel, traces, n_envs=n_envs, mode=split, device=device,
-                   n_eval_windows=n_eval_windows, seed=seed)
+                   n_eval_windows=n_eval_windows, seed=seed, compile_step=compile)
     safety = SafetyTransform(masking.mode, base.params.d_th, base.params.step_m,
                              base.math.moves, masking.flat_margin, masking.collider_margin)
     return TransformedEnv(base, Compose(safety, ActionMask(ACTION, MASK)))
 
 
 def make_selector(env: TransformedEnv, masking: Any, eps: float = 0.0,
-                  generator: torch.Generator | None = None) -> MaskedActionSelector:
+                  generator: torch.Generator | None = None,
+                  compile: bool = False) -> MaskedActionSelector:
     """The ε-greedy masked selector matching ``env``'s masking mode."""
     base = env.base_env
     return MaskedActionSelector(masking.mode, base.params.d_th, base.math.moves, eps=eps,
-                                generator=generator).to(base.device)
+                                generator=generator, compile=compile).to(base.device)

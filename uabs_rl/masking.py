@@ -33,6 +33,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.data import Binary, Categorical, Composite
 from torchrl.envs.transforms import Transform
 
+from uabs_rl._compile import compiled_or_eager
 from uabs_rl.env import BEAM_PRIORITY, FALLBACK, MASK, POSITION
 
 MODES = ("penalty", "flat", "rank")
@@ -87,24 +88,34 @@ def potential_colliders(pos: torch.Tensor, radius: float) -> torch.Tensor:
 
 
 # ----------------------------------------------------------------------------- choice
+def uniforms(shape: torch.Size | tuple[int, ...], gen: torch.Generator | None,
+             device: torch.device | str) -> torch.Tensor:
+    """The exploration draws of one decision, ``[*shape, 5]``: four to pick a random
+    action, one to decide whether to explore. Drawn up front in one call, so the
+    selection itself is a pure (and compilable) function."""
+    return torch.rand(*shape, 5, generator=gen, device=device)
+
+
 def epsilon_greedy(q: torch.Tensor | None, mask: torch.Tensor, eps: float | torch.Tensor,
-                   gen: torch.Generator | None) -> torch.Tensor:
-    """Per row: with probability ε a uniform legal action, else the best legal one."""
-    u = torch.rand(mask.shape, generator=gen, device=mask.device)
-    random_a = u.masked_fill(~mask, -1.0).argmax(-1)  # uniform over the True entries
+                   u: torch.Tensor | None) -> torch.Tensor:
+    """Per row: with probability ε a uniform legal action, else the best legal one.
+    ``u [..., 5]`` are the row's uniform draws (None: greedy, needs ``q``)."""
+    if u is None:
+        return q.masked_fill(~mask, -math.inf).argmax(-1)
+    random_a = u[..., :4].masked_fill(~mask, -1.0).argmax(-1)  # uniform over legal ones
     if q is None:
         return random_a
     greedy_a = q.masked_fill(~mask, -math.inf).argmax(-1)
-    explore = torch.rand(mask.shape[:-1], generator=gen, device=mask.device) < eps
-    return torch.where(explore, random_a, greedy_a)
+    return torch.where(u[..., 4] < eps, random_a, greedy_a)
 
 
 def rank_select(q: torch.Tensor | None, boundary: torch.Tensor, pos: torch.Tensor,
                 order: torch.Tensor, colliders: torch.Tensor, moves: torch.Tensor, d_th: float,
-                eps: float | torch.Tensor, gen: torch.Generator | None):
+                eps: float | torch.Tensor, u: torch.Tensor | None):
     """Sequential rank-masked selection. Returns ``(action [E, M], applied mask [E, M, 4],
     fallback [E, M])``. Agents choose in rank order; agent u may not end closer than
-    d_th to the chosen next position of an already-chosen potential collider."""
+    d_th to the chosen next position of an already-chosen potential collider.
+    ``u [E, M, 5]``: exploration draws (None: greedy)."""
     e, m = order.shape
     rows = torch.arange(e, device=pos.device)
     next_pos = pos.clone()
@@ -113,17 +124,18 @@ def rank_select(q: torch.Tensor | None, boundary: torch.Tensor, pos: torch.Tenso
     applied = torch.zeros_like(boundary)
     fallback = torch.zeros(e, m, dtype=torch.bool, device=pos.device)
     for r in range(m):
-        u = order[:, r]
-        cand = move_targets(pos[rows, u], moves)  # [E, 4, 2]
-        against = colliders[rows, u] & chosen  # [E, M]
+        a_idx = order[:, r]
+        cand = move_targets(pos[rows, a_idx], moves)  # [E, 4, 2]
+        against = colliders[rows, a_idx] & chosen  # [E, M]
         d = (cand[:, :, None, :] - next_pos[:, None, :, :]).norm(dim=-1)  # [E, 4, M]
         d = d.masked_fill(~against[:, None, :], math.inf)
-        legal = boundary[rows, u] & ~(d < d_th).any(-1)
-        legal, fb = apply_fallback(legal, boundary[rows, u], d)
-        a = epsilon_greedy(None if q is None else q[rows, u], legal, eps, gen)
-        action[rows, u], applied[rows, u], fallback[rows, u] = a, legal, fb
-        next_pos[rows, u] = cand[rows, a]
-        chosen[rows, u] = True
+        legal = boundary[rows, a_idx] & ~(d < d_th).any(-1)
+        legal, fb = apply_fallback(legal, boundary[rows, a_idx], d)
+        a = epsilon_greedy(None if q is None else q[rows, a_idx], legal, eps,
+                           None if u is None else u[rows, a_idx])
+        action[rows, a_idx], applied[rows, a_idx], fallback[rows, a_idx] = a, legal, fb
+        next_pos[rows, a_idx] = cand[rows, a]
+        chosen[rows, a_idx] = True
     return action, applied, fallback
 
 
@@ -146,6 +158,16 @@ def next_state_mask(td_next: TensorDictBase, mode: str, rank_next_mask: str,
     _, applied, _ = rank_select(q_next, mask, td_next.get(POSITION), td_next.get(RANK_ORDER),
                                 td_next.get(COLLIDERS), moves, d_th, 0.0, None)
     return applied
+
+
+def select_actions(mode: str, q: torch.Tensor | None, mask: torch.Tensor, pos: torch.Tensor,
+                   order: torch.Tensor | None, colliders: torch.Tensor | None,
+                   moves: torch.Tensor, d_th: float, eps: torch.Tensor, u: torch.Tensor):
+    """The selector's pure core: ``(action, applied mask, fallback or None)``."""
+    if mode == "rank":
+        return rank_select(q, mask, pos, order, colliders, moves, d_th, eps, u)
+    # flat: the transform already applied the fallback; penalty: none is needed
+    return epsilon_greedy(q, mask, eps, u), mask, None
 
 
 # ----------------------------------------------------------------------------- modules
@@ -202,7 +224,7 @@ class MaskedActionSelector(TensorDictModuleBase):
     trainer anneals; ``generator`` makes exploration reproducible."""
 
     def __init__(self, mode: str, d_th: float, moves: torch.Tensor, eps: float = 0.0,
-                 generator: torch.Generator | None = None):
+                 generator: torch.Generator | None = None, compile: bool = False):
         super().__init__()
         if mode not in MODES:
             raise ValueError(f"masking mode must be one of {MODES}, got {mode!r}")
@@ -211,16 +233,17 @@ class MaskedActionSelector(TensorDictModuleBase):
         self.out_keys = [("agents", "action"), MASK, FALLBACK]
         self.register_buffer("moves", moves.clone())
         self.register_buffer("eps", torch.tensor(float(eps)))
+        self._select = compiled_or_eager(select_actions, "the action selection") if compile \
+            else select_actions
 
     def forward(self, td: TensorDictBase) -> TensorDictBase:
-        q = td.get(ACTION_VALUE, None)
         mask = td.get(MASK)
-        if self.mode == "rank":
-            action, mask, fallback = rank_select(
-                q, mask, td.get(POSITION), td.get(RANK_ORDER), td.get(COLLIDERS),
-                self.moves, self.d_th, self.eps, self.generator)
-        else:  # flat: the transform already applied the fallback; penalty: none needed
-            action = epsilon_greedy(q, mask, self.eps, self.generator)
+        u = uniforms(mask.shape[:-1], self.generator, mask.device)
+        action, mask, fallback = self._select(
+            self.mode, td.get(ACTION_VALUE, None), mask, td.get(POSITION),
+            td.get(RANK_ORDER, None), td.get(COLLIDERS, None), self.moves, self.d_th,
+            self.eps, u)
+        if fallback is None:
             fallback = td.get(FALLBACK, None)
             if fallback is None:
                 fallback = torch.zeros(mask.shape[:-1], dtype=torch.bool, device=mask.device)

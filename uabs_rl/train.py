@@ -31,7 +31,7 @@ from uabs_rl.config import ConfigError, to_container, validate_run
 from uabs_rl.env import ACTION, DIAG, MASK, N_ACTIONS, OBS, POSITION, REWARD
 from uabs_rl.learner import DQNLearner
 from uabs_rl.make import make_env, make_selector
-from uabs_rl.masking import ACTION_VALUE, COLLIDERS, RANK_ORDER, rank_select
+from uabs_rl.masking import ACTION_VALUE, COLLIDERS, RANK_ORDER
 from uabs_rl.model import DuelingQNet
 from uabs_rl.replay import ReplayBuffer
 
@@ -111,11 +111,13 @@ class Trainer:
         traces = traces or {}
         self.env = make_env(cfg.scenario, cfg.channel, cfg.masking,
                             traces.get("train", cfg.traces), "train",
-                            n_envs=tr.n_envs, device=self.device, seed=cfg.seed)
+                            n_envs=tr.n_envs, device=self.device, seed=cfg.seed,
+                            compile=tr.compile)
         self.eval_env = make_env(cfg.scenario, cfg.channel, cfg.masking,
                                  traces.get("eval", cfg.traces), "eval",
                                  n_envs=tr.eval_windows, device=self.device,
-                                 n_eval_windows=tr.eval_windows, seed=tr.eval_seed)
+                                 n_eval_windows=tr.eval_windows, seed=tr.eval_seed,
+                                 compile=tr.compile)
         self.params = p = self.env.base_env.params
         self.qnet = DuelingQNet(p.obs_dim, N_ACTIONS, list(cfg.algo.hidden)).to(self.device)
         self.learner = DQNLearner(self.qnet, cfg.algo, N_ACTIONS)
@@ -123,13 +125,14 @@ class Trainer:
                                    seed=cfg.seed)
         self.gen = torch.Generator(device=self.device)
         self.gen.manual_seed(cfg.seed)
-        self.selector = make_selector(self.env, cfg.masking, cfg.algo.eps_start, self.gen)
+        self.selector = make_selector(self.env, cfg.masking, cfg.algo.eps_start, self.gen,
+                                      compile=tr.compile)
         qmod = TensorDictModule(self.qnet, in_keys=[OBS], out_keys=[ACTION_VALUE])
         self.policy = TensorDictSequential(qmod, self.selector)
         eval_gen = torch.Generator(device=self.device)
         eval_gen.manual_seed(tr.eval_seed)  # greedy: no draw decides anything, but keep
         self.greedy_policy = TensorDictSequential(  # evaluation off the global RNG
-            qmod, make_selector(self.eval_env, cfg.masking, 0.0, eval_gen))
+            qmod, make_selector(self.eval_env, cfg.masking, 0.0, eval_gen, compile=tr.compile))
         self.greedy_next = cfg.masking.mode == "rank" and cfg.masking.rank_next_mask == "greedy"
         self.total_steps = tr.episodes * p.episode_steps  # per-env steps of the protocol
         self.episode, self.env_steps, self.update_credit = 0, 0, 0.0
@@ -149,9 +152,9 @@ class Trainer:
         called before the selector overwrites the mask with the applied one."""
         if not self.greedy_next:
             return td.get(MASK)
-        _, applied, _ = rank_select(td.get(ACTION_VALUE), td.get(MASK), td.get(POSITION),
-                                    td.get(RANK_ORDER), td.get(COLLIDERS),
-                                    self.selector.moves, self.params.d_th, 0.0, None)
+        _, applied, _ = self.selector._select(  # the selector's (compiled) core, greedy
+            "rank", td.get(ACTION_VALUE), td.get(MASK), td.get(POSITION), td.get(RANK_ORDER),
+            td.get(COLLIDERS), self.selector.moves, self.params.d_th, 0.0, None)
         return applied
 
     def _push(self, tr: dict[str, torch.Tensor], next_mask: torch.Tensor) -> None:

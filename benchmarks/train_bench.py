@@ -1,0 +1,100 @@
+"""Training-loop throughput of the paper protocol on this machine.
+
+    python benchmarks/train_bench.py                 # 30 episodes, paper defaults, rank
+    python benchmarks/train_bench.py --episodes 50 masking=flat algo.loss=torchrl
+
+Trains ``--episodes`` episodes with the paper's defaults (overrides as for uabs-train),
+then prints episodes per minute, the projected time of the full protocol (1000 episodes
+of 80 steps, one update per step) and the share of the time spent in the environment
+(step + masking transform), action selection (Q forward + masked selector), replay
+(push + sample) and the update (loss, backward, Adam). Evaluation is excluded.
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from collections import defaultdict
+from contextlib import contextmanager
+
+import torch
+
+from uabs_rl.config import compose
+from uabs_rl.train import Trainer
+
+SPENT: dict[str, float] = defaultdict(float)
+
+
+@contextmanager
+def timed(name: str):
+    t0 = time.perf_counter()
+    yield
+    SPENT[name] += time.perf_counter() - t0
+
+
+IN_UPDATE = [False]
+
+
+def wrap(obj, attr: str, name: str, outside_update: bool = False) -> None:
+    fn = getattr(obj, attr)
+
+    def inner(*a, **k):
+        if outside_update and IN_UPDATE[0]:
+            return fn(*a, **k)
+        with timed(name):
+            if name == "update":
+                IN_UPDATE[0] = True
+            try:
+                return fn(*a, **k)
+            finally:
+                IN_UPDATE[0] = IN_UPDATE[0] and name != "update"
+    setattr(obj, attr, inner)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--episodes", type=int, default=30)
+    ap.add_argument("overrides", nargs="*", help="uabs-train overrides")
+    args = ap.parse_args()
+    cfg = compose("config", ["train.progress=false", "train.tensorboard=false",
+                                 *args.overrides])
+    tr = Trainer(cfg, tempfile.mkdtemp(prefix="uabs_bench_"))
+    wrap(tr.env, "step", "env")
+    wrap(tr.env, "reset", "env")
+    wrap(tr.qnet, "forward", "action selection", outside_update=True)
+    wrap(tr.selector, "forward", "action selection")
+    wrap(tr.buffer, "push", "replay")
+    wrap(tr.buffer, "sample", "replay")
+    wrap(tr.learner, "update", "update")
+    # fill the buffer past learning_starts first, so every timed step updates
+    while len(tr.buffer) < cfg.algo.learning_starts:
+        tr.collect_round()
+    SPENT.clear()
+    start_updates, t0 = tr.learner.updates, time.perf_counter()
+    for _ in range(args.episodes // cfg.train.n_envs):
+        tr.collect_round()
+    wall = time.perf_counter() - t0
+    updates = tr.learner.updates - start_updates
+    episodes = args.episodes // cfg.train.n_envs * cfg.train.n_envs
+    per_ep = wall / episodes
+    full = cfg.train.episodes * per_ep
+    print(f"masking={cfg.masking.mode} loss={cfg.algo.loss} n_envs={cfg.train.n_envs} "
+          f"threads={torch.get_num_threads()} hidden={list(cfg.algo.hidden)} "
+          f"batch={cfg.algo.batch_size}")
+    print(f"{episodes} episodes, {updates} updates in {wall:.1f} s: "
+          f"{60 / per_ep:.1f} episodes/min, "
+          f"{1000 * wall / (episodes * cfg.scenario.episode_steps):.2f} "
+          f"ms per env step (incl. its update)")
+    print(f"projected full protocol ({cfg.train.episodes} episodes x "
+          f"{cfg.scenario.episode_steps} steps, {cfg.train.episodes * cfg.scenario.episode_steps} "
+          f"updates): {full / 60:.1f} min (+ {cfg.train.episodes // cfg.train.eval_every} "
+          f"evaluations)")
+    other = wall - sum(SPENT.values())
+    for name in ("env", "action selection", "replay", "update"):
+        print(f"  {name:>17}: {SPENT[name]:6.2f} s  {100 * SPENT[name] / wall:5.1f} %")
+    print(f"  {'other (loop)':>17}: {other:6.2f} s  {100 * other / wall:5.1f} %")
+
+
+if __name__ == "__main__":
+    main()
