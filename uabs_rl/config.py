@@ -170,7 +170,7 @@ class AlgoConfig:
     eps_start: float = 1.0  # ε-greedy schedule: linear from eps_start ...
     eps_end: float = 0.05  # ... to eps_end ...
     eps_fraction: float = 0.6  # ... over this share of the training env steps
-    grad_clip: float | None = 10.0  # max gradient norm; null = no clipping
+    grad_clip: float | None = None  # max gradient norm; null = no clipping
     loss: str = "fused"  # fused (hand-written, same maths) | torchrl (DQNLoss)
 
 

@@ -18,9 +18,10 @@ from uabs_rl.traces import TraceSet, get_traces
 def make_env(scenario: Any, channel: Any, masking: Any, traces: TraceSet | Any,
              split: str = "train", n_envs: int = 1, device: str | torch.device = "cpu",
              n_eval_windows: int | None = None, seed: int | None = None,
-             compile: bool = False) -> TransformedEnv:
-    """``UABSEnv`` over the ``split`` traces, wrapped with the masking transform and
-    TorchRL's ``ActionMask`` (so ``env.rand_action()`` respects the written mask).
+             compile: bool = False, spec_mask: bool = True) -> TransformedEnv:
+    """``UABSEnv`` over the ``split`` traces, wrapped with the masking transform and,
+    with ``spec_mask``, TorchRL's ``ActionMask`` (so ``env.rand_action()`` respects the
+    written mask; the trainer acts through the selector and skips it).
 
     ``traces`` is a :class:`TraceSet` or the ``traces`` config (then loaded or built)."""
     validate_masking(masking)
@@ -30,7 +31,8 @@ def make_env(scenario: Any, channel: Any, masking: Any, traces: TraceSet | Any,
                    n_eval_windows=n_eval_windows, seed=seed, compile_step=compile)
     safety = SafetyTransform(masking.mode, base.params.d_th, base.params.step_m,
                              base.math.moves, masking.flat_margin, masking.collider_margin)
-    return TransformedEnv(base, Compose(safety, ActionMask(ACTION, MASK)))
+    return TransformedEnv(base, Compose(safety, ActionMask(ACTION, MASK)) if spec_mask
+                          else safety)
 
 
 def make_selector(env: TransformedEnv, masking: Any, eps: float = 0.0,

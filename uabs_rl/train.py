@@ -112,12 +112,12 @@ class Trainer:
         self.env = make_env(cfg.scenario, cfg.channel, cfg.masking,
                             traces.get("train", cfg.traces), "train",
                             n_envs=tr.n_envs, device=self.device, seed=cfg.seed,
-                            compile=tr.compile)
+                            compile=tr.compile, spec_mask=False)
         self.eval_env = make_env(cfg.scenario, cfg.channel, cfg.masking,
                                  traces.get("eval", cfg.traces), "eval",
                                  n_envs=tr.eval_windows, device=self.device,
                                  n_eval_windows=tr.eval_windows, seed=tr.eval_seed,
-                                 compile=tr.compile)
+                                 compile=tr.compile, spec_mask=False)
         self.params = p = self.env.base_env.params
         self.qnet = DuelingQNet(p.obs_dim, N_ACTIONS, list(cfg.algo.hidden)).to(self.device)
         self.learner = DQNLearner(self.qnet, cfg.algo, N_ACTIONS)
