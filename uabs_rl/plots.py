@@ -93,3 +93,35 @@ def pg_curve_figure(curves: dict[str, np.ndarray], title: str = "Satisfied users
     ax.legend()
     fig.tight_layout()
     return fig
+
+
+def animate_episode(area: Any, uabs: torch.Tensor, vehicles: torch.Tensor,
+                    present: torch.Tensor, r_b: float, n_beams: int,
+                    lanes: np.ndarray | None, path, fps: int = 8) -> None:
+    """A GIF of one episode: vehicles, UABS with their beam footprints, paths so far."""
+    from matplotlib.animation import FuncAnimation, PillowWriter
+
+    uabs, vehicles, present = uabs.cpu().numpy(), vehicles.cpu().numpy(), present.cpu().numpy()
+    centres = beam_centres(r_b, n_beams).numpy()
+    fig, ax = plt.subplots(figsize=(7, 7 * area.height / area.width + 0.6), dpi=80)
+
+    def draw(t: int):
+        ax.clear()
+        if lanes is not None and len(lanes):
+            ax.add_collection(LineCollection(lanes, colors="0.8", linewidths=1.0))
+        on = present[t]
+        ax.scatter(vehicles[t, 0, on], vehicles[t, 1, on], s=8, color="k")
+        for u in range(uabs.shape[1]):
+            c = COLORS[u % len(COLORS)]
+            ax.plot(uabs[: t + 1, u, 0], uabs[: t + 1, u, 1], color=c, lw=1.5)
+            ax.plot(*uabs[t, u], "*", color=c, ms=12, mec="k")
+            for cx, cy in centres + uabs[t, u]:
+                ax.add_patch(Circle((cx, cy), r_b, fill=False, ec=c, lw=0.8))
+        ax.set_xlim(0, area.width)
+        ax.set_ylim(0, area.height)
+        ax.set_aspect("equal")
+        ax.set_title(f"t = {t}")
+
+    anim = FuncAnimation(fig, draw, frames=uabs.shape[0])
+    anim.save(str(path), writer=PillowWriter(fps=fps))
+    plt.close(fig)

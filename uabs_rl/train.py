@@ -224,11 +224,12 @@ class Trainer:
 
     # ------------------------------------------------------------------ evaluate
     @torch.no_grad()
-    def evaluate(self) -> tuple[dict[str, Any], Any]:
-        """Greedy policy on the fixed held-out windows, seeded: comparable across calls."""
+    def evaluate(self, policy=None) -> tuple[dict[str, Any], Any]:
+        """The greedy learned policy (or ``policy``) on the fixed held-out windows,
+        seeded: comparable across calls. Returns the record and the rollout."""
         env, steps = self.eval_env, self.params.episode_steps
         env.set_seed(self.cfg.train.eval_seed)
-        td = env.rollout(steps, self.greedy_policy, break_when_any_done=False)
+        td = env.rollout(steps, policy or self.greedy_policy, break_when_any_done=False)
         last = td["next", DIAG][:, -1]
         ret = last["ep_return"]
         record = {
@@ -267,7 +268,7 @@ class Trainer:
             "replay": self.buffer.state_dict() if self.cfg.train.checkpoint_buffer else None,
         }
 
-    def load_state_dict(self, state: dict, source: Path) -> None:
+    def load_state_dict(self, state: dict, source: Path, resuming: bool = True) -> None:
         diffs = config_differences(state["config"], _config_dict(self.cfg))
         if diffs:
             raise CheckpointError(f"{source} was written with other settings:\n  "
@@ -282,7 +283,7 @@ class Trainer:
         self.env.base_env.rng.set_state(state["rng"]["env"])
         if state.get("replay") is not None:
             self.buffer.load_state_dict(state["replay"])
-        else:
+        elif resuming:
             log.warning("the checkpoint holds no replay buffer (train.checkpoint_buffer="
                         "false): learning restarts after algo.learning_starts transitions")
 

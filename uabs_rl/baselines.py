@@ -1,0 +1,65 @@
+"""Baselines beyond the paper (SPEC §9), acting through the same masked selector.
+
+Each heuristic writes Q-like scores into ``("agents", "action_value")``; the masking
+mode's :class:`~uabs_rl.masking.MaskedActionSelector` (ε = 0) then picks the best legal
+action, so baselines obey exactly the masks the learned policy obeys.
+
+* ``random``: a uniformly random legal action (the selector with ε = 1).
+* ``greedy``: the move that maximises the priority the UABS would cover at the next
+  step, given the vehicles' current positions and priorities.
+* ``oracle``: the same with the vehicles' true next positions: an optimistic reference
+  no deployable policy can see.
+* the coverage bound min(1, M·B·π·r_b² / (W·H)) is :func:`uabs_rl.channel.coverage_bound`.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase, TensorDictSequential
+
+from uabs_rl import channel as ch
+from uabs_rl.env import POSITION, UABSEnv, vehicles_at
+from uabs_rl.masking import ACTION_VALUE, MaskedActionSelector
+
+BASELINES = ("random", "greedy", "oracle")
+
+
+class CoverageScore(TensorDictModuleBase):
+    """Scores each move by the priority under the UABS's footprints after it, with a
+    tiny seeded jitter that breaks ties at random (no drift towards action 0)."""
+
+    def __init__(self, env: UABSEnv, lookahead: int, generator: torch.Generator):
+        super().__init__()
+        self.env, self.lookahead, self.generator = env, lookahead, generator
+        self.in_keys, self.out_keys = [POSITION], [ACTION_VALUE]
+
+    def forward(self, td: TensorDictBase) -> TensorDictBase:
+        env, p = self.env, self.env.params
+        st = dict(env._state)
+        st["t"] = st["t"] + self.lookahead
+        veh, present = vehicles_at(st, env.veh_pos, env.veh_present)  # [E, 2, V], [E, V]
+        cand = td.get(POSITION)[:, :, None, :] + env.math.moves  # [E, M, 4, 2]
+        dx = veh[:, None, None, 0, :] - cand[..., 0:1]  # [E, M, 4, V]
+        dy = veh[:, None, None, 1, :] - cand[..., 1:2]
+        inside, _ = ch.assign_beams(dx, dy, p.r_b, p.n_beams)
+        weight = torch.where(present, env._state["priority"].clamp_min(1.0), 0.0)
+        score = (inside * weight[:, None, None, :]).sum(-1)
+        jitter = torch.rand(score.shape, generator=self.generator, device=score.device)
+        td.set(ACTION_VALUE, score + 1e-3 * jitter)
+        return td
+
+
+def baseline_policy(name: str, env, selector: MaskedActionSelector,
+                    seed: int = 0) -> TensorDictModuleBase:
+    """The baseline ``name`` as a policy for ``env`` (a transformed UABS env)."""
+    if name not in BASELINES:
+        raise ValueError(f"unknown baseline {name!r}: choose from {BASELINES}")
+    gen = torch.Generator(device=env.base_env.device)
+    gen.manual_seed(seed)
+    if name == "random":
+        selector.eps.fill_(1.0)
+        selector.generator = gen
+        return selector
+    score = CoverageScore(env.base_env, lookahead=1 if name == "oracle" else 0, generator=gen)
+    return TensorDictSequential(score, selector)
