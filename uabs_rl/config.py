@@ -188,6 +188,7 @@ class TrainConfig:
     trajectory_images: bool = True  # an image of the evaluated trajectories per evaluation
     progress: bool = True  # progress bar
     compile: bool = True  # torch.compile the env step and the action selection
+    threads: int | None = None  # torch CPU threads; null = torch's default (all cores)
 
 
 @dataclass

@@ -106,8 +106,10 @@ class Trainer:
         validate_run(cfg)
         self.cfg, self.run_dir = cfg, Path(run_dir)
         self.device = resolve_device(cfg.device)
-        torch.manual_seed(cfg.seed)
         tr = cfg.train
+        if tr.threads is not None:
+            torch.set_num_threads(tr.threads)
+        torch.manual_seed(cfg.seed)
         traces = traces or {}
         self.env = make_env(cfg.scenario, cfg.channel, cfg.masking,
                             traces.get("train", cfg.traces), "train",
