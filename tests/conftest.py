@@ -5,6 +5,7 @@ from pathlib import Path
 import pytest
 
 from uabs_rl.config import compose
+from uabs_rl.traces import get_traces
 
 # A small but real SUMO case: 20 vehicles, 60 s recorded after 10 s of warm-up.
 SMALL_TRACES = [
@@ -31,3 +32,15 @@ def trace_cache(tmp_path_factory) -> Path:
 @pytest.fixture(scope="session")
 def small_traces_cfg(trace_cache):
     return compose_cfg("build_traces", SMALL_TRACES + [f"traces.cache_dir={trace_cache}"])
+
+
+@pytest.fixture(scope="session")
+def train(small_traces_cfg):
+    """The small case's training traces (2 sims x 60 s, 20 vehicles)."""
+    return get_traces(small_traces_cfg.scenario, small_traces_cfg.traces, "train")
+
+
+@pytest.fixture(scope="session")
+def held_out(small_traces_cfg):
+    """The small case's held-out traces (1 sim x 60 s)."""
+    return get_traces(small_traces_cfg.scenario, small_traces_cfg.traces, "eval")

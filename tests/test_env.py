@@ -11,19 +11,8 @@ from torchrl.envs.utils import check_env_specs
 from uabs_rl.channel import los_probability
 from uabs_rl.config import ChannelConfig, ConfigError, ScenarioConfig
 from uabs_rl.env import ACTION, DIAG, MASK, POSITION, REWARD, EnvParams, StepMath, UABSEnv
-from uabs_rl.traces import get_traces
 
 EP = 20  # episode length for the small traces (60 s)
-
-
-@pytest.fixture(scope="module")
-def train(small_traces_cfg):
-    return get_traces(small_traces_cfg.scenario, small_traces_cfg.traces, "train")
-
-
-@pytest.fixture(scope="module")
-def held_out(small_traces_cfg):
-    return get_traces(small_traces_cfg.scenario, small_traces_cfg.traces, "eval")
 
 
 def scenario(small_traces_cfg, **kw) -> ScenarioConfig:

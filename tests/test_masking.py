@@ -29,7 +29,6 @@ from uabs_rl.masking import (
     rank_select,
     uniforms,
 )
-from uabs_rl.traces import get_traces
 
 E = 64  # random states per hypothesis example
 
@@ -165,11 +164,6 @@ def scenario(small_traces_cfg, n_uabs=3) -> ScenarioConfig:
     sc.episode_steps = 20
     sc.n_uabs = n_uabs
     return sc
-
-
-@pytest.fixture(scope="module")
-def train(small_traces_cfg):
-    return get_traces(small_traces_cfg.scenario, small_traces_cfg.traces, "train")
 
 
 def random_rollout(small_traces_cfg, train, mode, steps=160, n_envs=32):

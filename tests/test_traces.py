@@ -17,16 +17,6 @@ from uabs_rl.config import ConfigError, resolve_path
 from uabs_rl.traces import build_split, cache_path, get_traces
 
 
-@pytest.fixture(scope="module")
-def train(small_traces_cfg):
-    return get_traces(small_traces_cfg.scenario, small_traces_cfg.traces, "train")
-
-
-@pytest.fixture(scope="module")
-def held_out(small_traces_cfg):
-    return get_traces(small_traces_cfg.scenario, small_traces_cfg.traces, "eval")
-
-
 def test_shapes_and_dtypes(train, held_out):
     assert train.positions.shape == (2, 60, 20, 2)
     assert train.present.shape == (2, 60, 20)
