@@ -101,6 +101,13 @@ def test_resume_continues_the_episode_counter(trace_cache, tmp_path):
     assert state["learner"]["updates"] > 60  # updates went on from the saved count
 
 
+def test_a_finished_run_folder_is_not_overwritten(rank_run, trace_cache):
+    before = (rank_run / "metrics.jsonl").read_text()
+    with pytest.raises(ConfigError, match="already holds a run"):
+        run(smoke(trace_cache), rank_run)
+    assert (rank_run / "metrics.jsonl").read_text() == before
+
+
 def test_incompatible_or_damaged_checkpoint_is_refused(rank_run, trace_cache, tmp_path):
     with pytest.raises(CheckpointError, match=r"algo\.hidden: \[32, 32\] in the checkpoint"):
         run(smoke(trace_cache, f"resume={rank_run}", "algo.hidden=[16]"), tmp_path)

@@ -399,6 +399,9 @@ def run(cfg: Any, run_dir: Path) -> dict[str, Any]:
         trainer.load_state_dict(load_checkpoint(source), source)
         log.info("resuming %s at episode %d", run_dir, trainer.episode)
     else:
+        if (Path(run_dir) / "metrics.jsonl").exists():
+            raise ConfigError(f"{run_dir} already holds a run (metrics.jsonl): continue it "
+                              f"with resume={run_dir}, or choose another hydra.run.dir.")
         trainer = Trainer(cfg, run_dir)
     return trainer.fit()
 
