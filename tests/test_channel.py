@@ -94,3 +94,17 @@ def test_vehicle_lands_in_the_right_beam():
 def test_non_square_beam_count_is_refused():
     with pytest.raises(ValueError, match="square"):
         ch.beam_centres(10.0, 8)
+
+
+def test_coverage_fraction():
+    r = ch.beam_footprint_radius(100.0, 40.0, 9)
+    # one UABS in the middle of a 400 m x 400 m area: 9 disjoint discs, 9 π r_b² / 160000
+    one = ch.coverage_fraction(torch.tensor([[200.0, 200.0]]), r, 9, 400.0, 400.0, 1.0)
+    assert one.item() == pytest.approx(9 * math.pi * r * r / 160000, rel=0.02)
+    # two UABS at the same point cover the same area; far apart, twice as much
+    same = ch.coverage_fraction(torch.tensor([[200.0, 200.0], [200.0, 200.0]]), r, 9, 400.0,
+                                400.0, 1.0)
+    apart = ch.coverage_fraction(torch.tensor([[100.0, 100.0], [300.0, 300.0]]), r, 9, 400.0,
+                                 400.0, 1.0)
+    assert same.item() == pytest.approx(one.item()) and apart.item() == pytest.approx(
+        2 * one.item(), rel=0.01)

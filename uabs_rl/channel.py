@@ -124,6 +124,20 @@ def beam_cells(gx: torch.Tensor, gy: torch.Tensor, k: int,
     return inside, (col.add_(index_offset).add_(row, alpha=k)).long()
 
 
+def coverage_fraction(pos: torch.Tensor, r_b: float, n_beams: int, width: float,
+                      height: float, spacing: float = 5.0) -> torch.Tensor:
+    """Share of the area under at least one beam footprint, ``pos [..., M, 2]`` -> ``[...]``,
+    measured on a grid of sample points ``spacing`` metres apart (cell centres)."""
+    xs = torch.arange(spacing / 2, width, spacing, device=pos.device)
+    ys = torch.arange(spacing / 2, height, spacing, device=pos.device)
+    gx, gy = torch.meshgrid(xs, ys, indexing="ij")
+    pts = torch.stack([gx.flatten(), gy.flatten()], -1)  # [P, 2]
+    centres = (pos[..., :, None, :] + beam_centres(r_b, n_beams).to(pos.device))  # [..., M, B, 2]
+    centres = centres.flatten(-3, -2)  # [..., M*B, 2]
+    d2 = ((pts[:, None, :] - centres[..., None, :, :]) ** 2).sum(-1)  # [..., P, M*B]
+    return (d2 <= r_b * r_b).any(-1).float().mean(-1)
+
+
 def coverage_bound(n_uabs: int, n_beams: int, r_b: float, area_m2: float) -> float:
     """Largest share of the area under footprints at one step (ideal beams, no overlap)."""
     return min(1.0, n_uabs * n_beams * math.pi * r_b ** 2 / area_m2)

@@ -248,8 +248,12 @@ def summary(by_mode: dict[str, list[Run]], rows: list[dict], baselines: dict[str
                   f"{100 * b['pg']:.1f} % |" for n, b in baselines.items()]
         learned = {m: float(np.mean([run.best_eval["served_fraction"] for run in runs]))
                    for m, runs in by_mode.items()}
+        cover = {m: [run.best_eval["coverage"] for run in runs if "coverage" in run.best_eval]
+                 for m, runs in by_mode.items()}
         lines += ["", "Learned policies' served fraction at their best evaluation: "
                   + ", ".join(f"{m} {100 * v:.1f} %" for m, v in learned.items())
+                  + "".join(f"; {m} area coverage {100 * np.mean(c):.1f} %"
+                            for m, c in cover.items() if c)
                   + f". Coverage bound (share of the area under footprints, ideal beams, "
                     f"no overlap): {100 * bound:.1f} %.", ""]
     return "\n".join(lines) + "\n"

@@ -27,6 +27,7 @@ import torch
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from tqdm.auto import tqdm
 
+from uabs_rl.channel import coverage_fraction
 from uabs_rl.config import ConfigError, to_container, validate_run
 from uabs_rl.env import ACTION, DIAG, MASK, N_ACTIONS, OBS, POSITION, REWARD
 from uabs_rl.learner import DQNLearner
@@ -247,8 +248,14 @@ class Trainer:
             "pg": last["pg"].mean().item(),
             "pg_curve": last["pg_curve"].mean(0).tolist(),
             "closest_approach": td["next", DIAG, "closest_approach"].min().item(),
+            "coverage": self._coverage(td["next", POSITION]),
             "windows": int(ret.numel())}
         return record, td
+
+    def _coverage(self, pos: torch.Tensor) -> float:
+        """Mean share of the area under footprints over the evaluated steps (10 m grid)."""
+        p = self.params
+        return coverage_fraction(pos, p.r_b, p.n_beams, p.width, p.height, 10.0).mean().item()
 
     def trajectory_of(self, td, window: int = 0):
         """UABS path [T+1, M, 2], vehicles [T+1, 2, V] and presence of one eval window."""
