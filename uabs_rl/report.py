@@ -202,7 +202,7 @@ def evaluate_baselines(by_mode: dict[str, list[Run]]) -> dict[str, dict]:
 
 # ----------------------------------------------------------------------------- summary
 def summary(by_mode: dict[str, list[Run]], rows: list[dict], baselines: dict[str, dict],
-            command: str, bound: float) -> str:
+            command: str, bound: float, nhat: int) -> str:
     r = {row["mode"]: row for row in rows}
     final = {m: float(np.mean([np.mean([e["return"] for e in run.evals[-5:]]) for run in runs]))
              for m, runs in by_mode.items()}
@@ -241,7 +241,7 @@ def summary(by_mode: dict[str, list[Run]], rows: list[dict], baselines: dict[str
     lines += [f"- {m}: " + ", ".join(f"{100 * v:.1f}" for v in pg[m]) for m in pg]
     if baselines:
         lines += ["", "## Baselines (same held-out windows and masks)", "",
-                  "| policy | R | collisions | proximity | fallbacks | served | P_g(N̂_s) |",
+                  f"| policy | R | collisions | proximity | fallbacks | served | P_g(N̂_s={nhat}) |",
                   "|---|---|---|---|---|---|---|"]
         lines += [f"| {n} | {b['return']:.0f} | {b['collisions']:.0f} | {b['proximity']:.0f}"
                   f" | {b['fallbacks']:.0f} | {100 * b['served_fraction']:.1f} % | "
@@ -293,7 +293,8 @@ def build_report(root: Path, out: Path, with_baselines: bool = True,
     bound = coverage_bound(sc["n_uabs"], cfg["channel"]["n_beams"], r_b,
                            sc["area"]["width"] * sc["area"]["height"])
     (out / "summary.md").write_text(summary(by_mode, rows, baselines,
-                                            command or f"uabs-report {root}", bound))
+                                            command or f"uabs-report {root}", bound,
+                                            int(sc["nhat_s"])))
     return {"rows": rows, "baselines": baselines, "by_mode": by_mode}
 
 
