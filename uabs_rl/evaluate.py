@@ -106,12 +106,10 @@ def main(argv: list[str] | None = None) -> int:
 def _write_pictures(trainer: Trainer, results: dict, out: Path, gif: bool) -> None:
     import matplotlib.pyplot as plt
 
-    from uabs_rl.plots import animate_episode, lane_segments, trajectory_figure
-    from uabs_rl.traces import _inputs
+    from uabs_rl.plots import animate_episode, scenario_lanes, trajectory_figure
 
     a, p = trainer.cfg.scenario.area, trainer.params
-    net = _inputs(trainer.cfg.scenario)["net_file"]
-    lanes = lane_segments(str(net), a.x_min, a.y_min) if net else None
+    lanes = scenario_lanes(trainer.cfg.scenario)
     for name, (rec, td) in results.items():
         fig = trajectory_figure(a, *trainer.trajectory_of(td), p.r_b, p.n_beams, lanes,
                                 title=f"{name} ({trainer.cfg.masking.mode} masking), held-out "

@@ -33,6 +33,15 @@ def lane_segments(net_file: str, x0: float, y0: float) -> np.ndarray:
     return np.asarray(segs)
 
 
+def scenario_lanes(scenario: Any) -> np.ndarray | None:
+    """Lane segments of the scenario's network (None for a .sumocfg scenario)."""
+    from uabs_rl.traces import _inputs
+
+    net = _inputs(scenario)["net_file"]
+    a = scenario.area
+    return lane_segments(str(net), a.x_min, a.y_min) if net else None
+
+
 def trajectory_figure(area: Any, uabs: torch.Tensor, vehicles: torch.Tensor,
                       present: torch.Tensor, r_b: float, n_beams: int,
                       lanes: np.ndarray | None = None, title: str = "",

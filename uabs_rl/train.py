@@ -174,7 +174,6 @@ class Trainer:
         loss_sum = torch.zeros((), device=self.device)
         q_sum = torch.zeros((), device=self.device)
         n_updates, pending = 0, None
-        eps = self.epsilon()
         for t in range(p.episode_steps):
             eps = self.epsilon()
             self.selector.eps.fill_(eps)
@@ -315,18 +314,15 @@ class Trainer:
     def _log_eval_figures(self, record: dict[str, Any], td) -> None:
         import matplotlib.pyplot as plt
 
-        from uabs_rl.plots import lane_segments, pg_curve_figure, trajectory_figure
-        from uabs_rl.traces import _inputs
+        from uabs_rl.plots import pg_curve_figure, scenario_lanes, trajectory_figure
 
         figs = {"pg_curve": pg_curve_figure(
             {self.cfg.masking.mode: record["pg_curve"]},
             title=f"P_g after {record['episode']} episodes")}
         if self.cfg.train.trajectory_images:
-            net = _inputs(self.cfg.scenario)["net_file"]
-            a = self.cfg.scenario.area
-            lanes = lane_segments(str(net), a.x_min, a.y_min) if net else None
             figs["trajectories"] = trajectory_figure(
-                a, *self.trajectory_of(td), self.params.r_b, self.params.n_beams, lanes,
+                self.cfg.scenario.area, *self.trajectory_of(td), self.params.r_b,
+                self.params.n_beams, scenario_lanes(self.cfg.scenario),
                 title=f"{self.cfg.masking.mode}, episode {record['episode']}, held-out window "
                       f"0: R = {record['returns'][0]:.0f}")
         out = self.run_dir / "eval"
