@@ -46,7 +46,7 @@ def bench(n_envs: int, device: str, episodes: int, scenario, channel, traces) ->
 
     def raw():
         env.reset()
-        st, i = env._state, iter(range(steps))
+        st, i = env.state, iter(range(steps))
         return lambda: env.math.step(st, actions[next(i)], env.veh_pos, env.veh_present,
                                      env.rng)
 

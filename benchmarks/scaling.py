@@ -46,7 +46,7 @@ def step_cost(m: int, n_vehicles: int, n_envs: int, device: str, reps: int = 3) 
     best = float("inf")
     for _ in range(reps):
         env.reset()
-        st = env._state
+        st = env.state
         t0 = time.perf_counter()
         for _ in range(20):
             env.math.step(st, a, env.veh_pos, env.veh_present, env.rng)
@@ -58,19 +58,19 @@ def step_cost(m: int, n_vehicles: int, n_envs: int, device: str, reps: int = 3) 
 
 def training_rate(n_envs: int, device: str, rounds: int) -> tuple[float, float]:
     """(env steps/s, updates/s) of the trainer with n_envs parallel episodes."""
-    from uabs_rl.train import Trainer
+    from uabs_rl.experiment import Experiment
 
     cfg = compose("config", [f"train.n_envs={n_envs}", f"train.episodes={n_envs * 100}",
                              "train.progress=false", "train.tensorboard=false",
                              f"device={device}", "train.compile=false"])
-    tr = Trainer(cfg, tempfile.mkdtemp(prefix="uabs_scaling_"))
+    tr = Experiment(cfg, tempfile.mkdtemp(prefix="uabs_scaling_"))
     while len(tr.buffer) < cfg.algo.learning_starts:
-        tr.collect_round()
-    steps0, upd0, t0 = tr.env_steps, tr.learner.updates, time.perf_counter()
+        tr.collect()
+    steps0, upd0, t0 = tr.collector.env_steps, tr.learner.updates, time.perf_counter()
     for _ in range(rounds):
-        tr.collect_round()
+        tr.collect()
     dt = time.perf_counter() - t0
-    return (tr.env_steps - steps0) * n_envs / dt, (tr.learner.updates - upd0) / dt
+    return (tr.collector.env_steps - steps0) * n_envs / dt, (tr.learner.updates - upd0) / dt
 
 
 def main() -> None:

@@ -21,7 +21,7 @@ from contextlib import contextmanager
 import torch
 
 from uabs_rl.config import compose
-from uabs_rl.train import Trainer
+from uabs_rl.experiment import Experiment
 
 SPENT: dict[str, float] = defaultdict(float)
 
@@ -59,21 +59,21 @@ def main() -> None:
     args = ap.parse_args()
     cfg = compose("config", ["train.progress=false", "train.tensorboard=false",
                                  *args.overrides])
-    tr = Trainer(cfg, tempfile.mkdtemp(prefix="uabs_bench_"))
-    wrap(tr.env, "step", "env")
-    wrap(tr.env, "reset", "env")
+    tr = Experiment(cfg, tempfile.mkdtemp(prefix="uabs_bench_"))
+    wrap(tr.collector.env, "step", "env")
+    wrap(tr.collector.env, "reset", "env")
     wrap(tr.qnet, "forward", "action selection", outside_update=True)
-    wrap(tr.selector, "forward", "action selection")
+    wrap(tr.collector.selector, "forward", "action selection")
     wrap(tr.buffer, "push", "replay")
     wrap(tr.buffer, "sample", "replay")
     wrap(tr.learner, "update", "update")
     # fill the buffer past learning_starts first, so every timed step updates
     while len(tr.buffer) < cfg.algo.learning_starts:
-        tr.collect_round()
+        tr.collect()
     SPENT.clear()
     start_updates, t0 = tr.learner.updates, time.perf_counter()
     for _ in range(args.episodes // cfg.train.n_envs):
-        tr.collect_round()
+        tr.collect()
     wall = time.perf_counter() - t0
     updates = tr.learner.updates - start_updates
     episodes = args.episodes // cfg.train.n_envs * cfg.train.n_envs

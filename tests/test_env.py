@@ -8,9 +8,11 @@ import pytest
 import torch
 from torchrl.envs.utils import check_env_specs
 
+from uabs_rl import service
 from uabs_rl.channel import los_probability
 from uabs_rl.config import ChannelConfig, ConfigError, ScenarioConfig
-from uabs_rl.env import ACTION, DIAG, MASK, POSITION, REWARD, EnvParams, StepMath, UABSEnv
+from uabs_rl.env import ACTION, DIAG, MASK, POSITION, REWARD, StepMath, UABSEnv
+from uabs_rl.params import EnvParams
 
 EP = 20  # episode length for the small traces (60 s)
 
@@ -69,7 +71,7 @@ def test_boundary_mask_keeps_every_uabs_inside(small_traces_cfg, train):
 def test_an_illegal_move_is_refused_and_counted(small_traces_cfg, train):
     env = UABSEnv(scenario(small_traces_cfg, n_uabs=1), ChannelConfig(), train, n_envs=1)
     td = env.reset()
-    env._state["pos"][:] = torch.tensor([[[5.0, 5.0]]])  # lower-left lattice corner
+    env.state["pos"][:] = torch.tensor([[[5.0, 5.0]]])  # lower-left lattice corner
     td.set(ACTION, torch.tensor([[3]]))  # left: out of the area
     out = env.step(td)
     assert out["next", POSITION].tolist() == [[[5.0, 5.0]]]
@@ -83,10 +85,10 @@ def test_partial_reset_resets_only_flagged_envs(small_traces_cfg, train):
     td = env.reset()
     for _ in range(5):
         td = env.step(random_legal(td))["next"]
-    before = {k: v.clone() for k, v in env._state.items()}
+    before = {k: v.clone() for k, v in env.state.items()}
     flag = torch.tensor([True, False, True, False])
     out = env.reset(td.set("_reset", flag[:, None]))
-    st = env._state
+    st = env.state
     assert st["t"].tolist() == [0, 5, 0, 5]
     for k in ("pos", "priority", "ep_return", "sim", "start"):
         assert torch.equal(st[k][~flag], before[k][~flag]), k
@@ -98,7 +100,7 @@ def test_start_positions(small_traces_cfg, train):
     sc = scenario(small_traces_cfg, n_uabs=4)
     p = EnvParams.from_config(sc, ChannelConfig())
     mth = StepMath(p, torch.device("cpu"))
-    pos = mth.start_positions(500, torch.Generator().manual_seed(0))
+    pos = mth.geometry.start_positions(500, torch.Generator().manual_seed(0))
     ring = pos[:, 1:]
     on_edge = (ring[..., 0] == 5) | (ring[..., 0] == 345) | (ring[..., 1] == 5) \
         | (ring[..., 1] == 165)
@@ -115,11 +117,11 @@ def test_reward_cases_from_constructed_positions(small_traces_cfg):
     far = torch.tensor([[[0.0, 0.0], [200.0, 0.0], [0.0, 150.0]]])
     near = torch.tensor([[[0.0, 0.0], [50.0, 0.0], [300.0, 150.0]]])  # 50 m < d_th
     hit = torch.tensor([[[0.0, 0.0], [0.5, 0.0], [300.0, 150.0]]])  # 0.5 m < 1 m
-    r, coll, prox = mth.rewards(b, mth.pair_distances(far))  # (a)
+    r, coll, prox = mth.rewards(b, mth.geometry.pair_distances(far))  # (a)
     assert r.tolist() == [[9.0, 18.0, 27.0]] and coll.item() == 0 and prox.item() == 0
-    r, coll, prox = mth.rewards(b, mth.pair_distances(near))  # (b)
+    r, coll, prox = mth.rewards(b, mth.geometry.pair_distances(near))  # (b)
     assert r.tolist() == [[-10.0, -10.0, 27.0]] and coll.item() == 0 and prox.item() == 1
-    r, coll, prox = mth.rewards(b, mth.pair_distances(hit))  # (c): collision wins
+    r, coll, prox = mth.rewards(b, mth.geometry.pair_distances(hit))  # (c): collision wins
     assert r.tolist() == [[-1000.0, -1000.0, 27.0]] and coll.item() == 1 and prox.item() == 1
 
 
@@ -127,7 +129,7 @@ def test_collision_through_the_env(small_traces_cfg, train):
     """Two UABS moved into the same cell: −λ_c for both, one collision event."""
     env = UABSEnv(scenario(small_traces_cfg, n_uabs=2), ChannelConfig(), train, n_envs=1)
     td = env.reset()
-    env._state["pos"][:] = torch.tensor([[[105.0, 85.0], [145.0, 85.0]]])
+    env.state["pos"][:] = torch.tensor([[[105.0, 85.0], [145.0, 85.0]]])
     td.set(ACTION, torch.tensor([[1, 3]]))  # right, left: both end at (125, 85)
     out = env.step(td)["next"]
     assert out[REWARD].squeeze(-1).tolist() == [[-1000.0, -1000.0]]
@@ -139,7 +141,7 @@ def test_swap_is_seen_by_the_closest_approach(small_traces_cfg, train):
     """Two UABS swapping cells never share a sampled position but cross on the way."""
     env = UABSEnv(scenario(small_traces_cfg, n_uabs=2), ChannelConfig(), train, n_envs=1)
     td = env.reset()
-    env._state["pos"][:] = torch.tensor([[[105.0, 85.0], [125.0, 85.0]]])
+    env.state["pos"][:] = torch.tensor([[[105.0, 85.0], [125.0, 85.0]]])
     out = env.step(td.set(ACTION, torch.tensor([[1, 3]])))["next"]
     assert out[DIAG, "min_pair_distance"].item() == 20.0
     assert out[DIAG, "closest_approach"].item() == 0.0
@@ -165,7 +167,8 @@ def test_priorities_and_pg_over_a_known_served_pattern(small_traces_cfg):
     priorities = []
     for t in range(8):
         st["t"] = torch.tensor([t])
-        mth.update_service(st, served[t][None] & present[t][None], present[t][None])
+        service.update_service(st, served[t][None] & present[t][None], present[t][None],
+                               mth.p.window_steps)
         priorities.append(st["priority"][0].tolist())
     # vehicle 0: p = 1 at t = 0 (window start), +1 when served: 2, 2, 3; new window: 1, 2, 3, 4
     assert [p[0] for p in priorities] == [1, 2, 2, 3, 1, 2, 3, 4]
@@ -174,7 +177,7 @@ def test_priorities_and_pg_over_a_known_served_pattern(small_traces_cfg):
     assert [p[2] for p in priorities] == [1, 0, 1, 1, 1, 2, 3, 4]
     # N_s per window: v0 = 3, 4; v1 = 0, 1; v2 = (not counted), 4
     assert st["n_windows"][0].tolist() == [2, 2, 1]
-    curve = mth.pg_curve(st["n_windows"], st["ns_hist"])[0]
+    curve = service.pg_curve(st["n_windows"], st["ns_hist"])[0]
     # N̂_s = 1: (2/2 + 1/2 + 1/1) / 3 = 0.8333; 2: (1 + 0 + 1)/3; 3: (1 + 0 + 1)/3;
     # 4: (1/2 + 0 + 1)/3 = 0.5
     assert curve.tolist() == pytest.approx([2.5 / 3, 2 / 3, 2 / 3, 0.5])
@@ -187,9 +190,10 @@ def test_pg_curve_of_a_constructed_served_matrix(small_traces_cfg):
     served = torch.tensor([[1, 1], [1, 0], [0, 0], [1, 1]], dtype=torch.bool)
     for t in range(4):
         st["t"] = torch.tensor([t])
-        mth.update_service(st, served[t][None], torch.ones(1, 2, dtype=torch.bool))
+        service.update_service(st, served[t][None], torch.ones(1, 2, dtype=torch.bool),
+                               mth.p.window_steps)
     # v0: N_s = 2, 1 -> share(≥1) = 1, share(≥2) = 0.5 ; v1: N_s = 1, 1 -> 1, 0
-    assert mth.pg_curve(st["n_windows"], st["ns_hist"])[0].tolist() == [1.0, 0.25]
+    assert service.pg_curve(st["n_windows"], st["ns_hist"])[0].tolist() == [1.0, 0.25]
 
 
 def test_episode_ends_at_T_and_tallies(small_traces_cfg, train):
@@ -212,7 +216,7 @@ def test_eval_mode_walks_fixed_windows(small_traces_cfg, held_out):
     a = rollout(env, EP, seed=0)
     b = rollout(env, EP, seed=0)
     assert (a == b).all()
-    assert env._windows.tolist() == [[0, 0], [0, EP + 1]]
+    assert env.eval_windows.tolist() == [[0, 0], [0, EP + 1]]
     with pytest.raises(ConfigError, match="n_eval_windows"):
         UABSEnv(scenario(small_traces_cfg), ChannelConfig(), held_out, n_envs=2,
                 mode="eval", n_eval_windows=3)
@@ -248,10 +252,10 @@ def test_service_radius_equals_the_snr_rule(small_traces_cfg, los_mode, threshol
     """The distance-threshold shortcut gives exactly the SNR >= SNR_th decisions."""
     chn = ChannelConfig(los_mode=los_mode, snr_threshold_db=threshold)
     mth = StepMath(EnvParams.from_config(scenario(small_traces_cfg), chn), torch.device("cpu"))
-    radii = mth.radii[mth.p.gain_db]
+    radii = mth.links.radii[mth.p.gain_db]
     d2 = torch.linspace(0.0, 400.0, 20001) ** 2
     gen = torch.Generator().manual_seed(0)
-    by_snr = mth.snr(d2, gen) + mth.p.gain_db >= threshold
+    by_snr = mth.links.snr(d2, gen) + mth.p.gain_db >= threshold
     by_radius = radii.served(d2, gen)
     assert torch.equal(by_snr, by_radius)
     if threshold == 45.0:  # a real cut inside the range: both rules see it
@@ -261,10 +265,10 @@ def test_service_radius_equals_the_snr_rule(small_traces_cfg, los_mode, threshol
 def test_sampled_los_draws_only_where_they_matter(small_traces_cfg):
     defaults = StepMath(EnvParams.from_config(scenario(small_traces_cfg), ChannelConfig()),
                         torch.device("cpu"))
-    assert defaults.always_served  # ideal beams at Table 1 powers: footprint = service
+    assert defaults.links.always_served  # ideal beams at Table 1 powers: footprint = service
     chn = ChannelConfig(snr_threshold_db=45.0)  # LoS reaches farther than NLoS now
     mth = StepMath(EnvParams.from_config(scenario(small_traces_cfg), chn), torch.device("cpu"))
-    radii = mth.radii[mth.p.gain_db]
+    radii = mth.links.radii[mth.p.gain_db]
     assert radii.needs_draw and radii.r_nlos < radii.r_los
     d = torch.tensor([radii.r_nlos * 0.99, (radii.r_nlos + radii.r_los) / 2,
                       radii.r_los * 1.01]).repeat(4000)

@@ -43,8 +43,8 @@ def test_fused_and_torchrl_losses_agree():
     with torch.no_grad():
         for p in fused.target.parameters():
             p.add_(0.1)
-    trl.target.load_state_dict(fused.target.state_dict())
-    trl._load_torchrl_target()
+    # through the resume path: a learner state whose target differs from the online net
+    trl.load_state_dict({**trl.state_dict(), "target": fused.target.state_dict()})
     b = batch()
     lf, _ = fused.fused_loss(b)
     lt, _ = trl.torchrl_loss(b)

@@ -11,24 +11,24 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from tensordict import TensorDict
 
-from uabs_rl.config import ChannelConfig, ConfigError, MaskingConfig, ScenarioConfig
-from uabs_rl.env import ACTION, BEAM_PRIORITY, DIAG, FALLBACK, MASK, POSITION, EnvParams, StepMath
+from uabs_rl.config import ChannelConfig, ConfigError, MaskingConfig, MaskingMode, ScenarioConfig
+from uabs_rl.env import ACTION, BEAM_PRIORITY, DIAG, FALLBACK, MASK, POSITION, StepMath
 from uabs_rl.make import make_env, make_selector
 from uabs_rl.masking import (
     ACTION_VALUE,
     COLLIDERS,
     RANK_ORDER,
-    MaskedActionSelector,
-    SafetyTransform,
+    RULES,
     apply_fallback,
     epsilon_greedy,
     flat_unsafe,
-    next_state_mask,
+    make_rule,
     potential_colliders,
     rank_order,
     rank_select,
     uniforms,
 )
+from uabs_rl.params import EnvParams
 
 E = 64  # random states per hypothesis example
 
@@ -43,11 +43,11 @@ def random_state(mth: StepMath, gen: torch.Generator, lattice: bool):
     """Positions anywhere in the area (safe or not), Q-values and beam scores."""
     m = mth.p.n_uabs
     if lattice:
-        ix = torch.randint(0, int(mth.lattice_n[0]), (E, m), generator=gen)
-        iy = torch.randint(0, int(mth.lattice_n[1]), (E, m), generator=gen)
-        pos = mth.lattice_point(ix.float(), iy.float())
+        ix = torch.randint(0, int(mth.geometry.lattice_n[0]), (E, m), generator=gen)
+        iy = torch.randint(0, int(mth.geometry.lattice_n[1]), (E, m), generator=gen)
+        pos = mth.geometry.lattice_point(ix.float(), iy.float())
     else:
-        pos = torch.rand(E, m, 2, generator=gen) * mth.area
+        pos = torch.rand(E, m, 2, generator=gen) * mth.geometry.area
     q = torch.randn(E, m, 4, generator=gen)
     b = torch.rand(E, m, 9, generator=gen).round() * torch.randint(0, 5, (E, m, 1), generator=gen)
     return pos, q, b
@@ -57,7 +57,7 @@ def select(mode: str, mth: StepMath, pos, q, b, eps, gen):
     """One decision of the whole pipeline: transform rules + selector. Returns the
     action, the stored mask and the fallback flags."""
     p = mth.p
-    boundary = mth.boundary_mask(pos)
+    boundary = mth.geometry.boundary_mask(pos)
     if mode == "flat":
         unsafe, dist = flat_unsafe(pos, mth.moves, p.d_th + p.step_m)
         mask, fb = apply_fallback(boundary & ~unsafe, boundary, dist)
@@ -85,9 +85,9 @@ def test_masks_keep_every_pair_apart_unless_a_fallback_is_counted(mode, m, area,
     action, mask, fb = select(mode, mth, pos, q, b, eps, gen)
     assert mask.any(-1).all(), "a mask row is all False"
     assert mask.gather(-1, action[..., None]).all(), "an executed action is illegal"
-    assert mth.boundary_mask(pos).gather(-1, action[..., None]).all()
+    assert mth.geometry.boundary_mask(pos).gather(-1, action[..., None]).all()
     new = pos + mth.moves[action]
-    close = mth.pair_distances(new).flatten(1).amin(-1) < mth.p.d_th  # [E]
+    close = mth.geometry.pair_distances(new).flatten(1).amin(-1) < mth.p.d_th  # [E]
     assert not (close & ~fb.any(-1)).any(), "closer than d_th without a counted fallback"
 
 
@@ -99,7 +99,7 @@ def test_exploration_is_uniform_over_legal_actions_and_greedy_is_best_legal(mode
     gen = torch.Generator().manual_seed(seed)
     pos, q, b = random_state(mth, gen, True)
     if mode == "penalty":
-        mask = mth.boundary_mask(pos)
+        mask = mth.geometry.boundary_mask(pos)
         greedy = epsilon_greedy(q, mask, 0.0, draws(mask, gen))
     else:
         greedy, mask, _ = select(mode, mth, pos, q, b, 0.0, gen)
@@ -123,7 +123,7 @@ def test_top_ranked_agent_takes_its_unmasked_greedy_action():
     action, mask, _ = select("rank", mth, pos, q, b, 0.0, gen)
     top = rank_order(b)[:, 0]
     rows = torch.arange(E)
-    boundary = mth.boundary_mask(pos)
+    boundary = mth.geometry.boundary_mask(pos)
     expected = q[rows, top].masked_fill(~boundary[rows, top], -math.inf).argmax(-1)
     assert torch.equal(action[rows, top], expected)
     assert torch.equal(mask[rows, top], boundary[rows, top])
@@ -151,7 +151,7 @@ def test_fallback_takes_the_boundary_legal_action_farthest_from_the_others():
     # agent 0 boxed in the lower-left corner, agent 1 right next to it
     mth = step_math(350.0, 170.0, 2)
     pos = torch.tensor([[[5.0, 5.0], [45.0, 25.0]]])
-    boundary = mth.boundary_mask(pos)
+    boundary = mth.geometry.boundary_mask(pos)
     unsafe, dist = flat_unsafe(pos, mth.moves, mth.p.d_th + mth.p.step_m)
     mask, fb = apply_fallback(boundary & ~unsafe, boundary, dist)
     assert fb.tolist() == [[True, True]]
@@ -205,10 +205,12 @@ def test_transform_specs_and_unknown_mode(small_traces_cfg, train):
     with pytest.raises(ConfigError, match="masking.mode"):
         make_env(scenario(small_traces_cfg), ChannelConfig(), MaskingConfig(mode="soft"),
                  train)
-    with pytest.raises(ValueError, match="masking mode"):
-        SafetyTransform("soft", 72.8, 20.0, torch.zeros(4, 2))
-    with pytest.raises(ValueError, match="masking mode"):
-        MaskedActionSelector("soft", 72.8, torch.zeros(4, 2))
+    p = EnvParams.from_config(scenario(small_traces_cfg), ChannelConfig())
+    with pytest.raises(ConfigError, match="masking.mode"):
+        make_rule(MaskingConfig(mode="soft"), p)
+    with pytest.raises(ConfigError, match="masking.rank_next_mask"):
+        make_rule(MaskingConfig(rank_next_mask="soft"), p)
+    assert set(RULES) == set(MaskingMode)  # every mode has exactly one rule class
 
 
 def test_flat_mask_keeps_random_warmup_actions_legal(small_traces_cfg, train):
@@ -225,20 +227,24 @@ def test_flat_mask_keeps_random_warmup_actions_legal(small_traces_cfg, train):
 def test_next_state_masks_for_the_double_dqn_target():
     mth = step_math(350.0, 170.0, 2)
     pos = torch.tensor([[[125.0, 85.0], [205.0, 85.0]]])
-    boundary = mth.boundary_mask(pos)
+    boundary = mth.geometry.boundary_mask(pos)
     b = torch.tensor([[[5.0] * 9, [1.0] * 9]])
     td = TensorDict({MASK: boundary, POSITION: pos, BEAM_PRIORITY: b,
                      RANK_ORDER: rank_order(b),
                      COLLIDERS: potential_colliders(pos, mth.p.d_th + 2 * mth.p.step_m)},
                     batch_size=[1])
     q = torch.tensor([[[0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]]])
-    args = (mth.moves, mth.p.d_th)
+    td.set(ACTION_VALUE, q)
     # flat / penalty / rank-boundary: the mask the transform wrote at s'
-    for mode, rule in [("flat", "greedy"), ("penalty", "greedy"), ("rank", "boundary")]:
-        assert torch.equal(next_state_mask(td, mode, rule, q, *args), boundary)
+    for mode, nxt in [("flat", "greedy"), ("penalty", "greedy"), ("rank", "boundary")]:
+        rule = make_rule(MaskingConfig(mode=mode, rank_next_mask=nxt), mth.p)
+        assert not rule.target_needs_q
+        assert torch.equal(rule.target_mask(td), boundary)
     # rank-greedy: agent 0 (top) greedily goes right to (145, 85); from (205, 85) agent 1
     # may then only go right (80 m); up/down end 63.2 m away, left 40 m (< d_th = 72.8)
-    m = next_state_mask(td, "rank", "greedy", q, *args)
+    rule = make_rule(MaskingConfig(mode="rank"), mth.p)
+    assert rule.target_needs_q
+    m = rule.target_mask(td)
     assert torch.equal(m[0, 0], boundary[0, 0])
     assert m[0, 1].tolist() == [False, True, False, False]
 

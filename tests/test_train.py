@@ -13,12 +13,15 @@ from hydra.errors import ConfigCompositionException
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from tests.conftest import compose_cfg
+from uabs_rl.checkpoint import CheckpointError, load_checkpoint
 from uabs_rl.config import ConfigError, validate_run
+from uabs_rl.evaluate import load_evaluation
+from uabs_rl.experiment import Experiment
 from uabs_rl.learner import DQNLearner
 from uabs_rl.make import make_selector
 from uabs_rl.model import DuelingQNet
 from uabs_rl.traces import TraceSet
-from uabs_rl.train import CheckpointError, Trainer, load_checkpoint, run
+from uabs_rl.train import run
 
 
 def smoke(trace_cache, *extra: str):
@@ -76,15 +79,18 @@ def test_smoke_run_writes_metrics_tensorboard_and_checkpoints(rank_run):
 def test_best_checkpoint_reloads_to_identical_parameters_and_figures(rank_run, trace_cache,
                                                                     tmp_path):
     state = load_checkpoint(rank_run / "checkpoints" / "best.pt")
-    trainer = Trainer(smoke(trace_cache), tmp_path)
-    trainer.load_state_dict(state, rank_run / "checkpoints" / "best.pt")
-    for k, v in trainer.qnet.state_dict().items():
+    exp = Experiment(smoke(trace_cache), tmp_path)
+    exp.load_state_dict(state, rank_run / "checkpoints" / "best.pt")
+    for k, v in exp.qnet.state_dict().items():
         assert torch.equal(v, state["learner"]["qnet"][k])
     evals = [r for r in records(rank_run) if r["kind"] == "eval"]
     best = [r for r in evals if r["episode"] == state["counters"]["episode"]][0]
-    again, _ = trainer.evaluate()
-    for key in ("return", "returns", "collisions", "proximity", "pg_curve", "served_fraction"):
-        assert again[key] == pytest.approx(best[key]), key
+    # evaluation without a trainer (what uabs-eval does) and through the experiment
+    ev = load_evaluation(rank_run, "best")
+    for again, _ in (ev.evaluator.evaluate(ev.greedy), exp.evaluator.evaluate(exp.greedy)):
+        for key in ("return", "returns", "collisions", "proximity", "pg_curve",
+                    "served_fraction"):
+            assert again[key] == pytest.approx(best[key]), key
 
 
 def test_resume_continues_the_episode_counter(trace_cache, tmp_path):
@@ -121,8 +127,8 @@ def test_incompatible_or_damaged_checkpoint_is_refused(rank_run, trace_cache, tm
 
 
 def test_ctrl_c_saves_last_before_exiting(trace_cache, tmp_path, monkeypatch):
-    trainer = Trainer(smoke(trace_cache, "train.tensorboard=false"), tmp_path)
-    real = trainer.collect_round
+    exp = Experiment(smoke(trace_cache, "train.tensorboard=false"), tmp_path)
+    real = exp.collect
     calls = []
 
     def interrupted():
@@ -131,9 +137,9 @@ def test_ctrl_c_saves_last_before_exiting(trace_cache, tmp_path, monkeypatch):
         calls.append(1)
         return real()
 
-    monkeypatch.setattr(trainer, "collect_round", interrupted)
+    monkeypatch.setattr(exp, "collect", interrupted)
     with pytest.raises(KeyboardInterrupt):
-        trainer.fit()
+        exp.fit()
     assert load_checkpoint(tmp_path / "checkpoints" / "last.pt")["counters"]["episode"] == 1
 
 
@@ -194,14 +200,15 @@ LEARN = ["scenario.n_uabs=1", "scenario.area.width=150", "scenario.area.height=9
 
 def test_greedy_policy_beats_a_random_one_after_training(trace_cache, tmp_path):
     cfg = smoke(trace_cache, *LEARN)
-    tr = Trainer(cfg, tmp_path, traces={"train": parked_vehicles(200),
-                                        "eval": parked_vehicles(100)})
+    tr = Experiment(cfg, tmp_path, traces={"train": parked_vehicles(200),
+                                           "eval": parked_vehicles(100)})
     while tr.episode < cfg.train.episodes:
-        tr.collect_round()
-    greedy, _ = tr.evaluate()
-    rand_sel = make_selector(tr.eval_env, cfg.masking, 1.0, torch.Generator().manual_seed(1))
-    tr.eval_env.set_seed(cfg.train.eval_seed)
-    td = tr.eval_env.rollout(20, rand_sel, break_when_any_done=False)
+        tr.collect()
+    greedy, _ = tr.evaluator.evaluate(tr.greedy)
+    eval_env = tr.evaluator.env
+    rand_sel = make_selector(eval_env, cfg.masking, 1.0, torch.Generator().manual_seed(1))
+    eval_env.set_seed(cfg.train.eval_seed)
+    td = eval_env.rollout(20, rand_sel, break_when_any_done=False)
     random_return = td["next", "diagnostics", "ep_return"][:, -1].mean().item()
     assert greedy["return"] > 3 * random_return > 0
 
@@ -209,11 +216,11 @@ def test_greedy_policy_beats_a_random_one_after_training(trace_cache, tmp_path):
 def test_loss_falls_when_fitting_a_fixed_buffer(trace_cache, tmp_path):
     """Regression towards frozen targets: a broken loss or optimiser cannot pass."""
     cfg = smoke(trace_cache, *LEARN, "algo.target_update=1000000")
-    tr = Trainer(cfg, tmp_path, traces={"train": parked_vehicles(200),
-                                        "eval": parked_vehicles(100)})
+    tr = Experiment(cfg, tmp_path, traces={"train": parked_vehicles(200),
+                                           "eval": parked_vehicles(100)})
     tr.cfg.algo.learning_starts = 10**9  # collect without updating
     for _ in range(5):
-        tr.collect_round()
+        tr.collect()
     lrn = DQNLearner(DuelingQNet(tr.params.obs_dim, 4, [64, 64]), cfg.algo, 4)
     b = tr.buffer.sample(100)
     first = lrn.update(b)[0].item()

@@ -17,9 +17,10 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase, TensorDictSequential
+from torchrl.envs import TransformedEnv
 
 from uabs_rl import channel as ch
-from uabs_rl.env import POSITION, UABSEnv, vehicles_at
+from uabs_rl.env import POSITION, UABSEnv
 from uabs_rl.masking import ACTION_VALUE, MaskedActionSelector
 
 BASELINES = ("random", "greedy", "oracle")
@@ -36,21 +37,19 @@ class CoverageScore(TensorDictModuleBase):
 
     def forward(self, td: TensorDictBase) -> TensorDictBase:
         env, p = self.env, self.env.params
-        st = dict(env._state)
-        st["t"] = st["t"] + self.lookahead
-        veh, present = vehicles_at(st, env.veh_pos, env.veh_present)  # [E, 2, V], [E, V]
+        veh, present = env.vehicles(self.lookahead)  # [E, 2, V], [E, V]
         cand = td.get(POSITION)[:, :, None, :] + env.math.moves  # [E, M, 4, 2]
         dx = veh[:, None, None, 0, :] - cand[..., 0:1]  # [E, M, 4, V]
         dy = veh[:, None, None, 1, :] - cand[..., 1:2]
         inside, _ = ch.assign_beams(dx, dy, p.r_b, p.n_beams)
-        weight = torch.where(present, env._state["priority"].clamp_min(1.0), 0.0)
+        weight = torch.where(present, env.priority.clamp_min(1.0), 0.0)
         score = (inside * weight[:, None, None, :]).sum(-1)
         jitter = torch.rand(score.shape, generator=self.generator, device=score.device)
         td.set(ACTION_VALUE, score + 1e-3 * jitter)
         return td
 
 
-def baseline_policy(name: str, env, selector: MaskedActionSelector,
+def baseline_policy(name: str, env: TransformedEnv, selector: MaskedActionSelector,
                     seed: int = 0) -> TensorDictModuleBase:
     """The baseline ``name`` as a policy for ``env`` (a transformed UABS env)."""
     if name not in BASELINES:

@@ -9,6 +9,7 @@ live in ``validate_*`` functions and raise :class:`ConfigError` naming the key.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, fields, is_dataclass
+from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +21,48 @@ PROJECT_ROOT = Path(__file__).resolve().parents[1]
 
 class ConfigError(ValueError):
     """A config value is invalid; the message names the key and the fix."""
+
+
+# Closed sets. Member names equal their values because OmegaConf converts yaml strings
+# to members by name: ``masking.mode: flat`` -> ``MaskingMode.flat``; Hydra rejects
+# any other value when the config is composed.
+class MaskingMode(StrEnum):
+    """The anti-collision mechanism (SPEC §6); its rules live in ``uabs_rl.masking``."""
+
+    penalty = "penalty"
+    flat = "flat"
+    rank = "rank"
+
+
+class RankNextMask(StrEnum):
+    """Rank mode's double-DQN target mask at s' (see ``uabs_rl.masking.RankRule``)."""
+
+    greedy = "greedy"
+    boundary = "boundary"
+
+
+class LosMode(StrEnum):
+    """How a link's LoS state is decided (SPEC §3)."""
+
+    sample = "sample"
+    expected = "expected"
+    los = "los"
+
+
+class LossKind(StrEnum):
+    """Which implementation of the 3DQN loss (``uabs_rl.learner``)."""
+
+    fused = "fused"
+    torchrl = "torchrl"
+
+
+def enum_value(enum: type[StrEnum], value: object, key: str) -> StrEnum:
+    """``value`` as a member of ``enum``, or a ConfigError naming ``key`` and the choices."""
+    try:
+        return enum(value)
+    except ValueError:
+        choices = "|".join(m.value for m in enum)
+        raise ConfigError(f"{key} must be one of {choices}, got {value!r}.") from None
 
 
 @dataclass
@@ -105,39 +148,30 @@ class ChannelConfig:
     snr_threshold_db: float = -13.7  # SNR_th
     fov_deg: float = 40.0  # φ
     n_beams: int = 9  # B, a square number (3×3 grid)
-    los_mode: str = "sample"  # sample (Bernoulli per link per step) | expected | los [decision]
+    # [decision] sample: Bernoulli(ρ_L) per link per step | expected | los
+    los_mode: LosMode = LosMode.sample
     shadow_fading: bool = False  # log-normal shadowing, σ below [decision: off]
     shadow_sigma_los_db: float = 4.0
     shadow_sigma_nlos_db: float = 6.0
     outside_beam_gain_db: float | None = None  # null = ideal beams, no service outside [decision]
 
 
-LOS_MODES = ("sample", "expected", "los")
-
 
 @dataclass
 class MaskingConfig:
     """Anti-collision mechanism (SPEC §6)."""
 
-    mode: str = "rank"  # penalty | flat | rank
+    mode: MaskingMode = MaskingMode.rank  # penalty | flat | rank
     flat_margin: float | None = None  # flat: unsafe below d_th + this; null = v·δt (paper)
     collider_margin: float | None = None  # rank: colliders below d_th + this; null = 2·v·δt
     # [decision] next-state mask of the double-DQN target in rank mode: "greedy" = the
     # masks a greedy rank selection would apply at s'; "boundary" = boundary mask only
-    rank_next_mask: str = "greedy"
+    rank_next_mask: RankNextMask = RankNextMask.greedy
 
 
-MASKING_MODES = ("penalty", "flat", "rank")
-RANK_NEXT_MASKS = ("greedy", "boundary")
-
-
-def validate_masking(masking: Any) -> None:
-    if masking.mode not in MASKING_MODES:
-        raise ConfigError(f"masking.mode must be one of {MASKING_MODES}, got "
-                          f"{masking.mode!r}. Select it with masking=penalty|flat|rank.")
-    if masking.rank_next_mask not in RANK_NEXT_MASKS:
-        raise ConfigError(f"masking.rank_next_mask must be one of {RANK_NEXT_MASKS}, got "
-                          f"{masking.rank_next_mask!r}.")
+def validate_masking(masking: MaskingConfig) -> None:
+    enum_value(MaskingMode, masking.mode, "masking.mode (select it with masking=...)")
+    enum_value(RankNextMask, masking.rank_next_mask, "masking.rank_next_mask")
     for key in ("flat_margin", "collider_margin"):
         v = getattr(masking, key)
         if v is not None and v < 0:
@@ -150,7 +184,7 @@ class TracesAppConfig:
 
     scenario: ScenarioConfig = field(default_factory=ScenarioConfig)
     traces: TracesConfig = field(default_factory=TracesConfig)
-    split: str = "all"  # which traces to build: train, eval or all
+    split: str = "all"  # which traces to build: train, eval or all (uabs-traces split=eval)
 
 
 @dataclass
@@ -171,7 +205,7 @@ class AlgoConfig:
     eps_end: float = 0.05  # ... to eps_end ...
     eps_fraction: float = 0.6  # ... over this share of the training env steps
     grad_clip: float | None = None  # max gradient norm; null = no clipping
-    loss: str = "fused"  # fused (hand-written, same maths) | torchrl (DQNLoss)
+    loss: LossKind = LossKind.fused  # fused (hand-written, same maths) | torchrl (DQNLoss)
 
 
 @dataclass
@@ -180,15 +214,19 @@ class TrainConfig:
 
     episodes: int = 1000  # N_t
     eval_every: int = 20  # N_e: greedy evaluation on held-out traces every N_e episodes
-    eval_windows: int = 10  # held-out windows per evaluation (the paper uses 1)
-    eval_seed: int = 12345  # start positions of every evaluation
-    n_envs: int = 1  # episodes run in parallel per collector step
-    checkpoint_buffer: bool = False  # also save the replay buffer in checkpoints
+    eval_windows: int = 10  # held-out windows per evaluation (the paper evaluates 1)
+    eval_seed: int = 12345  # start positions of every evaluation (the same each time)
+    # episodes in parallel; updates per collector step = n_envs / algo.update_every
+    n_envs: int = 1
+    checkpoint_buffer: bool = False  # also store the replay buffer in checkpoints (~20 MB)
     tensorboard: bool = True
-    trajectory_images: bool = True  # an image of the evaluated trajectories per evaluation
+    trajectory_images: bool = True  # held-out trajectory picture at each evaluation
     progress: bool = True  # progress bar
-    compile: bool = True  # torch.compile the env step and the action selection
-    threads: int | None = None  # torch CPU threads; null = torch's default (all cores)
+    # torch.compile the env step and the action selection: ~2x faster training, ~20 s to
+    # compile (eager if compilation fails)
+    compile: bool = True
+    # torch CPU threads; null = all cores (use cores / n_jobs in parallel sweeps)
+    threads: int | None = None
 
 
 @dataclass
@@ -201,16 +239,17 @@ class RunConfig:
     algo: AlgoConfig = field(default_factory=AlgoConfig)
     traces: TracesConfig = field(default_factory=TracesConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
-    seed: int = 0
+    seed: int = 0  # network init, exploration, training windows and start positions
     device: str = "cpu"  # cpu | cuda | cuda:N | auto
-    resume: str | None = None  # a run directory to continue
+    resume: str | None = None  # a run directory (outputs/runs/...) to continue
 
 
-def validate_run(cfg: Any) -> None:
+def validate_run(cfg: RunConfig) -> None:
     """Every start-up check of ``uabs-train``, each naming the offending key."""
     validate_scenario_traces(cfg.scenario, cfg.traces)
     validate_env(cfg.scenario, cfg.channel)
     validate_masking(cfg.masking)
+    enum_value(LossKind, cfg.algo.loss, "algo.loss")
     a, t = cfg.algo, cfg.train
     checks = [
         (a.lr > 0, "algo.lr", "must be > 0", a.lr),
@@ -227,7 +266,6 @@ def validate_run(cfg: Any) -> None:
         (0 < a.eps_fraction <= 1, "algo.eps_fraction", "must be in (0, 1]", a.eps_fraction),
         (all(h >= 1 for h in a.hidden) and len(a.hidden) >= 1, "algo.hidden",
          "must be a non-empty list of positive widths", a.hidden),
-        (a.loss in ("fused", "torchrl"), "algo.loss", "must be fused or torchrl", a.loss),
         (t.episodes >= 1, "train.episodes", "must be >= 1", t.episodes),
         (t.eval_every >= 1, "train.eval_every", "must be >= 1", t.eval_every),
         (t.eval_windows >= 1, "train.eval_windows", "must be >= 1", t.eval_windows),
@@ -235,9 +273,7 @@ def validate_run(cfg: Any) -> None:
         (t.episodes % t.n_envs == 0, "train.episodes",
          "must be a multiple of train.n_envs", (t.episodes, t.n_envs)),
     ]
-    for ok, key, rule, value in checks:
-        if not ok:
-            raise ConfigError(f"{key} {rule}, got {value!r}.")
+    _raise_first(checks)
     if not (cfg.device in ("cpu", "cuda", "auto") or cfg.device.startswith("cuda:")):
         raise ConfigError(f"device must be cpu, cuda, cuda:N or auto, got {cfg.device!r}.")
 
@@ -280,7 +316,7 @@ def resolve_path(value: str, key: str) -> Path:
                       f"Set {key} to an existing file.")
 
 
-def validate_scenario_traces(scenario: Any, traces: Any) -> None:
+def validate_scenario_traces(scenario: ScenarioConfig, traces: TracesConfig) -> None:
     """Value checks for the trace pipeline, each naming the offending key."""
     sumo = scenario.sumo
     if scenario.dt <= 0:
@@ -338,7 +374,7 @@ def to_container(cfg: Any) -> Any:
     return cfg
 
 
-def validate_env(scenario: Any, channel: Any) -> None:
+def validate_env(scenario: ScenarioConfig, channel: ChannelConfig) -> None:
     """Value checks for the environment, each naming the offending key."""
     checks = [
         (scenario.n_uabs >= 1, "scenario.n_uabs", "must be >= 1", scenario.n_uabs),
@@ -365,9 +401,13 @@ def validate_env(scenario: Any, channel: Any) -> None:
         (0 < channel.fov_deg < 180, "channel.fov_deg", "must be in (0, 180)", channel.fov_deg),
         (channel.n_beams >= 1 and round(channel.n_beams ** 0.5) ** 2 == channel.n_beams,
          "channel.n_beams", "must be a square number (k x k beam grid)", channel.n_beams),
-        (channel.los_mode in LOS_MODES, "channel.los_mode", f"must be one of {LOS_MODES}",
-         channel.los_mode),
     ]
+    _raise_first(checks)
+    enum_value(LosMode, channel.los_mode, "channel.los_mode")
+
+
+def _raise_first(checks: list[tuple[bool, str, str, Any]]) -> None:
+    """Raise a ConfigError for the first failed ``(ok, key, rule, value)`` check."""
     for ok, key, rule, value in checks:
         if not ok:
             raise ConfigError(f"{key} {rule}, got {value!r}.")

@@ -8,6 +8,9 @@ Prints a table and writes ``eval.json`` (R, collisions, proximity events, fallba
 served fraction, P_g at N̂_s and the whole P_g(N̂_s) curve per policy), a trajectory
 picture per policy and, with ``--gif``, an animation of one episode of the learned
 policy, into ``<run dir>/evaluation/`` (or ``--out``).
+
+Evaluation needs only the held-out env, the Q-network and the masking rule
+(:mod:`uabs_rl.evaluation`): no training traces, replay buffer or optimiser are built.
 """
 
 from __future__ import annotations
@@ -15,55 +18,69 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from omegaconf import OmegaConf
+from tensordict.nn import TensorDictModuleBase
 
 from uabs_rl.baselines import BASELINES, baseline_policy
+from uabs_rl.checkpoint import (
+    CheckpointError,
+    checkpoint_path,
+    config_from_checkpoint,
+    load_checkpoint,
+)
 from uabs_rl.config import ConfigError, RunConfig
+from uabs_rl.env import N_ACTIONS
+from uabs_rl.evaluation import Evaluator, greedy_policy, make_eval_env
 from uabs_rl.make import make_selector
-from uabs_rl.train import CheckpointError, Trainer, load_checkpoint
+from uabs_rl.model import DuelingQNet
 
 POLICIES = ("learned", *BASELINES)
 
 
-def config_from_checkpoint(state: dict) -> Any:
-    """The run's config (dataclasses) as stored in a checkpoint."""
-    merged = OmegaConf.merge(OmegaConf.structured(RunConfig), state["config"])
-    return OmegaConf.to_object(merged)
+@dataclass
+class Evaluation:
+    """What evaluating a checkpoint needs: its config, the held-out env's evaluator, the
+    greedy learned policy and the counters the checkpoint was written at."""
+
+    cfg: RunConfig
+    evaluator: Evaluator
+    greedy: TensorDictModuleBase
+    episode: int
+    env_steps: int
 
 
-def checkpoint_path(path: Path, which: str = "best") -> Path:
-    return path / "checkpoints" / f"{which}.pt" if path.is_dir() else path
-
-
-def load_trainer(path: Path, which: str = "best", windows: int | None = None,
-                 out_dir: Path | None = None) -> tuple[Trainer, Path]:
-    """A Trainer restored from a run directory or checkpoint, ready to evaluate."""
-    ckpt = checkpoint_path(path, which)
-    state = load_checkpoint(ckpt)
+def load_evaluation(path: Path, which: str = "best", windows: int | None = None) -> Evaluation:
+    """The learned policy of a run directory or checkpoint on its held-out windows."""
+    state = load_checkpoint(checkpoint_path(path, which))
     cfg = config_from_checkpoint(state)
-    cfg.train.compile = False  # a few rollouts: compiling would cost more than it saves
-    cfg.train.progress = False
-    if windows is not None:
-        cfg.train.eval_windows = windows
-    out = out_dir or (path if path.is_dir() else path.parent.parent) / "evaluation"
-    trainer = Trainer(cfg, out)
-    trainer.load_state_dict(state, ckpt, resuming=False)
-    return trainer, out
+    # a few rollouts: compiling would cost more than it saves
+    env = make_eval_env(cfg, windows=windows, compile=False)
+    p = env.base_env.params
+    qnet = DuelingQNet(p.obs_dim, N_ACTIONS, list(cfg.algo.hidden))
+    qnet.load_state_dict(state["learner"]["qnet"])
+    c = state["counters"]
+    return Evaluation(cfg, Evaluator(env, cfg.train.eval_seed), greedy_policy(qnet, env, cfg),
+                      int(c["episode"]), int(c["env_steps"]))
 
 
-def evaluate_policies(trainer: Trainer, policies: tuple[str, ...],
+def default_out_dir(path: Path) -> Path:
+    return (path if path.is_dir() else path.parent.parent) / "evaluation"
+
+
+def evaluate_policies(ev: Evaluation, policies: tuple[str, ...],
                       seed: int = 0) -> dict[str, tuple[dict[str, Any], Any]]:
     """Records and rollouts of each policy on the same held-out windows and masks."""
     results = {}
+    env = ev.evaluator.env
     for name in policies:
         if name == "learned":
-            results[name] = trainer.evaluate()
+            policy = ev.greedy
         else:
-            sel = make_selector(trainer.eval_env, trainer.cfg.masking)
-            results[name] = trainer.evaluate(baseline_policy(name, trainer.eval_env, sel, seed))
+            policy = baseline_policy(name, env, make_selector(env, ev.cfg.masking), seed)
+        results[name] = ev.evaluator.evaluate(policy, ev.episode, ev.env_steps)
         results[name][0]["policy"] = name
     return results
 
@@ -88,37 +105,38 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, help="output folder (default: <run>/evaluation)")
     args = ap.parse_args(argv)
     try:
-        trainer, out = load_trainer(args.path, args.checkpoint, args.windows, args.out)
+        ev = load_evaluation(args.path, args.checkpoint, args.windows)
     except (CheckpointError, ConfigError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    out = args.out or default_out_dir(args.path)
     policies = POLICIES if args.policy == "all" else (args.policy,)
-    results = evaluate_policies(trainer, policies)
+    results = evaluate_policies(ev, policies)
     out.mkdir(parents=True, exist_ok=True)
-    _print_table(results, trainer.params.nhat_s)
+    _print_table(results, ev.evaluator.params.nhat_s)
     (out / "eval.json").write_text(json.dumps({k: r for k, (r, _) in results.items()},
                                               indent=1))
-    _write_pictures(trainer, results, out, args.gif)
+    _write_pictures(ev, results, out, args.gif)
     print(f"wrote {out / 'eval.json'} and pictures under {out}")
     return 0
 
 
-def _write_pictures(trainer: Trainer, results: dict, out: Path, gif: bool) -> None:
+def _write_pictures(ev: Evaluation, results: dict, out: Path, gif: bool) -> None:
     import matplotlib.pyplot as plt
 
     from uabs_rl.plots import animate_episode, scenario_lanes, trajectory_figure
 
-    a, p = trainer.cfg.scenario.area, trainer.params
-    lanes = scenario_lanes(trainer.cfg.scenario)
+    a, p = ev.cfg.scenario.area, ev.evaluator.params
+    lanes = scenario_lanes(ev.cfg.scenario)
     for name, (rec, td) in results.items():
-        fig = trajectory_figure(a, *trainer.trajectory_of(td), p.r_b, p.n_beams, lanes,
-                                title=f"{name} ({trainer.cfg.masking.mode} masking), held-out "
+        fig = trajectory_figure(a, *ev.evaluator.trajectory_of(td), p.r_b, p.n_beams, lanes,
+                                title=f"{name} ({ev.cfg.masking.mode} masking), held-out "
                                       f"window 0: R = {rec['returns'][0]:.0f}")
         fig.savefig(out / f"trajectories_{name}.png")
         plt.close(fig)
     if gif and "learned" in results:
-        animate_episode(a, *trainer.trajectory_of(results["learned"][1]), p.r_b, p.n_beams,
-                        lanes, out / "episode_learned.gif")
+        animate_episode(a, *ev.evaluator.trajectory_of(results["learned"][1]), p.r_b,
+                        p.n_beams, lanes, out / "episode_learned.gif")
 
 
 def run_main() -> None:

@@ -4,8 +4,13 @@ Two implementations of the same loss, selected by ``algo.loss``:
 
 * ``fused`` (default): a hand-written update on plain tensors: online net on o (with
   gradient) and on o' (without), target net on o', Huber loss, fused Adam.
-* ``torchrl``: TorchRL's ``DQNLoss(double_dqn=True)`` over the same batch.
+* ``torchrl``: TorchRL's ``DQNLoss(double_dqn=True)`` over the same batch, kept as the
+  tested reference.
 
+Why a hand-written loss: measured on the 2-core development CPU (batch 128 × 3 agents,
+2 × 256 MLP), one update takes 6.9 ms fused against 13.9 ms with ``DQNLoss``, which
+builds TensorDicts, runs the value network through functional calls and masks via
+``QValueModule`` on every call; the update is half of a training step's time.
 ``tests/test_learner.py`` checks that both give the same loss and gradients.
 """
 
@@ -13,7 +18,6 @@ from __future__ import annotations
 
 import copy
 import warnings
-from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -22,11 +26,17 @@ from tensordict.nn import TensorDictModule, TensorDictSequential
 from torchrl.modules import QValueModule
 from torchrl.objectives import DQNLoss
 
+from uabs_rl.config import AlgoConfig, LossKind
 from uabs_rl.model import DuelingQNet
+
+TARGET_WARNING = "No target network updater has been associated"
 
 
 class DQNLearner:
-    def __init__(self, qnet: DuelingQNet, algo: Any, n_actions: int):
+    """The online Q-network, its target copy (copied every ``algo.target_update``
+    updates), Adam, and one double-DQN update per :meth:`update` call."""
+
+    def __init__(self, qnet: DuelingQNet, algo: AlgoConfig, n_actions: int):
         self.qnet = qnet
         self.target = copy.deepcopy(qnet).requires_grad_(False)
         self.gamma = float(algo.gamma)
@@ -36,8 +46,11 @@ class DQNLearner:
         # fused Adam: one kernel for all parameters (3x faster than foreach on CPU here)
         self.optim = torch.optim.Adam(qnet.parameters(), lr=algo.lr, fused=True)
         self.updates = 0
-        if self.kind == "torchrl":
+        if self.kind == LossKind.torchrl:
             self.dqn_loss = make_dqn_loss(qnet, n_actions, self.gamma)
+            # the loss's target parameters mirror ``self.target``, whose layout differs
+            # (the loss wraps the net): a wrapper of the target with the loss's layout
+            self.target_value_net = value_network(self.target)
             self._sync_torchrl_target()
 
     # ------------------------------------------------------------------ losses
@@ -53,7 +66,9 @@ class DQNLearner:
 
     def torchrl_loss(self, b: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
         td = batch_to_td(b)
-        loss = self.dqn_loss(td)["loss"]
+        with warnings.catch_warnings():  # the target is copied by sync_target, on purpose
+            warnings.filterwarnings("ignore", message=TARGET_WARNING)
+            loss = self.dqn_loss(td)["loss"]
         with torch.no_grad():
             q_taken = self.qnet(b["obs"]).gather(1, b["action"][:, None]).squeeze(1)
         return loss, q_taken
@@ -61,7 +76,8 @@ class DQNLearner:
     # ------------------------------------------------------------------ update
     def update(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
         """One gradient step; returns (loss, mean chosen Q) as 0-d tensors (no sync)."""
-        loss, q_taken = (self.fused_loss if self.kind == "fused" else self.torchrl_loss)(batch)
+        loss, q_taken = (self.fused_loss if self.kind == LossKind.fused
+                         else self.torchrl_loss)(batch)
         self.optim.zero_grad(set_to_none=True)
         loss.backward()
         if self.grad_clip is not None:
@@ -74,20 +90,15 @@ class DQNLearner:
 
     def sync_target(self) -> None:
         self.target.load_state_dict(self.qnet.state_dict())
-        if self.kind == "torchrl":
+        if self.kind == LossKind.torchrl:
             self._sync_torchrl_target()
 
     def _sync_torchrl_target(self) -> None:
-        self.dqn_loss.target_value_network_params.update_(
-            self.dqn_loss.value_network_params.data)
-
-    def _load_torchrl_target(self) -> None:
-        """Copy ``self.target`` into the loss's target parameters (same layout as the
-        online ones): load it into the online net, copy, restore the online weights."""
-        online = copy.deepcopy(self.qnet.state_dict())
-        self.qnet.load_state_dict(self.target.state_dict())
-        self._sync_torchrl_target()
-        self.qnet.load_state_dict(online)
+        """Copy ``self.target`` into the TorchRL loss's target parameters."""
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=TARGET_WARNING)
+            self.dqn_loss.target_value_network_params.update_(
+                TensorDict.from_module(self.target_value_net).data)
 
     # ------------------------------------------------------------------ state
     def state_dict(self) -> dict:
@@ -99,20 +110,24 @@ class DQNLearner:
         self.target.load_state_dict(state["target"])
         self.optim.load_state_dict(state["optim"])
         self.updates = int(state["updates"])
-        if self.kind == "torchrl":
-            self._load_torchrl_target()
+        if self.kind == LossKind.torchrl:
+            self._sync_torchrl_target()
+
+
+def value_network(qnet: DuelingQNet) -> TensorDictSequential:
+    """``qnet`` as TorchRL's Q-value actor on flat per-agent batches (keys as in
+    :func:`batch_to_td`), masked by ``action_mask``."""
+    return TensorDictSequential(
+        TensorDictModule(qnet, in_keys=["observation"], out_keys=["action_value"]),
+        QValueModule(action_space="categorical", action_mask_key="action_mask"))
 
 
 def make_dqn_loss(qnet: DuelingQNet, n_actions: int, gamma: float) -> DQNLoss:
     """TorchRL's double-DQN loss on flat per-agent batches (keys as in batch_to_td).
     Its target parameters are copied by :meth:`DQNLearner.sync_target`, not by a
     TorchRL updater, so both losses share one target schedule."""
-    warnings.filterwarnings("ignore", message="No target network updater has been associated")
-    value_net = TensorDictSequential(
-        TensorDictModule(qnet, in_keys=["observation"], out_keys=["action_value"]),
-        QValueModule(action_space="categorical", action_mask_key="action_mask"))
-    loss = DQNLoss(value_net, action_space="categorical", double_dqn=True, delay_value=True,
-                   loss_function="smooth_l1")
+    loss = DQNLoss(value_network(qnet), action_space="categorical", double_dqn=True,
+                   delay_value=True, loss_function="smooth_l1")
     loss.make_value_estimator(gamma=gamma)
     return loss
 

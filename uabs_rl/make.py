@@ -3,42 +3,40 @@ selector from configs. Entry points only wire these."""
 
 from __future__ import annotations
 
-from typing import Any
-
 import torch
 from torchrl.envs import Compose, TransformedEnv
 from torchrl.envs.transforms import ActionMask
 
-from uabs_rl.config import validate_masking
+from uabs_rl.config import ChannelConfig, MaskingConfig, ScenarioConfig, TracesConfig
 from uabs_rl.env import ACTION, MASK, UABSEnv
-from uabs_rl.masking import MaskedActionSelector, SafetyTransform
+from uabs_rl.masking import MaskedActionSelector, SafetyTransform, make_rule
 from uabs_rl.traces import TraceSet, get_traces
 
 
-def make_env(scenario: Any, channel: Any, masking: Any, traces: TraceSet | Any,
-             split: str = "train", n_envs: int = 1, device: str | torch.device = "cpu",
-             n_eval_windows: int | None = None, seed: int | None = None,
-             compile: bool = False, spec_mask: bool = True) -> TransformedEnv:
+def make_env(scenario: ScenarioConfig, channel: ChannelConfig, masking: MaskingConfig,
+             traces: TraceSet | TracesConfig, split: str = "train", n_envs: int = 1,
+             device: str | torch.device = "cpu", n_eval_windows: int | None = None,
+             seed: int | None = None, compile: bool = False,
+             spec_mask: bool = True) -> TransformedEnv:
     """``UABSEnv`` over the ``split`` traces, wrapped with the masking transform and,
     with ``spec_mask``, TorchRL's ``ActionMask`` (so ``env.rand_action()`` respects the
     written mask; the trainer acts through the selector and skips it).
 
     ``traces`` is a :class:`TraceSet` or the ``traces`` config (then loaded or built)."""
-    validate_masking(masking)
     if not isinstance(traces, TraceSet):
         traces = get_traces(scenario, traces, split)
     base = UABSEnv(scenario, channel, traces, n_envs=n_envs, mode=split, device=device,
                    n_eval_windows=n_eval_windows, seed=seed, compile_step=compile)
-    safety = SafetyTransform(masking.mode, base.params.d_th, base.params.step_m,
-                             base.math.moves, masking.flat_margin, masking.collider_margin)
+    safety = SafetyTransform(make_rule(masking, base.params).to(base.device))
     return TransformedEnv(base, Compose(safety, ActionMask(ACTION, MASK)) if spec_mask
                           else safety)
 
 
-def make_selector(env: TransformedEnv, masking: Any, eps: float = 0.0,
+def make_selector(env: TransformedEnv, masking: MaskingConfig, eps: float = 0.0,
                   generator: torch.Generator | None = None,
                   compile: bool = False) -> MaskedActionSelector:
-    """The ε-greedy masked selector matching ``env``'s masking mode."""
+    """The ε-greedy masked selector of ``masking``'s rule for ``env``."""
     base = env.base_env
-    return MaskedActionSelector(masking.mode, base.params.d_th, base.math.moves, eps=eps,
-                                generator=generator, compile=compile).to(base.device)
+    rule = make_rule(masking, base.params).to(base.device)
+    return MaskedActionSelector(rule, eps=eps, generator=generator, compile=compile).to(
+        base.device)

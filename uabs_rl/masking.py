@@ -1,19 +1,28 @@
-"""Anti-collision mechanisms (SPEC §6): penalty, flat masking and rank masking.
+"""Anti-collision mechanisms (SPEC §6): one rule class per masking mode.
 
-Two pieces cooperate, because a rank mask needs the higher-ranked agents' *chosen*
-actions and so cannot be computed before the policy acts:
+Every mode is a :class:`MaskingRule`, registered under its :class:`MaskingMode` in
+:data:`RULES`; this is the only module that tells modes apart. A rule says
 
-* :class:`SafetyTransform`, a TorchRL transform on the env's outputs. ``penalty``:
-  nothing beyond the env's boundary mask. ``flat``: ``("agents", "action_mask")`` =
-  boundary AND the pairwise flat rule, with the empty-mask fallback applied and flagged
-  in ``("agents", "mask_fallback")``. ``rank``: ranks from F(u) = ||b_t^(u)||_1 and the
-  potential-collider pairs, written as ``("agents", "rank_order")`` and
-  ``("agents", "colliders")``; the mask stays the boundary mask (what the top agent faces).
-* :class:`MaskedActionSelector`, the last module of every policy: ε-greedy over the
-  legal actions of the mask that applies. In ``rank`` mode it chooses agent by agent in
-  rank order (vectorised over envs, a loop over the M rank positions only), masking
-  each lower-ranked agent against the chosen next positions of its higher-ranked
-  potential colliders, and writes the mask that applied and the fallback flags.
+* what it writes into the env's outputs after every reset and step
+  (:meth:`MaskingRule.write`, with the specs of those entries),
+* how an action is chosen given Q-values, the mask, the exploration draws and ε
+  (:meth:`MaskingRule.choose`, a pure tensor function, compilable),
+* which mask the double-DQN target maximises over at s' (:meth:`MaskingRule.target_mask`).
+
+Two thin TorchRL wrappers apply a rule, because a rank mask needs the higher-ranked
+agents' *chosen* actions and so cannot be computed before the policy acts:
+:class:`SafetyTransform` (the env side: :meth:`~MaskingRule.write`) and
+:class:`MaskedActionSelector` (the policy's last module: :meth:`~MaskingRule.choose`).
+
+* ``penalty``: only the env's boundary mask; safety is left to the penalties.
+* ``flat``: ``("agents", "action_mask")`` = boundary AND the pairwise flat rule, with the
+  empty-mask fallback applied and flagged in ``("agents", "mask_fallback")``.
+* ``rank``: ranks from F(u) = ||b_t^(u)||_1 and the potential-collider pairs, written as
+  ``("agents", "rank_order")`` and ``("agents", "colliders")``; the written mask stays
+  the boundary mask (what the top agent faces). The choice goes agent by agent in rank
+  order (vectorised over envs, a loop over the M rank positions only), masking each
+  lower-ranked agent against the chosen next positions of its higher-ranked potential
+  colliders, and returns the mask that applied and the fallback flags.
 
 Either way the action written is the action executed and ``("agents", "action_mask")``
 is the mask that applied to it: the replay buffer stores both.
@@ -26,17 +35,21 @@ against; its stored mask is that single action and the step counts a fallback.
 from __future__ import annotations
 
 import math
+from typing import ClassVar
 
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
-from torchrl.data import Binary, Categorical, Composite
+from torch import nn
+from torchrl.data import Binary, Categorical, TensorSpec
 from torchrl.envs.transforms import Transform
 
 from uabs_rl._compile import compiled_or_eager
+from uabs_rl.config import MaskingConfig, MaskingMode, RankNextMask, enum_value, validate_masking
 from uabs_rl.env import BEAM_PRIORITY, FALLBACK, MASK, POSITION
+from uabs_rl.geometry import UNIT_MOVES
+from uabs_rl.params import EnvParams
 
-MODES = ("penalty", "flat", "rank")
 ACTION_VALUE = ("agents", "action_value")
 RANK_ORDER = ("agents", "rank_order")  # rank_order[e, r] = the agent at rank r (0 = top)
 COLLIDERS = ("agents", "colliders")  # colliders[e, u, w]: u and w may collide this step
@@ -139,110 +152,186 @@ def rank_select(q: torch.Tensor | None, boundary: torch.Tensor, pos: torch.Tenso
     return action, applied, fallback
 
 
-def next_state_mask(td_next: TensorDictBase, mode: str, rank_next_mask: str,
-                    q_next: torch.Tensor | None, moves: torch.Tensor, d_th: float) -> torch.Tensor:
-    """The mask the double-DQN target maximises over at s' ([B, M, 4]).
+# ----------------------------------------------------------------------------- rule classes
+class MaskingRule(nn.Module):
+    """One anti-collision mode. ``moves [4, 2]`` is a buffer, so ``.to()`` moves it."""
 
-    * ``penalty`` and ``flat``: the mask the transform wrote at s'. It depends on s'
-      alone, so it is exactly the mask the agent will face there.
-    * ``rank``: the mask of a lower-ranked agent depends on the actions the higher-ranked
-      ones will choose at s', unknown when the transition is stored. ``"greedy"`` (the
-      default) runs the rank selection greedily with ``q_next`` (the online network's
-      Q-values at s', as double DQN selects with) and uses the masks it applies: the
-      masks the greedy policy would face. ``"boundary"`` uses the boundary mask, an
-      upper bound on every agent's legal set (optimistic for the lower-ranked).
-    """
-    mask = td_next.get(MASK)
-    if mode != "rank" or rank_next_mask == "boundary":
-        return mask
-    _, applied, _ = rank_select(q_next, mask, td_next.get(POSITION), td_next.get(RANK_ORDER),
-                                td_next.get(COLLIDERS), moves, d_th, 0.0, None)
-    return applied
+    mode: ClassVar[MaskingMode]
+    # keys of the env's outputs that :meth:`choose` reads after ``q`` and the mask
+    choice_keys: ClassVar[tuple[tuple[str, str], ...]] = ()
+    # True if :meth:`target_mask` needs the Q-values at s' (then a transition is stored
+    # once the next step's Q-values are known); else it is the mask written at s'
+    target_needs_q: bool = False
 
-
-def select_actions(mode: str, q: torch.Tensor | None, mask: torch.Tensor, pos: torch.Tensor,
-                   order: torch.Tensor | None, colliders: torch.Tensor | None,
-                   moves: torch.Tensor, d_th: float, eps: torch.Tensor, u: torch.Tensor):
-    """The selector's pure core: ``(action, applied mask, fallback or None)``."""
-    if mode == "rank":
-        return rank_select(q, mask, pos, order, colliders, moves, d_th, eps, u)
-    # flat: the transform already applied the fallback; penalty: none is needed
-    return epsilon_greedy(q, mask, eps, u), mask, None
-
-
-# ----------------------------------------------------------------------------- modules
-class SafetyTransform(Transform):
-    """Writes what the masking mode needs into the env's outputs (see module doc)."""
-
-    def __init__(self, mode: str, d_th: float, step_m: float, moves: torch.Tensor,
-                 flat_margin: float | None = None, collider_margin: float | None = None):
-        if mode not in MODES:
-            raise ValueError(f"masking mode must be one of {MODES}, got {mode!r}")
-        super().__init__(in_keys=[], out_keys=[])
-        self.mode = mode
-        self.d_th = d_th
-        # flat: d_th + v·δt covers the other agent's unknown move [paper]
-        self.flat_radius = d_th + (step_m if flat_margin is None else flat_margin)
-        # rank: pairs within d_th + 2·v·δt may come closer than d_th this step [paper]
-        self.collider_radius = d_th + (2 * step_m if collider_margin is None else collider_margin)
+    def __init__(self, masking: MaskingConfig, d_th: float, step_m: float,
+                 moves: torch.Tensor):
+        super().__init__()
+        self.cfg, self.d_th, self.step_m = masking, d_th, step_m
         self.register_buffer("moves", moves.clone())
 
+    def write(self, td: TensorDictBase) -> None:
+        """Write what the choice needs into the env's outputs ``td`` (after a reset or a
+        step); the default writes nothing beyond the env's boundary mask."""
+
+    def specs(self, e: int, m: int, device: torch.device) -> dict[str, TensorSpec]:
+        """Specs of the agent entries :meth:`write` adds, by name under ``"agents"``."""
+        return {}
+
+    def choose(self, q: torch.Tensor | None, mask: torch.Tensor, *extra: torch.Tensor,
+               eps: float | torch.Tensor = 0.0, u: torch.Tensor | None = None):
+        """``(action [E, M], applied mask [E, M, 4], fallback [E, M] or None)``: ε-greedy
+        over the legal actions. ``extra`` are the :attr:`choice_keys` entries; ``u`` the
+        exploration draws of :func:`uniforms` (None: greedy)."""
+        return epsilon_greedy(q, mask, eps, u), mask, None
+
+    def target_mask(self, td: TensorDictBase, choose=None) -> torch.Tensor:
+        """The mask the double-DQN target maximises over at s' (``td`` = the outputs at
+        s' with the online Q-values under ``("agents", "action_value")``). ``choose`` is
+        :meth:`choose` or a compiled copy of it."""
+        return td.get(MASK)
+
+
+RULES: dict[MaskingMode, type[MaskingRule]] = {}
+
+
+def register(cls: type[MaskingRule]) -> type[MaskingRule]:
+    """Class decorator: make ``cls`` the rule of ``cls.mode``."""
+    RULES[cls.mode] = cls
+    return cls
+
+
+@register
+class PenaltyRule(MaskingRule):
+    """Only the boundary mask: safety is left to the penalties λ_s, λ_c."""
+
+    mode = MaskingMode.penalty
+
+
+@register
+class FlatRule(MaskingRule):
+    """An action of u is illegal if it ends closer than d_th + margin to any other UABS's
+    current position (margin v·δt by default: it covers the other's unknown move). The
+    mask depends on the state alone, so it is also exactly the target mask at s'."""
+
+    mode = MaskingMode.flat
+
+    def __init__(self, masking: MaskingConfig, d_th: float, step_m: float,
+                 moves: torch.Tensor):
+        super().__init__(masking, d_th, step_m, moves)
+        # flat: d_th + v·δt covers the other agent's unknown move [paper]
+        margin = masking.flat_margin
+        self.radius = d_th + (step_m if margin is None else margin)
+
+    def write(self, td: TensorDictBase) -> None:
+        pos, boundary = td.get(POSITION), td.get(MASK)
+        unsafe, dist = flat_unsafe(pos, self.moves, self.radius)
+        mask, fb = apply_fallback(boundary & ~unsafe, boundary, dist)
+        td.set(MASK, mask)
+        td.set(FALLBACK, fb)
+
+    def specs(self, e: int, m: int, device: torch.device) -> dict[str, TensorSpec]:
+        return {FALLBACK[1]: Categorical(2, shape=(e, m), dtype=torch.bool, device=device)}
+
+
+@register
+class RankRule(MaskingRule):
+    """Agents choose in rank order; a lower-ranked agent may not end closer than d_th to
+    the chosen next position of a higher-ranked potential collider (SPEC §6).
+
+    Target mask at s' (``masking.rank_next_mask``): a lower-ranked agent's mask depends
+    on what the higher-ranked ones will choose there, unknown when the transition is
+    stored. ``greedy`` (default) runs the rank choice greedily with the online network's
+    Q-values at s' (as double DQN selects with) and uses the masks it applies: those the
+    greedy policy would face. ``boundary`` uses the boundary mask, an upper bound on every
+    agent's legal set (optimistic for the lower-ranked)."""
+
+    mode = MaskingMode.rank
+    choice_keys = (POSITION, RANK_ORDER, COLLIDERS)
+
+    def __init__(self, masking: MaskingConfig, d_th: float, step_m: float,
+                 moves: torch.Tensor):
+        super().__init__(masking, d_th, step_m, moves)
+        # rank: pairs within d_th + 2·v·δt may come closer than d_th this step [paper]
+        margin = masking.collider_margin
+        self.collider_radius = d_th + (2 * step_m if margin is None else margin)
+        self.next_mask = enum_value(RankNextMask, masking.rank_next_mask,
+                                    "masking.rank_next_mask")
+        self.target_needs_q = self.next_mask == RankNextMask.greedy
+
+    def write(self, td: TensorDictBase) -> None:
+        td.set(RANK_ORDER, rank_order(td.get(BEAM_PRIORITY)))
+        td.set(COLLIDERS, potential_colliders(td.get(POSITION), self.collider_radius))
+
+    def specs(self, e: int, m: int, device: torch.device) -> dict[str, TensorSpec]:
+        return {RANK_ORDER[1]: Categorical(m, shape=(e, m), dtype=torch.long, device=device),
+                COLLIDERS[1]: Binary(n=m, shape=(e, m, m), dtype=torch.bool, device=device)}
+
+    def choose(self, q, mask, pos, order, colliders, eps=0.0, u=None):
+        return rank_select(q, mask, pos, order, colliders, self.moves, self.d_th, eps, u)
+
+    def target_mask(self, td: TensorDictBase, choose=None) -> torch.Tensor:
+        if not self.target_needs_q:  # boundary
+            return td.get(MASK)
+        _, applied, _ = (choose or self.choose)(
+            td.get(ACTION_VALUE), td.get(MASK), *(td.get(k) for k in self.choice_keys),
+            eps=0.0, u=None)
+        return applied
+
+
+def make_rule(masking: MaskingConfig, params: EnvParams) -> MaskingRule:
+    """The rule of ``masking.mode`` for an env with ``params``."""
+    validate_masking(masking)
+    cls = RULES[MaskingMode(masking.mode)]
+    return cls(masking, params.d_th, params.step_m, UNIT_MOVES * params.step_m)
+
+
+# ----------------------------------------------------------------------------- TorchRL modules
+class SafetyTransform(Transform):
+    """Applies a rule's :meth:`~MaskingRule.write` to every reset and step output."""
+
+    def __init__(self, rule: MaskingRule):
+        super().__init__(in_keys=[], out_keys=[])
+        self.rule = rule
+
     def _call(self, td: TensorDictBase) -> TensorDictBase:
-        pos = td.get(POSITION)
-        if self.mode == "flat":
-            boundary = td.get(MASK)
-            unsafe, dist = flat_unsafe(pos, self.moves.to(pos.device), self.flat_radius)
-            mask, fb = apply_fallback(boundary & ~unsafe, boundary, dist)
-            td.set(MASK, mask)
-            td.set(FALLBACK, fb)
-        elif self.mode == "rank":
-            td.set(RANK_ORDER, rank_order(td.get(BEAM_PRIORITY)))
-            td.set(COLLIDERS, potential_colliders(pos, self.collider_radius))
+        self.rule.write(td)
         return td
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase):
         return self._call(tensordict_reset)
 
-    def transform_observation_spec(self, observation_spec: Composite) -> Composite:
+    def transform_observation_spec(self, observation_spec):
         agents = observation_spec["agents"]
         e, m = agents.shape
-        dev = observation_spec.device
-        if self.mode == "flat":
-            agents[FALLBACK[1]] = Categorical(2, shape=(e, m), dtype=torch.bool, device=dev)
-        elif self.mode == "rank":
-            agents[RANK_ORDER[1]] = Categorical(m, shape=(e, m), dtype=torch.long, device=dev)
-            agents[COLLIDERS[1]] = Binary(n=m, shape=(e, m, m), dtype=torch.bool, device=dev)
+        for name, spec in self.rule.specs(e, m, observation_spec.device).items():
+            agents[name] = spec
         return observation_spec
 
 
 class MaskedActionSelector(TensorDictModuleBase):
-    """ε-greedy action choice under the masking mode's masks: the policy's last module.
+    """ε-greedy action choice under a rule's masks: the policy's last module.
 
     Reads ``("agents", "action_value")`` when present (absent: a uniformly random legal
-    policy), the mask, and in rank mode the positions, ranks and colliders. Writes the
+    policy), the mask and the rule's :attr:`~MaskingRule.choice_keys`. Writes the
     action, the mask that applied and the fallback flags. ``eps`` is a buffer the
     trainer anneals; ``generator`` makes exploration reproducible."""
 
-    def __init__(self, mode: str, d_th: float, moves: torch.Tensor, eps: float = 0.0,
+    def __init__(self, rule: MaskingRule, eps: float = 0.0,
                  generator: torch.Generator | None = None, compile: bool = False):
         super().__init__()
-        if mode not in MODES:
-            raise ValueError(f"masking mode must be one of {MODES}, got {mode!r}")
-        self.mode, self.d_th, self.generator = mode, d_th, generator
-        self.in_keys = [ACTION_VALUE, MASK, POSITION, RANK_ORDER, COLLIDERS]
+        self.rule, self.generator = rule, generator
+        self.in_keys = [ACTION_VALUE, MASK, *rule.choice_keys]
         self.out_keys = [("agents", "action"), MASK, FALLBACK]
-        self.register_buffer("moves", moves.clone())
         self.register_buffer("eps", torch.tensor(float(eps)))
-        self._select = compiled_or_eager(select_actions, "the action selection") if compile \
-            else select_actions
+        self._choose = compiled_or_eager(rule.choose, "the action selection") if compile \
+            else rule.choose
 
     def forward(self, td: TensorDictBase) -> TensorDictBase:
         mask = td.get(MASK)
         u = uniforms(mask.shape[:-1], self.generator, mask.device)
-        action, mask, fallback = self._select(
-            self.mode, td.get(ACTION_VALUE, None), mask, td.get(POSITION),
-            td.get(RANK_ORDER, None), td.get(COLLIDERS, None), self.moves, self.d_th,
-            self.eps, u)
+        action, mask, fallback = self._choose(
+            td.get(ACTION_VALUE, None), mask, *(td.get(k) for k in self.rule.choice_keys),
+            eps=self.eps, u=u)
         if fallback is None:
             fallback = td.get(FALLBACK, None)
             if fallback is None:
@@ -251,3 +340,8 @@ class MaskedActionSelector(TensorDictModuleBase):
         td.set(MASK, mask)
         td.set(FALLBACK, fallback)
         return td
+
+    def target_mask(self, td: TensorDictBase) -> torch.Tensor:
+        """The rule's double-DQN target mask at ``td`` (s' with its Q-values), computed
+        with this selector's (possibly compiled) choice."""
+        return self.rule.target_mask(td, self._choose)

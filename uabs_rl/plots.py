@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from functools import lru_cache
-from typing import Any
 
 import matplotlib
 
@@ -15,6 +14,7 @@ from matplotlib.collections import LineCollection  # noqa: E402
 from matplotlib.patches import Circle  # noqa: E402
 
 from uabs_rl.channel import beam_centres  # noqa: E402
+from uabs_rl.config import AreaConfig, ScenarioConfig  # noqa: E402
 
 COLORS = plt.rcParams["axes.prop_cycle"].by_key()["color"]
 
@@ -33,16 +33,16 @@ def lane_segments(net_file: str, x0: float, y0: float) -> np.ndarray:
     return np.asarray(segs)
 
 
-def scenario_lanes(scenario: Any) -> np.ndarray | None:
+def scenario_lanes(scenario: ScenarioConfig) -> np.ndarray | None:
     """Lane segments of the scenario's network (None for a .sumocfg scenario)."""
-    from uabs_rl.traces import _inputs
+    from uabs_rl.traces import scenario_inputs
 
-    net = _inputs(scenario)["net_file"]
+    net = scenario_inputs(scenario)["net_file"]
     a = scenario.area
     return lane_segments(str(net), a.x_min, a.y_min) if net else None
 
 
-def trajectory_figure(area: Any, uabs: torch.Tensor, vehicles: torch.Tensor,
+def trajectory_figure(area: AreaConfig, uabs: torch.Tensor, vehicles: torch.Tensor,
                       present: torch.Tensor, r_b: float, n_beams: int,
                       lanes: np.ndarray | None = None, title: str = "",
                       instants: tuple[int, ...] | None = None):
@@ -104,7 +104,7 @@ def pg_curve_figure(curves: dict[str, np.ndarray], title: str = "Satisfied users
     return fig
 
 
-def animate_episode(area: Any, uabs: torch.Tensor, vehicles: torch.Tensor,
+def animate_episode(area: AreaConfig, uabs: torch.Tensor, vehicles: torch.Tensor,
                     present: torch.Tensor, r_b: float, n_beams: int,
                     lanes: np.ndarray | None, path, fps: int = 8) -> None:
     """A GIF of one episode: vehicles, UABS with their beam footprints, paths so far."""

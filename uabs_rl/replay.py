@@ -3,6 +3,11 @@
 Every agent's step is one transition (o, a, r, o', mask', terminated'), where mask' is
 the mask the double-DQN target maximises over at o'. A ring buffer of plain tensors:
 pushes are slice copies, samples are one ``index_select`` per field.
+
+Why not TorchRL's ``ReplayBuffer(LazyTensorStorage)``: measured on the 2-core
+development CPU, one push of a step's transitions plus one sample of 128 takes 130 µs
+here against 622 µs there (TensorDict construction and indexing per call), and a
+training step does both once per env step.
 """
 
 from __future__ import annotations
@@ -13,6 +18,10 @@ FIELDS = ("obs", "action", "mask", "reward", "next_obs", "next_mask", "terminate
 
 
 class ReplayBuffer:
+    """A fixed-capacity ring of per-agent transitions (fields :data:`FIELDS`) with
+    uniform sampling from its own seeded generator; :meth:`state_dict` makes it part of
+    a checkpoint."""
+
     def __init__(self, capacity: int, obs_dim: int, n_actions: int,
                  device: str | torch.device = "cpu", seed: int = 0):
         dev = torch.device(device)

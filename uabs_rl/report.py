@@ -28,8 +28,9 @@ import numpy as np
 import torch
 
 from uabs_rl.channel import coverage_bound
+from uabs_rl.config import MaskingMode
 
-MODES = ("penalty", "flat", "rank")
+MODES = tuple(m.value for m in MaskingMode)
 
 
 @dataclass
@@ -189,13 +190,13 @@ def fig4(by_mode: dict[str, list[Run]], baselines: dict[str, dict], path: Path) 
 def evaluate_baselines(by_mode: dict[str, list[Run]]) -> dict[str, dict]:
     """Random, greedy and oracle baselines on the held-out windows, with each mode's
     masks (the run of the lowest seed of each mode provides the config)."""
-    from uabs_rl.evaluate import evaluate_policies, load_trainer
+    from uabs_rl.evaluate import evaluate_policies, load_evaluation
 
     out = {}
     for mode, runs in by_mode.items():
         run = min(runs, key=lambda r: r.seed)
-        trainer, _ = load_trainer(run.path, "last", out_dir=run.path / "evaluation")
-        for name, (rec, _) in evaluate_policies(trainer, ("random", "greedy", "oracle")).items():
+        ev = load_evaluation(run.path, "last")
+        for name, (rec, _) in evaluate_policies(ev, ("random", "greedy", "oracle")).items():
             out[f"{name} ({mode} masks)"] = rec
     return out
 

@@ -31,7 +31,15 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from uabs_rl.config import ConfigError, resolve_path, validate_scenario_traces
+from uabs_rl.config import (
+    ConfigError,
+    ScenarioConfig,
+    SplitConfig,
+    TracesAppConfig,
+    TracesConfig,
+    resolve_path,
+    validate_scenario_traces,
+)
 from uabs_rl.sumo_sim import SimRequest, SimResult, SumoRunError, load_result, run_simulation
 
 log = logging.getLogger(__name__)
@@ -81,7 +89,7 @@ def _sumo_version() -> str:
     return version("eclipse-sumo")
 
 
-def _inputs(scenario: Any) -> dict[str, Any]:
+def scenario_inputs(scenario: ScenarioConfig) -> dict[str, Any]:
     """Resolved input files of the scenario, with the config key that names each."""
     sumo = scenario.sumo
     if sumo.sumocfg:
@@ -93,9 +101,10 @@ def _inputs(scenario: Any) -> dict[str, Any]:
             "route_files": routes}
 
 
-def split_key(scenario: Any, split_cfg: Any, split: str) -> tuple[str, dict[str, Any]]:
+def split_key(scenario: ScenarioConfig, split_cfg: SplitConfig,
+              split: str) -> tuple[str, dict[str, Any]]:
     """Cache key and the description it hashes: every parameter that changes traces."""
-    files = _inputs(scenario)
+    files = scenario_inputs(scenario)
     hashed = [p for p in [files["sumocfg"], files["net_file"], *files["route_files"]] if p]
     desc = {
         "format": FORMAT_VERSION,
@@ -157,7 +166,7 @@ def load_traceset(path: Path) -> TraceSet:
 
 
 # ----------------------------------------------------------------------------- build
-def check_area_contains_network(scenario: Any, net_file: Path | None) -> None:
+def check_area_contains_network(scenario: ScenarioConfig, net_file: Path | None) -> None:
     """Every lane (internal ones too) must lie inside the area: vehicles stay inside."""
     if net_file is None:
         return
@@ -181,8 +190,8 @@ def check_area_contains_network(scenario: Any, net_file: Path | None) -> None:
             f"y_min/width/height to a rectangle that contains them.")
 
 
-def _requests(scenario: Any, split_cfg: Any) -> list[SimRequest]:
-    files = _inputs(scenario)
+def _requests(scenario: ScenarioConfig, split_cfg: SplitConfig) -> list[SimRequest]:
+    files = scenario_inputs(scenario)
     dt = float(scenario.dt)
     return [SimRequest(
         seed=split_cfg.first_seed + i,
@@ -242,9 +251,10 @@ def _stack(results: list[SimResult]) -> tuple[torch.Tensor, torch.Tensor]:
     return torch.from_numpy(pos), torch.from_numpy(pres)
 
 
-def build_split(scenario: Any, split_cfg: Any, split: str, workers: int = 0) -> TraceSet:
+def build_split(scenario: ScenarioConfig, split_cfg: SplitConfig, split: str,
+                workers: int = 0) -> TraceSet:
     """Run SUMO for every seed of the split and stack the traces (no caching)."""
-    files = _inputs(scenario)
+    files = scenario_inputs(scenario)
     check_area_contains_network(scenario, files["net_file"])
     _, desc = split_key(scenario, split_cfg, split)
     requests = _requests(scenario, split_cfg)
@@ -260,19 +270,20 @@ def build_split(scenario: Any, split_cfg: Any, split: str, workers: int = 0) -> 
     return TraceSet(pos, pres, meta)
 
 
-def cache_dir(traces_cfg: Any) -> Path:
+def cache_dir(traces_cfg: TracesConfig) -> Path:
     """``traces.cache_dir``, or ``$UABS_RL_CACHE/traces`` (default ``~/.cache/uabs_rl``)."""
     if traces_cfg.cache_dir:
         return Path(str(traces_cfg.cache_dir)).expanduser()
     return Path(os.environ.get("UABS_RL_CACHE", "~/.cache/uabs_rl")).expanduser() / "traces"
 
 
-def cache_path(scenario: Any, traces_cfg: Any, split: str) -> Path:
+def cache_path(scenario: ScenarioConfig, traces_cfg: TracesConfig, split: str) -> Path:
     key, _ = split_key(scenario, getattr(traces_cfg, split), split)
     return cache_dir(traces_cfg) / f"{key}.pt"
 
 
-def get_traces(scenario: Any, traces_cfg: Any, split: str, verbose: bool = True) -> TraceSet:
+def get_traces(scenario: ScenarioConfig, traces_cfg: TracesConfig, split: str,
+               verbose: bool = True) -> TraceSet:
     """The split's traces: from the cache when sound, else built with SUMO and cached."""
     if split not in SPLITS:
         raise ConfigError(f"split must be one of {SPLITS}, got {split!r}.")
@@ -295,10 +306,8 @@ def get_traces(scenario: Any, traces_cfg: Any, split: str, verbose: bool = True)
 
 
 # ----------------------------------------------------------------------------- CLI
-def _app(cfg) -> None:
-    from uabs_rl.config import to_container
-
-    cfg = to_container(cfg)
+def build(cfg: TracesAppConfig, _output_dir: Path | None = None) -> None:
+    """Body of ``uabs-traces``: build or load the requested splits and say which."""
     splits = SPLITS if cfg.split == "all" else (cfg.split,)
     for split in splits:
         t0 = time.perf_counter()
@@ -310,13 +319,9 @@ def _app(cfg) -> None:
 
 def main() -> None:
     """Entry point of ``uabs-traces``."""
-    import hydra
+    from uabs_rl.cli import hydra_main
 
-    from uabs_rl.config import register_configs
-
-    register_configs()
-    hydra.main(version_base="1.3", config_path=str(Path(__file__).parents[1] / "conf"),
-               config_name="build_traces")(_app)()
+    hydra_main("build_traces", build)
 
 
 if __name__ == "__main__":

@@ -1,0 +1,29 @@
+"""The Hydra plumbing shared by the ``uabs-train`` and ``uabs-traces`` entry points."""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from uabs_rl.checkpoint import CheckpointError
+from uabs_rl.config import CONF_DIR, ConfigError, register_configs, to_container
+
+
+def hydra_main(config_name: str, body: Callable[[Any, Path], Any]) -> None:
+    """Run ``body(cfg, output_dir)`` under ``@hydra.main`` with ``conf/<config_name>``:
+    the config arrives as checked dataclasses; a config or checkpoint error is one line
+    on stderr and exit status 2, not a traceback."""
+    import hydra
+    from hydra.core.hydra_config import HydraConfig
+
+    def app(dcfg) -> None:
+        try:
+            body(to_container(dcfg), Path(HydraConfig.get().runtime.output_dir))
+        except (ConfigError, CheckpointError) as e:
+            print(f"error: {e}", file=sys.stderr)
+            sys.exit(2)
+
+    register_configs()
+    hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name=config_name)(app)()

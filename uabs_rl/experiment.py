@@ -1,0 +1,168 @@
+"""One training run (SPEC §7, §8): wires the env, the Q-network, the learner, the replay
+buffer, collection, evaluation, checkpoints and the run log, and runs the fit loop."""
+
+from __future__ import annotations
+
+import logging
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+from tqdm.auto import tqdm
+
+from uabs_rl.checkpoint import CKPT_FORMAT, check_compatible, config_dict, save_checkpoint
+from uabs_rl.config import ConfigError, RunConfig, validate_run
+from uabs_rl.env import N_ACTIONS
+from uabs_rl.evaluation import Evaluator, greedy_policy, make_eval_env
+from uabs_rl.learner import DQNLearner
+from uabs_rl.make import make_env, make_selector
+from uabs_rl.model import DuelingQNet
+from uabs_rl.replay import ReplayBuffer
+from uabs_rl.rollout import Collector, UpdateSchedule, episode_records, epsilon
+from uabs_rl.runlog import RunLog
+from uabs_rl.traces import TraceSet
+
+log = logging.getLogger(__name__)
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise ConfigError(f"device={name} but CUDA is not available here: use device=cpu "
+                          f"or device=auto.")
+    return torch.device(name)
+
+
+class Experiment:
+    """Collect / optimise / evaluate / checkpoint / log, each in its own object."""
+
+    def __init__(self, cfg: RunConfig, run_dir: Path,
+                 traces: dict[str, TraceSet] | None = None):
+        """``traces`` may hold ready TraceSets per split ("train", "eval"); by default
+        they come from the trace cache (built with SUMO if missing)."""
+        validate_run(cfg)
+        self.cfg, self.run_dir = cfg, Path(run_dir)
+        dev = self.device = resolve_device(cfg.device)
+        tr = cfg.train
+        if tr.threads is not None:
+            torch.set_num_threads(tr.threads)
+        torch.manual_seed(cfg.seed)
+        traces = traces or {}
+        env = make_env(cfg.scenario, cfg.channel, cfg.masking, traces.get("train", cfg.traces),
+                       "train", n_envs=tr.n_envs, device=dev, seed=cfg.seed,
+                       compile=tr.compile, spec_mask=False)
+        eval_env = make_eval_env(cfg, traces.get("eval"), dev)
+        self.params = p = env.base_env.params
+        self.qnet = DuelingQNet(p.obs_dim, N_ACTIONS, list(cfg.algo.hidden)).to(dev)
+        self.learner = DQNLearner(self.qnet, cfg.algo, N_ACTIONS)
+        self.buffer = ReplayBuffer(cfg.algo.buffer_size, p.obs_dim, N_ACTIONS, dev,
+                                   seed=cfg.seed)
+        self.gen = torch.Generator(device=dev)
+        self.gen.manual_seed(cfg.seed)
+        selector = make_selector(env, cfg.masking, cfg.algo.eps_start, self.gen,
+                                 compile=tr.compile)
+        self.collector = Collector(env, self.qnet, selector, self.buffer)
+        self.updates = UpdateSchedule(self.learner, self.buffer, cfg.algo)
+        self.evaluator = Evaluator(eval_env, tr.eval_seed)
+        self.greedy = greedy_policy(self.qnet, eval_env, cfg, compile=tr.compile)
+        self.log = RunLog(cfg, self.run_dir)
+        self.total_steps = tr.episodes * p.episode_steps  # per-env steps of the protocol
+        self.episode, self.best_eval = 0, -math.inf
+
+    # ------------------------------------------------------------------ steps
+    def collect(self) -> list[dict[str, Any]]:
+        """One round of ``n_envs`` training episodes with their updates; one record each."""
+        last, served, eps, loss, q = self.collector.round(
+            lambda s: epsilon(self.cfg.algo, s, self.total_steps), self.updates)
+        records = episode_records(
+            last, served, self.params.episode_steps, self.episode + 1,
+            self.collector.env_steps,
+            {"epsilon": eps, "loss": loss, "q_chosen": q, "updates": self.learner.updates})
+        self.episode += len(records)
+        return records
+
+    def evaluate(self) -> float:
+        """Evaluate the greedy policy, log it with its figures, checkpoint ``best`` (by
+        evaluation return) and ``last``. Returns the evaluation return."""
+        record, td = self.evaluator.evaluate(self.greedy, self.episode,
+                                             self.collector.env_steps)
+        self.log.record(record)
+        is_best = record["return"] >= self.best_eval
+        self.log.eval_figures(record, td, self.evaluator, is_best)
+        if is_best:
+            self.best_eval = record["return"]
+            self.save("best")
+        self.save("last")
+        return record["return"]
+
+    # ------------------------------------------------------------------ checkpoint
+    def state_dict(self) -> dict:
+        return {
+            "format": CKPT_FORMAT, "config": config_dict(self.cfg),
+            "learner": self.learner.state_dict(),
+            "counters": {"episode": self.episode, "env_steps": self.collector.env_steps,
+                         "update_credit": self.updates.credit, "best_eval": self.best_eval},
+            "rng": {"torch": torch.get_rng_state(), "selector": self.gen.get_state(),
+                    "env": self.collector.env.base_env.rng.get_state()},
+            "replay": self.buffer.state_dict() if self.cfg.train.checkpoint_buffer else None,
+        }
+
+    def load_state_dict(self, state: dict, source: Path) -> None:
+        """Continue from a checkpoint written under compatible settings."""
+        check_compatible(state, self.cfg, source)
+        self.learner.load_state_dict(state["learner"])
+        c = state["counters"]
+        self.episode, self.collector.env_steps = int(c["episode"]), int(c["env_steps"])
+        self.updates.credit, self.best_eval = float(c["update_credit"]), float(c["best_eval"])
+        torch.set_rng_state(state["rng"]["torch"])
+        self.gen.set_state(state["rng"]["selector"])
+        self.collector.env.base_env.rng.set_state(state["rng"]["env"])
+        if state.get("replay") is not None:
+            self.buffer.load_state_dict(state["replay"])
+        else:
+            log.warning("the checkpoint holds no replay buffer (train.checkpoint_buffer="
+                        "false): learning restarts after algo.learning_starts transitions")
+
+    def save(self, name: str) -> Path:
+        path = self.run_dir / "checkpoints" / f"{name}.pt"
+        save_checkpoint(self.state_dict(), path)
+        return path
+
+    # ------------------------------------------------------------------ loop
+    def fit(self) -> dict[str, Any]:
+        """Train to ``train.episodes``, evaluating every ``train.eval_every`` episodes.
+        Ctrl-C saves ``last`` before exiting."""
+        tr = self.cfg.train
+        self.log.open()
+        bar = tqdm(total=tr.episodes, initial=self.episode, unit="ep", disable=not tr.progress,
+                   dynamic_ncols=True)
+        collisions, last_eval, t0 = 0.0, float("nan"), time.perf_counter()
+        try:
+            while self.episode < tr.episodes:
+                for rec in self.collect():
+                    self.log.record(rec)
+                    collisions += rec["collisions"]
+                    bar.update()
+                    bar.set_postfix(R=f"{rec['return']:.0f}", eps=f"{rec['epsilon']:.2f}",
+                                    coll=int(collisions), eval_R=f"{last_eval:.0f}")
+                if self.episode % tr.eval_every == 0 or self.episode >= tr.episodes:
+                    last_eval = self.evaluate()
+        except KeyboardInterrupt:
+            path = self.save("last")
+            bar.close()
+            print(f"\ninterrupted at episode {self.episode}: saved {path}; continue with "
+                  f"resume={self.run_dir}", file=sys.stderr)
+            raise
+        finally:
+            bar.close()
+            self.log.close()
+        self.save("last")
+        summary = {"episodes": self.episode, "updates": self.learner.updates,
+                   "best_eval_return": self.best_eval, "last_eval_return": last_eval,
+                   "minutes": (time.perf_counter() - t0) / 60}
+        log.info("done: %s", summary)
+        return summary

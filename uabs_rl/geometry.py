@@ -1,0 +1,93 @@
+"""UABS geometry (SPEC §1, §6, §8): the lattice, start positions, the boundary mask,
+pair distances and the closest approach between two steps, as batched tensor math."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from uabs_rl.params import EnvParams
+
+# the four actions: up (+y), right (+x), down (−y), left (−x)
+UNIT_MOVES = torch.tensor([[0.0, 1.0], [1.0, 0.0], [0.0, -1.0], [-1.0, 0.0]])
+
+
+class Geometry:
+    """Positions of M UABS in a W × H area; every tensor is ``[E, M, ...]``."""
+
+    def __init__(self, p: EnvParams, device: torch.device):
+        self.p = p
+        self.device = device
+        self.moves = (UNIT_MOVES * p.step_m).to(device)  # [4, 2]
+        self.area = torch.tensor([p.width, p.height], device=device)
+        # lattice: pitch v·δt, centred in the area
+        n = torch.floor(self.area / p.step_m).long() + 1  # lattice points per axis
+        self.lattice_n = n
+        self.lattice_lo = (self.area - (n - 1).float() * p.step_m) / 2.0
+        self.eye = torch.eye(p.n_uabs, dtype=torch.bool, device=device)
+
+    # ------------------------------------------------------------------ start
+    def lattice_point(self, ix: torch.Tensor, iy: torch.Tensor) -> torch.Tensor:
+        return torch.stack([self.lattice_lo[0] + ix * self.p.step_m,
+                            self.lattice_lo[1] + iy * self.p.step_m], dim=-1)
+
+    def perimeter_point(self, s: torch.Tensor) -> torch.Tensor:
+        """Point at arc length ``s`` along the outer lattice ring, counter-clockwise from
+        the lower-left corner."""
+        lo = self.lattice_lo
+        w, h = ((self.lattice_n - 1).float() * self.p.step_m).tolist()
+        perim = 2.0 * (w + h)
+        s = torch.remainder(s, perim)
+        if self.p.lattice:
+            s = torch.remainder(torch.round(s / self.p.step_m) * self.p.step_m, perim)
+        x = torch.where(s < w, s, torch.where(s < w + h, torch.full_like(s, w),
+                        torch.where(s < 2 * w + h, w - (s - w - h), torch.zeros_like(s))))
+        y = torch.where(s < w, torch.zeros_like(s), torch.where(s < w + h, s - w,
+                        torch.where(s < 2 * w + h, torch.full_like(s, h), perim - s)))
+        return torch.stack([x + lo[0], y + lo[1]], dim=-1)
+
+    def start_positions(self, n_envs: int, gen: torch.Generator,
+                        candidates: int = 32) -> torch.Tensor:
+        """[E, M, 2]: UABS 0 inside the area, the others equally spaced on the perimeter
+        from a random point; with ``safe_start`` the inner one is the first of
+        ``candidates`` draws that keeps d_th from all the others (else the farthest)."""
+        p, dev = self.p, self.device
+        w, h = ((self.lattice_n - 1).float() * p.step_m).tolist()
+        perim = 2.0 * (w + h)
+        k = torch.arange(p.n_uabs - 1, device=dev).float()
+        s0 = torch.rand(n_envs, 1, generator=gen, device=dev) * perim
+        ring = self.perimeter_point(s0 + k * perim / max(p.n_uabs - 1, 1))  # [E, M-1, 2]
+        c = candidates if p.safe_start and p.n_uabs > 1 else 1
+        if p.lattice:
+            ix = torch.randint(0, int(self.lattice_n[0]), (n_envs, c), generator=gen, device=dev)
+            iy = torch.randint(0, int(self.lattice_n[1]), (n_envs, c), generator=gen, device=dev)
+            inner = self.lattice_point(ix.float(), iy.float())  # [E, C, 2]
+        else:
+            inner = torch.rand(n_envs, c, 2, generator=gen, device=dev) * self.area
+        if c > 1:
+            mind = torch.cdist(inner, ring).amin(-1)  # [E, C]
+            ok = mind >= p.d_th
+            pick = torch.where(ok.any(-1), ok.int().argmax(-1), mind.argmax(-1))
+            inner = inner.gather(1, pick[:, None, None].expand(-1, 1, 2))
+        return torch.cat([inner[:, :1], ring], dim=1)
+
+    # ------------------------------------------------------------------ geometry
+    def boundary_mask(self, pos: torch.Tensor) -> torch.Tensor:
+        """[E, M, 4] True where the move (up, right, down, left) keeps the UABS inside."""
+        x, y, s = pos[..., 0], pos[..., 1], self.p.step_m
+        return torch.stack([y + s <= self.p.height, x + s <= self.p.width,
+                            y - s >= 0.0, x - s >= 0.0], dim=-1)
+
+    def pair_distances(self, pos: torch.Tensor) -> torch.Tensor:
+        """[E, M, M] distances, +inf on the diagonal."""
+        d = torch.cdist(pos, pos)
+        return d.masked_fill(self.eye, math.inf)
+
+    def closest_approach(self, old: torch.Tensor, new: torch.Tensor) -> torch.Tensor:
+        """[E] smallest pair distance along the straight paths from ``old`` to ``new``."""
+        r0 = old[:, :, None, :] - old[:, None, :, :]  # [E, M, M, 2]
+        dv = (new - old)[:, :, None, :] - (new - old)[:, None, :, :]
+        s = (-(r0 * dv).sum(-1) / (dv * dv).sum(-1).clamp_min(1e-12)).clamp(0.0, 1.0)
+        d = (r0 + s[..., None] * dv).norm(dim=-1).masked_fill(self.eye, math.inf)
+        return d.flatten(1).amin(-1)

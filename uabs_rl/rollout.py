@@ -1,0 +1,113 @@
+"""Collection (SPEC §7): ε-greedy episodes in the training env, every agent's step stored
+as one transition of the shared replay buffer, and the update schedule that interleaves
+gradient steps with env steps."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+from torch import nn
+from torchrl.envs import TransformedEnv
+
+from uabs_rl.config import AlgoConfig
+from uabs_rl.env import ACTION, DIAG, MASK, N_ACTIONS, OBS, REWARD
+from uabs_rl.learner import DQNLearner
+from uabs_rl.masking import ACTION_VALUE, MaskedActionSelector
+from uabs_rl.replay import ReplayBuffer
+
+
+def epsilon(algo: AlgoConfig, env_steps: int, total_steps: int) -> float:
+    """Linear ε from ``eps_start`` to ``eps_end`` over ``eps_fraction`` of the per-env
+    steps of the protocol, then constant."""
+    frac = min(1.0, env_steps / max(1.0, algo.eps_fraction * total_steps))
+    return algo.eps_start + frac * (algo.eps_end - algo.eps_start)
+
+
+class UpdateSchedule:
+    """T_u = ``algo.update_every``: one update per T_u env steps of each env, so the
+    paper's one update per step with n_envs = 1, and n_envs updates per collector step
+    otherwise. Updates start once the buffer holds ``algo.learning_starts`` transitions."""
+
+    def __init__(self, learner: DQNLearner, buffer: ReplayBuffer, algo: AlgoConfig):
+        self.learner, self.buffer, self.algo = learner, buffer, algo
+        self.credit = 0.0
+
+    def __call__(self, new_env_steps: int) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
+        """Yields (loss, mean chosen Q) per update due after ``new_env_steps``."""
+        self.credit += new_env_steps / self.algo.update_every
+        while self.credit >= 1.0:
+            self.credit -= 1.0
+            if len(self.buffer) >= self.algo.learning_starts:
+                yield self.learner.update(self.buffer.sample(self.algo.batch_size))
+
+
+class Collector:
+    """Runs ``n_envs`` training episodes per round with the ε-greedy masked policy."""
+
+    def __init__(self, env: TransformedEnv, qnet: nn.Module, selector: MaskedActionSelector,
+                 buffer: ReplayBuffer):
+        self.env, self.qnet, self.selector, self.buffer = env, qnet, selector, buffer
+        self.params = env.base_env.params
+        self.n_envs = env.base_env.n_envs
+        self.env_steps = 0  # per-env steps so far
+
+    def _push(self, tr: dict[str, torch.Tensor], next_mask: torch.Tensor) -> None:
+        n = tr["obs"].shape[0] * tr["obs"].shape[1]
+        self.buffer.push(**{k: v.reshape(n, *v.shape[2:]) for k, v in tr.items()},
+                         next_mask=next_mask.reshape(n, N_ACTIONS))
+
+    def round(self, eps_at: Callable[[int], float],
+              optimise: Callable[[int], Iterator[tuple[torch.Tensor, torch.Tensor]]]):
+        """One episode per env to its end. ``eps_at(env_steps)`` gives ε; after each step
+        ``optimise(n_envs)`` runs the updates due. Returns the last step's diagnostics,
+        the summed served fractions, ε, and the mean loss / chosen Q of the updates."""
+        steps, e = self.params.episode_steps, self.n_envs
+        # a transition waits for the next step's Q-values when the rule's target mask
+        # needs them (rank, greedy target mask)
+        defer = self.selector.rule.target_needs_q
+        td = self.env.reset()
+        served = torch.zeros(e, device=self.env.device)
+        loss_sum = torch.zeros((), device=self.env.device)
+        q_sum = torch.zeros((), device=self.env.device)
+        n_updates, pending = 0, None
+        for t in range(steps):
+            eps = eps_at(self.env_steps)
+            self.selector.eps.fill_(eps)
+            with torch.no_grad():
+                td.set(ACTION_VALUE, self.qnet(td.get(OBS)))
+            if pending is not None:
+                self._push(pending, self.selector.target_mask(td))
+            self.selector(td)
+            nxt = self.env.step(td)["next"]
+            pending = {"obs": td.get(OBS), "action": td.get(ACTION), "mask": td.get(MASK),
+                       "reward": nxt.get(REWARD).squeeze(-1), "next_obs": nxt.get(OBS),
+                       "terminated": nxt.get(("agents", "terminated")).squeeze(-1)}
+            if not defer or t == steps - 1:
+                self._push(pending, nxt.get(MASK))  # terminal: the mask is not used
+                pending = None
+            served += nxt.get((DIAG, "served_fraction"))
+            self.env_steps += 1
+            for loss, q in optimise(e):
+                loss_sum += loss
+                q_sum += q
+                n_updates += 1
+            td = nxt.exclude(REWARD)
+        loss = (loss_sum / n_updates).item() if n_updates else float("nan")
+        q_mean = (q_sum / n_updates).item() if n_updates else float("nan")
+        return nxt.get(DIAG), served, eps, loss, q_mean
+
+
+def episode_records(last: TensorDictBase, served: torch.Tensor, steps: int, first_episode: int,
+                    env_steps: int, extra: dict[str, Any]) -> list[dict[str, Any]]:
+    """One ``metrics.jsonl`` record per env of a finished round."""
+    return [{"kind": "train", "episode": first_episode + i, "env_steps": env_steps,
+             "return": last["ep_return"][i].item(),
+             "collisions": last["ep_collisions"][i].item(),
+             "proximity": last["ep_proximity"][i].item(),
+             "fallbacks": last["ep_fallbacks"][i].item(),
+             "served_fraction": (served[i] / steps).item(),
+             "pg": last["pg"][i].item(), **extra}
+            for i in range(served.shape[0])]
