@@ -19,6 +19,7 @@ from uabs_rl.masking import (
     COLLIDERS,
     RANK_ORDER,
     RULES,
+    SAFETY_TOLERANCE,
     apply_fallback,
     epsilon_greedy,
     flat_unsafe,
@@ -77,8 +78,10 @@ AREAS = st.sampled_from([(350.0, 170.0), (200.0, 120.0), (160.0, 100.0)])
 @settings(max_examples=60, deadline=None)
 @given(mode=st.sampled_from(["flat", "rank"]), m=st.integers(2, 6), area=AREAS,
        lattice=st.booleans(), eps=st.floats(0.0, 1.0), seed=st.integers(0, 2**31 - 1))
-def test_masks_keep_every_pair_apart_unless_a_fallback_is_counted(mode, m, area, lattice,
-                                                                   eps, seed):
+def test_literal_masks_fall_back_only_where_they_must(mode, m, area, lattice, eps, seed):
+    """The paper's literal rules (masking.recoverable=false) carry no guarantee: from an
+    arbitrary state a pair may end closer than d_th, but only with a counted fallback.
+    The guarantee of the recoverable rules is tested below."""
     mth = step_math(*area, m)
     gen = torch.Generator().manual_seed(seed)
     pos, q, b = random_state(mth, gen, lattice)
@@ -166,18 +169,71 @@ def scenario(small_traces_cfg, n_uabs=3) -> ScenarioConfig:
     return sc
 
 
-def random_rollout(small_traces_cfg, train, mode, steps=160, n_envs=32):
-    mk = MaskingConfig(mode=mode)
-    env = make_env(scenario(small_traces_cfg), ChannelConfig(), mk, train, n_envs=n_envs,
-                   seed=0)
-    sel = make_selector(env, mk, eps=1.0, generator=torch.Generator().manual_seed(0))
-    env.set_seed(0)
-    return env.rollout(steps, policy=sel, break_when_any_done=False)
+def random_rollout(small_traces_cfg, train, mode, steps=160, n_envs=32, recoverable=True,
+                   sc=None, eps=1.0, seed=0):
+    mk = MaskingConfig(mode=mode, recoverable=recoverable)
+    env = make_env(sc or scenario(small_traces_cfg), ChannelConfig(), mk, train,
+                   n_envs=n_envs, seed=seed)
+    sel = make_selector(env, mk, eps=eps, generator=torch.Generator().manual_seed(seed))
+    env.set_seed(seed)
+    return env.rollout(steps, policy=sel, break_when_any_done=False), env.base_env.params
+
+
+def assert_never_below_d_th(td, p):
+    """The guarantee of the recoverable masks, asserted whole: no fallback, no
+    collision, no proximity event, and no pair closer than d_th at the end of any step
+    or anywhere on the straight paths between steps (to SAFETY_TOLERANCE)."""
+    diag = td["next", DIAG]
+    assert diag["fallbacks"].sum() == 0
+    assert diag["collisions"].sum() == 0
+    assert diag["proximity"].sum() == 0
+    assert diag["min_pair_distance"].min() >= p.d_th - SAFETY_TOLERANCE
+    assert diag["closest_approach"].min() >= p.d_th - SAFETY_TOLERANCE
+    assert td[MASK].gather(-1, td[ACTION][..., None]).all()
+
+
+@settings(max_examples=16, deadline=None)
+@given(mode=st.sampled_from(["flat", "rank"]), area=AREAS, lattice=st.booleans(),
+       eps=st.floats(0.0, 1.0), seed=st.integers(0, 2**31 - 1), crowd=st.integers(0, 3))
+def test_recoverable_masks_keep_every_pair_apart(small_traces_cfg, train, mode, area,
+                                                 lattice, eps, seed, crowd):
+    """From M = 2 up to the largest fleet the area takes (crowded and boundary-heavy),
+    ε-greedy over random Q-values (ε = 1: the random legal policy): zero violations."""
+    sc = scenario(small_traces_cfg)
+    sc.area.width, sc.area.height = area
+    sc.lattice = lattice
+    max_m = EnvParams.from_config(sc, ChannelConfig())  # the fleet the area holds
+    from uabs_rl.geometry import Geometry
+    fits = Geometry(max_m, torch.device("cpu")).packing(max_m.d_th + 2 * max_m.step_m).shape[0]
+    sc.n_uabs = max(2, fits - crowd)
+    td, p = random_rollout(small_traces_cfg, train, mode, steps=60, n_envs=8, sc=sc, eps=eps,
+                           seed=seed % 1000)
+    assert_never_below_d_th(td, p)
 
 
 @pytest.mark.parametrize("mode", ["flat", "rank"])
-def test_random_legal_policy_never_collides_under_masking(small_traces_cfg, train, mode):
-    td = random_rollout(small_traces_cfg, train, mode)  # 32 envs x 160 steps
+def test_random_legal_policy_never_comes_closer_than_d_th(small_traces_cfg, train, mode):
+    td, p = random_rollout(small_traces_cfg, train, mode)  # 32 envs x 160 steps, M = 3
+    assert_never_below_d_th(td, p)
+    assert torch.equal(td["next", DIAG, "fallbacks"], td[FALLBACK].float().sum(-1))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", ["flat", "rank"])
+@pytest.mark.parametrize("lattice", [True, False])
+def test_a_million_random_agent_steps_never_come_closer_than_d_th(small_traces_cfg, train,
+                                                                  mode, lattice):
+    """4 x 3 fleet sizes x 256 envs x 80 steps x M: 1.4 million agent-steps in all."""
+    for m in (3, 6, 8):
+        sc = scenario(small_traces_cfg, m)
+        sc.lattice = lattice
+        td, p = random_rollout(small_traces_cfg, train, mode, steps=80, n_envs=256, sc=sc)
+        assert_never_below_d_th(td, p)
+
+
+@pytest.mark.parametrize("mode", ["flat", "rank"])
+def test_literal_masks_fall_back_but_never_collide_at_m3(small_traces_cfg, train, mode):
+    td, _ = random_rollout(small_traces_cfg, train, mode, recoverable=False)
     diag = td["next", DIAG]
     assert diag["collisions"].sum() == 0
     # proximity only on steps that counted a fallback
@@ -190,7 +246,7 @@ def test_random_legal_policy_never_collides_under_masking(small_traces_cfg, trai
 
 def test_random_policy_collides_under_penalty(small_traces_cfg, train):
     """The check that the counters can fail: without masks, random UABS collide."""
-    diag = random_rollout(small_traces_cfg, train, "penalty")["next", DIAG]
+    diag = random_rollout(small_traces_cfg, train, "penalty")[0]["next", DIAG]
     assert diag["collisions"].sum() > 0 and diag["proximity"].sum() > 0
     assert diag["fallbacks"].sum() == 0
 
@@ -242,7 +298,7 @@ def test_next_state_masks_for_the_double_dqn_target():
         assert torch.equal(rule.target_mask(td), boundary)
     # rank-greedy: agent 0 (top) greedily goes right to (145, 85); from (205, 85) agent 1
     # may then only go right (80 m); up/down end 63.2 m away, left 40 m (< d_th = 72.8)
-    rule = make_rule(MaskingConfig(mode="rank"), mth.p)
+    rule = make_rule(MaskingConfig(mode="rank", recoverable=False), mth.p)
     assert rule.target_needs_q
     m = rule.target_mask(td)
     assert torch.equal(m[0, 0], boundary[0, 0])

@@ -156,6 +156,18 @@ def test_invalid_values_fail_at_start_up_naming_the_key(trace_cache, override, k
         validate_run(smoke(trace_cache, override))
 
 
+@pytest.mark.parametrize("mode,recoverable,most", [("flat", "true", 8), ("rank", "true", 8),
+                                                   ("rank", "false", 15)])
+def test_a_fleet_the_area_cannot_hold_is_refused_with_the_maximum(trace_cache, tmp_path, mode,
+                                                                  recoverable, most):
+    """30 UABS on the default 350 m x 170 m area: refused before any episode runs."""
+    cfg = smoke(trace_cache, "scenario.n_uabs=30", f"masking={mode}",
+                f"masking.recoverable={recoverable}")
+    with pytest.raises(ConfigError, match=rf"scenario\.n_uabs=30 .* at most {most} UABS"):
+        run(cfg, tmp_path / "run")
+    assert not (tmp_path / "run" / "metrics.jsonl").exists()
+
+
 @pytest.mark.parametrize("override,key", [("algo.lrr=1", "lrr"), ("masking=soft", "soft"),
                                           ("scenario.n_uabs=three", "n_uabs")])
 def test_misspelt_keys_and_unknown_groups_fail_at_composition(trace_cache, override, key):

@@ -167,6 +167,10 @@ class MaskingConfig:
     # [decision] next-state mask of the double-DQN target in rank mode: "greedy" = the
     # masks a greedy rank selection would apply at s'; "boundary" = boundary mask only
     rank_next_mask: RankNextMask = RankNextMask.greedy
+    # [decision] recoverable flat and rank masks (SPEC §6): every UABS always keeps a
+    # legal move that is safe, so no fallback is ever needed; false = the paper's
+    # literal rules (fallbacks possible, pairs may end closer than d_th)
+    recoverable: bool = True
 
 
 def validate_masking(masking: MaskingConfig) -> None:

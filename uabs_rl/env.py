@@ -40,7 +40,9 @@ DIAG = "diagnostics"
 N_ACTIONS = 4
 ACTION_NAMES = ("up", "right", "down", "left")  # +y, +x, −y, −x
 
-AGENT_OUT = ("observation", "action_mask", "position", "beam_priority", "reward")
+BACKUP = (AGENTS, "backup_action")
+AGENT_OUT = ("observation", "action_mask", "position", "beam_priority", "backup_action",
+             "reward")
 DIAG_KEYS = (  # every one is a float [n_envs]
     "served_fraction", "collisions", "proximity", "fallbacks", "illegal_moves",
     "min_pair_distance", "closest_approach",
@@ -99,6 +101,7 @@ class StepMath:
         new = torch.where(legal[..., None], old + self.moves[action], old)
         st["pos"] = new
         st["t"] = st["t"] + 1
+        st["backup"] = (action + 2) % 4  # the move back: up <-> down, right <-> left
         served, present = self.observe(st, veh_pos, veh_present, gen)
         dist = geo.pair_distances(new)
         reward, n_coll, n_prox = self.rewards(st["b"], dist)
@@ -126,7 +129,7 @@ class StepMath:
         return dict(
             diag, observation=self.observation(st["pos"], st["t"], st["b"]),
             action_mask=self.geometry.boundary_mask(st["pos"]), position=st["pos"],
-            beam_priority=st["b"], done=done,
+            beam_priority=st["b"], backup_action=st["backup"], done=done,
             terminated=done if p.time_is_terminal else never,
             truncated=never if p.time_is_terminal else done,
             served_fraction=served.float().sum(-1) / present.float().sum(-1).clamp_min(1.0),
@@ -169,7 +172,8 @@ def empty_state(p: EnvParams, e: int, v: int, dev: torch.device) -> dict[str, to
     m, n = p.n_uabs, p.window_steps
     z = lambda *s, dt=torch.float32: torch.zeros(*s, dtype=dt, device=dev)  # noqa: E731
     return {
-        "pos": z(e, m, 2), "t": z(e, dt=torch.long), "sim": z(e, dt=torch.long),
+        "pos": z(e, m, 2), "backup": z(e, m, dt=torch.long), "t": z(e, dt=torch.long),
+        "sim": z(e, dt=torch.long),
         "start": z(e, dt=torch.long), "cursor": torch.arange(e, device=dev),
         "priority": z(e, v), "served_count": z(e, v, dt=torch.long),
         "window_full": z(e, v, dt=torch.bool), "prev_present": z(e, v, dt=torch.bool),
@@ -187,6 +191,9 @@ def env_specs(p: EnvParams, e: int, dev: torch.device) -> dict[str, Composite]:
                            device=dev),
         position=Unbounded((e, m, 2), device=dev),  # metres, for the masks
         beam_priority=Unbounded((e, m, p.n_beams), device=dev),  # raw b_t, for ranks
+        # the move that retraces the last one (at reset: a boundary-legal one), for the
+        # recoverable masks
+        backup_action=Categorical(N_ACTIONS, shape=(e, m), device=dev),
         shape=(e, m), device=dev)
     diag = Composite({k: Unbounded((e,), device=dev) for k in DIAG_KEYS},
                      pg_curve=Unbounded((e, p.window_steps), device=dev),
@@ -245,6 +252,8 @@ class UABSEnv(EnvBase):
         self.rng = torch.Generator(device=device)
         self.rng.manual_seed(0 if seed is None else seed)
         self._build_math(device)
+        self.start_spacing: float | None = None  # see require_start_spacing
+        self.packing: torch.Tensor | None = None
         self.state = self._empty_state()
         specs = env_specs(self.params, n_envs, device)
         self.observation_spec, self.action_spec = specs["observation"], specs["action"]
@@ -266,11 +275,31 @@ class UABSEnv(EnvBase):
             self.state = {k: fn(v) for k, v in self.state.items()}
             if self.eval_windows is not None:
                 self.eval_windows = fn(self.eval_windows)
+            if self.packing is not None:
+                self.packing = fn(self.packing)
             seed = int(torch.randint(0, 2**62, (1,), generator=self.rng, device=self.rng.device))
             self.rng = torch.Generator(device=dev)
             self.rng.manual_seed(seed)
             self._build_math(dev)
         return out
+
+    def require_start_spacing(self, margin: float) -> None:
+        """Every episode starts with every pair at least d_th + ``margin`` apart (the
+        paper's placement where it achieves that, else random points of a packing of
+        the area). Refuses a fleet the area cannot hold that far apart."""
+        p = self.params
+        spacing = p.d_th + margin
+        packing = self.math.geometry.packing(spacing)
+        if p.n_uabs > packing.shape[0]:
+            need = "" if margin == 0 else (
+                f" (the {spacing:.1f} m = d_th + {margin:.0f} m that the recoverable masks "
+                f"need at the start; masking.recoverable=false needs d_th only)")
+            raise ConfigError(
+                f"scenario.n_uabs={p.n_uabs} but the {p.width:g} m x {p.height:g} m area "
+                f"holds at most {packing.shape[0]} UABS with every pair at least "
+                f"{spacing:.1f} m apart{need}: lower scenario.n_uabs to "
+                f"{packing.shape[0]} or enlarge scenario.area.")
+        self.start_spacing, self.packing = spacing, packing
 
     def _empty_state(self) -> dict[str, torch.Tensor]:
         return empty_state(self.params, self.n_envs, self.veh_pos.shape[3], self.device)
@@ -301,7 +330,12 @@ class UABSEnv(EnvBase):
             mask = torch.ones(self.n_envs, dtype=torch.bool, device=self.device)
         fresh = self._empty_state()
         fresh["sim"], fresh["start"] = self._draw_windows(st)
-        fresh["pos"] = self.math.geometry.start_positions(self.n_envs, self.rng)
+        geo = self.math.geometry
+        fresh["pos"] = geo.start_positions(self.n_envs, self.rng)
+        if self.start_spacing is not None:
+            fresh["pos"] = geo.spread_start(fresh["pos"], self.packing, self.start_spacing,
+                                            self.rng)
+        fresh["backup"] = geo.boundary_mask(fresh["pos"]).float().argmax(-1)
         served, present = self.math.observe(fresh, self.veh_pos, self.veh_present, self.rng)
         for k, v in fresh.items():
             if k == "cursor":

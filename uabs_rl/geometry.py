@@ -72,6 +72,46 @@ class Geometry:
             inner = inner.gather(1, pick[:, None, None].expand(-1, 1, 2))
         return torch.cat([inner[:, :1], ring], dim=1)
 
+    # ------------------------------------------------------------------ packing
+    def packing(self, spacing: float, restarts: int = 2000) -> torch.Tensor:
+        """[K, 2] the largest set of lattice points found with every pair at least
+        ``spacing`` apart: greedy packings over ``restarts`` seeded random orders (the
+        first in lattice order), run side by side. A lower bound on the largest such
+        fleet; deterministic for given params."""
+        n = self.lattice_n.tolist()
+        pts = torch.cartesian_prod(torch.arange(n[0]), torch.arange(n[1])).float()
+        xy = self.lattice_point(pts[:, 0].to(self.device), pts[:, 1].to(self.device)).cpu()
+        p_n = xy.shape[0]
+        close = torch.cdist(xy.double(), xy.double()) < spacing - 1e-9  # [P, P]
+        gen = torch.Generator().manual_seed(0)
+        order = torch.rand(restarts, p_n, generator=gen).argsort(-1)
+        order[0] = torch.arange(p_n)
+        rows = torch.arange(restarts)
+        taken = torch.zeros(restarts, p_n, dtype=torch.bool)
+        chosen = torch.zeros(restarts, p_n, dtype=torch.bool)
+        for j in range(p_n):
+            idx = order[:, j]
+            free = ~taken[rows, idx]
+            chosen[rows, idx] = free
+            taken |= close[idx] & free[:, None]
+        best = chosen.sum(-1).argmax()
+        return xy[chosen[best]].to(self.device)
+
+    def spread_start(self, pos: torch.Tensor, packing: torch.Tensor, spacing: float,
+                     gen: torch.Generator) -> torch.Tensor:
+        """Start positions with every pair at least ``spacing`` apart: ``pos`` where it
+        already is, else M random points of ``packing`` (mirrored at random)."""
+        e, m = pos.shape[:2]
+        ok = self.pair_distances(pos).flatten(1).amin(-1) >= spacing - 1e-6  # [E]
+        if bool(ok.all()):  # no draw: the paper's placement stands everywhere
+            return pos
+        pick = torch.rand(e, packing.shape[0], generator=gen, device=self.device).argsort(-1)
+        alt = packing[pick[:, :m]]  # [E, M, 2]
+        flip = torch.rand(e, 1, 2, generator=gen, device=self.device) < 0.5
+        lo, hi = self.lattice_lo, self.lattice_lo + (self.lattice_n - 1).float() * self.p.step_m
+        alt = torch.where(flip, lo + hi - alt, alt)
+        return torch.where(ok[:, None, None], pos, alt)
+
     # ------------------------------------------------------------------ geometry
     def boundary_mask(self, pos: torch.Tensor) -> torch.Tensor:
         """[E, M, 4] True where the move (up, right, down, left) keeps the UABS inside."""
@@ -91,3 +131,11 @@ class Geometry:
         s = (-(r0 * dv).sum(-1) / (dv * dv).sum(-1).clamp_min(1e-12)).clamp(0.0, 1.0)
         d = (r0 + s[..., None] * dv).norm(dim=-1).masked_fill(self.eye, math.inf)
         return d.flatten(1).amin(-1)
+
+
+def path_distance(r0: torch.Tensor, dr: torch.Tensor) -> torch.Tensor:
+    """Smallest distance between two UABS flying straight at constant speed for one
+    step: ``min_{τ in [0, 1]} |r0 + τ dr|`` with ``r0 [..., 2]`` their offset at the
+    start and ``dr [..., 2]`` the change of that offset over the step."""
+    s = (-(r0 * dr).sum(-1) / (dr * dr).sum(-1).clamp_min(1e-12)).clamp(0.0, 1.0)
+    return (r0 + s[..., None] * dr).norm(dim=-1)

@@ -27,7 +27,9 @@ def make_env(scenario: ScenarioConfig, channel: ChannelConfig, masking: MaskingC
         traces = get_traces(scenario, traces, split)
     base = UABSEnv(scenario, channel, traces, n_envs=n_envs, mode=split, device=device,
                    n_eval_windows=n_eval_windows, seed=seed, compile_step=compile)
-    safety = SafetyTransform(make_rule(masking, base.params).to(base.device))
+    rule = make_rule(masking, base.params).to(base.device)
+    base.require_start_spacing(rule.start_margin)
+    safety = SafetyTransform(rule)
     return TransformedEnv(base, Compose(safety, ActionMask(ACTION, MASK)) if spec_mask
                           else safety)
 

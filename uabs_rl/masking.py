@@ -27,9 +27,42 @@ agents' *chosen* actions and so cannot be computed before the policy acts:
 Either way the action written is the action executed and ``("agents", "action_mask")``
 is the mask that applied to it: the replay buffer stores both.
 
-Empty masks never reach the policy: an agent with no legal action takes the
-boundary-legal action that maximises its minimum distance to the agents it is masked
-against; its stored mask is that single action and the step counts a fallback.
+Recoverable masks (``masking.recoverable=true``, the default for flat and rank)
+--------------------------------------------------------------------------------
+The paper's literal rules can corner an agent: a higher-ranked UABS (rank) or the
+boundary (flat) can leave it no safe move, and then only a fallback is left. The
+recoverable rules rest on one fact: *retracing the last step is always safe*. If every
+UABS flies its last move backwards (its "backup", ``("agents", "backup_action")``), the
+fleet replays the previous step in reverse: the same pair distances along the same
+straight paths, which were all at least d_th, and every backup stays in the area.
+At reset the env places every pair at least d_th + 2 v·δt apart, and the backup is any
+boundary-legal move: two UABS each moving v·δt change their offset by at most 2 v·δt,
+so any first joint move keeps d_th.
+
+* rank: agents choose in rank order; a move of agent u is legal if its straight path
+  keeps d_th from the *chosen* path of every higher-ranked potential collider and from
+  the *backup* path of every lower-ranked one. Invariant, before rank r: the chosen
+  paths of ranks < r and the backup paths of ranks >= r are pairwise safe. It holds at
+  r = 0 (all backups), u's own backup is then legal (so u's mask is never empty), and
+  any legal choice keeps it for r + 1. At the end all chosen paths are pairwise safe.
+* flat (agents choose independently): a move of u is legal if its path keeps d_th from
+  the path of *every* boundary-legal move of every other UABS, or if it is u's backup.
+  Any combination of legal moves is safe: two "any-move-safe" moves are safe, a backup
+  against an any-move-safe move is safe, and two backups are safe (the retraced step).
+* Pairs further than d_th + 2 v·δt apart cannot come closer than d_th in one step.
+
+So from every state the rules reach, every UABS has a legal move, no fallback is ever
+needed, and no pair comes closer than d_th at the end of a step or on the straight
+paths between steps (up to :data:`SAFETY_TOLERANCE`), for lattice and continuous
+positions alike. The only condition is the start: the fleet must fit in the area with
+every pair d_th + 2 v·δt apart (M <= 8 on the default 350 m x 170 m area; a larger
+``scenario.n_uabs`` is refused at start-up with the maximum). The cost: an agent may be
+held to its backup more often than the literal rule would hold it.
+
+Empty masks (reachable only under the literal rules) never reach the policy: an agent
+with no legal action takes the boundary-legal action that maximises its minimum
+distance to the agents it is masked against (so never an occupied cell while a free one
+exists); its stored mask is that single action and the step counts a fallback.
 """
 
 from __future__ import annotations
@@ -46,11 +79,14 @@ from torchrl.envs.transforms import Transform
 
 from uabs_rl._compile import compiled_or_eager
 from uabs_rl.config import MaskingConfig, MaskingMode, RankNextMask, enum_value, validate_masking
-from uabs_rl.env import BEAM_PRIORITY, FALLBACK, MASK, POSITION
-from uabs_rl.geometry import UNIT_MOVES
+from uabs_rl.env import BACKUP, BEAM_PRIORITY, FALLBACK, MASK, POSITION
+from uabs_rl.geometry import UNIT_MOVES, path_distance
 from uabs_rl.params import EnvParams
 
 ACTION_VALUE = ("agents", "action_value")
+# recoverable masks keep pairs at least d_th − this apart (metres): float round-off of
+# retraced paths must not make a backup move look unsafe
+SAFETY_TOLERANCE = 1e-3
 RANK_ORDER = ("agents", "rank_order")  # rank_order[e, r] = the agent at rank r (0 = top)
 COLLIDERS = ("agents", "colliders")  # colliders[e, u, w]: u and w may collide this step
 
@@ -152,6 +188,51 @@ def rank_select(q: torch.Tensor | None, boundary: torch.Tensor, pos: torch.Tenso
     return action, applied, fallback
 
 
+def rank_select_recoverable(q: torch.Tensor | None, boundary: torch.Tensor, pos: torch.Tensor,
+                            order: torch.Tensor, colliders: torch.Tensor,
+                            backup: torch.Tensor, moves: torch.Tensor, d_th: float,
+                            eps: float | torch.Tensor, u: torch.Tensor | None):
+    """Recoverable rank selection (see :class:`RankRule`): like :func:`rank_select`, but
+    an agent's move must keep d_th, along the whole straight path, from the chosen path
+    of every higher-ranked potential collider AND from the backup path (retracing its
+    last move) of every lower-ranked one. Returns ``(action, applied mask, fallback)``."""
+    e, m = order.shape
+    rows = torch.arange(e, device=pos.device)
+    plan = pos + moves[backup]  # [E, M, 2]: chosen next positions, backups until chosen
+    action = torch.zeros(e, m, dtype=torch.long, device=pos.device)
+    applied = torch.zeros_like(boundary)
+    fallback = torch.zeros(e, m, dtype=torch.bool, device=pos.device)
+    for r in range(m):
+        a_idx = order[:, r]
+        r0 = pos[rows, a_idx][:, None, :] - pos  # [E, M, 2] offsets u − w at the start
+        dr = moves[None, :, None, :] - (plan - pos)[:, None, :, :]  # [E, 4, M, 2]
+        d = path_distance(r0[:, None], dr).masked_fill(
+            ~colliders[rows, a_idx][:, None, :], math.inf)  # [E, 4, M]
+        legal = boundary[rows, a_idx] & ~(d < d_th - SAFETY_TOLERANCE).any(-1)
+        legal, fb = apply_fallback(legal, boundary[rows, a_idx], d)  # never empty: guard
+        a = epsilon_greedy(None if q is None else q[rows, a_idx], legal, eps,
+                           None if u is None else u[rows, a_idx])
+        action[rows, a_idx], applied[rows, a_idx], fallback[rows, a_idx] = a, legal, fb
+        plan[rows, a_idx] = pos[rows, a_idx] + moves[a]
+    return action, applied, fallback
+
+
+def flat_recoverable_mask(pos: torch.Tensor, boundary: torch.Tensor, backup: torch.Tensor,
+                          moves: torch.Tensor, d_th: float) -> torch.Tensor:
+    """Recoverable flat mask (see :class:`FlatRule`): a move of u is legal if its path
+    keeps d_th from the path of every boundary-legal move of every other UABS; the
+    backup move (retracing the last one) is always legal. ``[E, M, 4]``."""
+    m = pos.shape[-2]
+    r0 = pos[:, :, None, :] - pos[:, None, :, :]  # [E, M(u), M(w), 2]
+    dr = moves[:, None, :] - moves[None, :, :]  # [4(a), 4(b), 2]
+    d = path_distance(r0[:, :, None, :, None, :], dr[None, None, :, None, :, :])
+    eye = torch.eye(m, dtype=torch.bool, device=pos.device)[None, :, None, :, None]
+    ignore = eye | ~boundary[:, None, None, :, :]  # w = u, or b leaves the area
+    unsafe = (d < d_th - SAFETY_TOLERANCE).masked_fill(ignore, False).flatten(-2).any(-1)
+    backup_move = torch.nn.functional.one_hot(backup, moves.shape[0]).bool()
+    return (boundary & ~unsafe) | backup_move
+
+
 # ----------------------------------------------------------------------------- rule classes
 class MaskingRule(nn.Module):
     """One anti-collision mode. ``moves [4, 2]`` is a buffer, so ``.to()`` moves it."""
@@ -168,6 +249,8 @@ class MaskingRule(nn.Module):
         super().__init__()
         self.cfg, self.d_th, self.step_m = masking, d_th, step_m
         self.register_buffer("moves", moves.clone())
+        # every episode starts with every pair at least d_th + start_margin apart
+        self.start_margin = 0.0
 
     def write(self, td: TensorDictBase) -> None:
         """Write what the choice needs into the env's outputs ``td`` (after a reset or a
@@ -221,9 +304,18 @@ class FlatRule(MaskingRule):
         # flat: d_th + v·δt covers the other agent's unknown move [paper]
         margin = masking.flat_margin
         self.radius = d_th + (step_m if margin is None else margin)
+        self.recoverable = masking.recoverable
+        if self.recoverable:  # pairs start d_th + 2 v·δt apart: any first joint move is safe
+            self.start_margin = 2 * step_m
 
     def write(self, td: TensorDictBase) -> None:
         pos, boundary = td.get(POSITION), td.get(MASK)
+        if self.recoverable:
+            td.set(MASK, flat_recoverable_mask(pos, boundary, td.get(BACKUP), self.moves,
+                                               self.d_th))
+            td.set(FALLBACK, torch.zeros(pos.shape[:-1], dtype=torch.bool,
+                                         device=pos.device))
+            return
         unsafe, dist = flat_unsafe(pos, self.moves, self.radius)
         mask, fb = apply_fallback(boundary & ~unsafe, boundary, dist)
         td.set(MASK, mask)
@@ -257,6 +349,10 @@ class RankRule(MaskingRule):
         self.next_mask = enum_value(RankNextMask, masking.rank_next_mask,
                                     "masking.rank_next_mask")
         self.target_needs_q = self.next_mask == RankNextMask.greedy
+        self.recoverable = masking.recoverable
+        if self.recoverable:  # pairs start d_th + 2 v·δt apart: any first joint move is safe
+            self.start_margin = 2 * step_m
+            self.choice_keys = (*self.choice_keys, BACKUP)
 
     def write(self, td: TensorDictBase) -> None:
         td.set(RANK_ORDER, rank_order(td.get(BEAM_PRIORITY)))
@@ -266,7 +362,10 @@ class RankRule(MaskingRule):
         return {RANK_ORDER[1]: Categorical(m, shape=(e, m), dtype=torch.long, device=device),
                 COLLIDERS[1]: Binary(n=m, shape=(e, m, m), dtype=torch.bool, device=device)}
 
-    def choose(self, q, mask, pos, order, colliders, eps=0.0, u=None):
+    def choose(self, q, mask, pos, order, colliders, backup=None, eps=0.0, u=None):
+        if self.recoverable:
+            return rank_select_recoverable(q, mask, pos, order, colliders, backup,
+                                           self.moves, self.d_th, eps, u)
         return rank_select(q, mask, pos, order, colliders, self.moves, self.d_th, eps, u)
 
     def target_mask(self, td: TensorDictBase, choose=None) -> torch.Tensor:
