@@ -68,9 +68,10 @@ def bench(n_envs: int, device: str, episodes: int, scenario, channel, traces) ->
             "ratio": t_env / t_raw}
 
 
-def bench_mode(mode: str, n_envs: int, episodes: int, scenario, channel, traces) -> float:
+def bench_mode(mode: str, n_envs: int, episodes: int, scenario, channel, traces,
+               recoverable: bool = True) -> float:
     """Agent-steps/s of decide (masked selector) + step for one masking mode."""
-    mk = MaskingConfig(mode=mode)
+    mk = MaskingConfig(mode=mode, recoverable=recoverable)
     env = make_env(scenario, channel, mk, traces, n_envs=n_envs, seed=0)
     sel = make_selector(env, mk, eps=0.1, generator=torch.Generator().manual_seed(0))
     steps, m = scenario.episode_steps, scenario.n_uabs
@@ -95,7 +96,9 @@ def main() -> None:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--episodes", type=int, default=5)
     ap.add_argument("--no-modes", dest="modes", action="store_false",
-                    help="skip the per-masking-mode table")
+                    help="skip the per-masking-mode tables")
+    ap.add_argument("--fleets", type=int, nargs="+", default=[3, 6, 8],
+                    help="fleet sizes of the recoverable-vs-literal table")
     args = ap.parse_args()
     scenario, channel, traces_cfg = ScenarioConfig(), ChannelConfig(), TracesConfig()
     traces = get_traces(scenario, traces_cfg, "train")
@@ -114,6 +117,24 @@ def main() -> None:
         for mode in ("penalty", "flat", "rank"):
             figs = [bench_mode(mode, n, args.episodes, scenario, channel, traces) for n in sizes]
             print(f"{mode:>8} " + " ".join(f"{f:>14,.0f}" for f in figs))
+        recoverable_table(args, sizes, channel, traces)
+
+
+def recoverable_table(args, sizes: list[int], channel, traces) -> None:
+    """Cost of the recoverable masks against the paper's literal rules, measured side by
+    side (alternating, best of two each), per fleet size."""
+    print("\nrecoverable vs literal masks: agent-steps/s of select + env.step, and the cost "
+          "ratio (time per step, recoverable / literal)")
+    print(f"{'M':>3} {'mode':>6} {'n_envs':>7} {'literal':>12} {'recoverable':>12} {'cost':>6}")
+    for m in args.fleets:
+        sc = ScenarioConfig(n_uabs=m)
+        for mode in ("flat", "rank"):
+            for n in sizes:
+                lit, rec = 0.0, 0.0
+                for _ in range(2):
+                    lit = max(lit, bench_mode(mode, n, args.episodes, sc, channel, traces, False))
+                    rec = max(rec, bench_mode(mode, n, args.episodes, sc, channel, traces, True))
+                print(f"{m:>3} {mode:>6} {n:>7} {lit:>12,.0f} {rec:>12,.0f} {lit / rec:>6.2f}")
 
 
 if __name__ == "__main__":
