@@ -75,9 +75,18 @@ def test_baselines_and_summary(report):
 
 def test_uabs_eval_writes_json_and_pictures(sweep, capsys):
     run_dir = sweep / "masking=rank,seed=0"
-    assert eval_main([str(run_dir), "--policy", "all", "--checkpoint", "last"]) == 0
-    res = json.loads((run_dir / "evaluation" / "eval.json").read_text())
+    assert eval_main([str(run_dir), "--policy", "all", "--checkpoint", "last",
+                      "--split", "eval"]) == 0
+    out = json.loads((run_dir / "evaluation" / "eval.json").read_text())
+    assert out["split"] == "eval"
+    res = out["policies"]
     assert set(res) == {"learned", "random", "greedy", "oracle"}
+    # paired differences: the mean of the per-window differences, inside its interval
+    for name in ("random", "greedy", "oracle"):
+        d = out["differences"][name]["return"]
+        assert d["diff"] == pytest.approx(np.mean(np.subtract(res["learned"]["returns"],
+                                                              res[name]["returns"])))
+        assert d["ci_low"] <= d["diff"] <= d["ci_high"] and d["n"] == len(res[name]["returns"])
     last_eval = [r for r in records(run_dir) if r["kind"] == "eval"][-1]
     assert res["learned"]["return"] == pytest.approx(last_eval["return"])
     assert res["learned"]["pg_curve"] == pytest.approx(last_eval["pg_curve"])
@@ -85,3 +94,14 @@ def test_uabs_eval_writes_json_and_pictures(sweep, capsys):
         assert (run_dir / "evaluation" / f"trajectories_{name}.png").stat().st_size > 10_000
     assert "learned" in capsys.readouterr().out
     assert eval_main([str(run_dir / "nowhere.pt")]) == 2
+
+
+def test_uabs_eval_reports_on_test_traces_by_default(sweep, capsys):
+    run_dir = next(sweep.glob("*rank*"))
+    assert eval_main([str(run_dir), "--policy", "all", "--out", str(run_dir / "ev_test")]) == 0
+    out = json.loads((run_dir / "ev_test" / "eval.json").read_text())
+    assert out["split"] == "test" and out["windows"] == len(out["policies"]["learned"]["returns"])
+    assert "split: test" in capsys.readouterr().out
+    for metric in ("return", "served_fraction", "pg"):
+        d = out["differences"]["greedy"][metric]
+        assert d["ci_low"] <= d["diff"] <= d["ci_high"]

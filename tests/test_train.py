@@ -86,7 +86,7 @@ def test_best_checkpoint_reloads_to_identical_parameters_and_figures(rank_run, t
     evals = [r for r in records(rank_run) if r["kind"] == "eval"]
     best = [r for r in evals if r["episode"] == state["counters"]["episode"]][0]
     # evaluation without a trainer (what uabs-eval does) and through the experiment
-    ev = load_evaluation(rank_run, "best")
+    ev = load_evaluation(rank_run, "best", split="eval")
     for again, _ in (ev.evaluator.evaluate(ev.greedy), exp.evaluator.evaluate(exp.greedy)):
         for key in ("return", "returns", "collisions", "proximity", "pg_curve",
                     "served_fraction"):

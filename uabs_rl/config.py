@@ -97,15 +97,26 @@ class SplitConfig:
     warmup_s: float = 60.0  # simulated seconds skipped before recording
 
 
+# trace splits: training, validation ("eval": periodic evaluation and checkpoint
+# selection) and test (every reported figure)
+TRACE_SPLITS = ("train", "eval", "test")
+
+
 @dataclass
 class TracesConfig:
     """Training and held-out evaluation traces, and where they are cached."""
 
     # 8 h of training traces: 1000 random 80 s windows rarely overlap much.
     train: SplitConfig = field(default_factory=SplitConfig)
-    # held-out traces from other SUMO seeds, never seen in training
+    # validation traces (other SUMO seeds): the periodic evaluation during training, the
+    # Fig. 3 curve and the choice of the best checkpoint [decision]
     eval: SplitConfig = field(
         default_factory=lambda: SplitConfig(first_seed=10_000, n_sims=2, duration_s=600.0)
+    )
+    # test traces (yet other seeds): every reported figure (uabs-eval, uabs-report); never
+    # read by training or checkpoint selection. 8 x 600 s hold 56 windows of 81 steps
+    test: SplitConfig = field(
+        default_factory=lambda: SplitConfig(first_seed=20_000, n_sims=8, duration_s=600.0)
     )
     cache_dir: str | None = None  # null = $UABS_RL_CACHE/traces, default ~/.cache/uabs_rl/traces
     workers: int = 0  # SUMO processes in parallel; 0 = one per core
@@ -188,7 +199,7 @@ class TracesAppConfig:
 
     scenario: ScenarioConfig = field(default_factory=ScenarioConfig)
     traces: TracesConfig = field(default_factory=TracesConfig)
-    split: str = "all"  # which traces to build: train, eval or all (uabs-traces split=eval)
+    split: str = "all"  # which traces to build: train, eval, test or all (uabs-traces split=test)
 
 
 @dataclass
@@ -336,7 +347,7 @@ def validate_scenario_traces(scenario: ScenarioConfig, traces: TracesConfig) -> 
             "scenario.sumo.fleet_size is 0 and no scenario.sumo.route_files or "
             "scenario.sumo.sumocfg is given: there would be no vehicle. Set "
             "scenario.sumo.fleet_size >= 1 or give routes.")
-    for name in ("train", "eval"):
+    for name in TRACE_SPLITS:
         split = getattr(traces, name)
         if split.n_sims < 1:
             raise ConfigError(f"traces.{name}.n_sims must be >= 1, got {split.n_sims}.")
@@ -345,14 +356,17 @@ def validate_scenario_traces(scenario: ScenarioConfig, traces: TracesConfig) -> 
                               f"{split.duration_s}.")
         if split.warmup_s < 0:
             raise ConfigError(f"traces.{name}.warmup_s must be >= 0, got {split.warmup_s}.")
-    tr, ev = traces.train, traces.eval
-    train_seeds = set(range(tr.first_seed, tr.first_seed + tr.n_sims))
-    eval_seeds = set(range(ev.first_seed, ev.first_seed + ev.n_sims))
-    if train_seeds & eval_seeds:
-        raise ConfigError(
-            f"traces.eval.first_seed={ev.first_seed} makes held-out seeds overlap the "
-            f"training seeds {min(train_seeds)}..{max(train_seeds)}: evaluation traces "
-            f"must never be seen in training. Move traces.eval.first_seed past them.")
+    seeds = {n: set(range(getattr(traces, n).first_seed,
+                          getattr(traces, n).first_seed + getattr(traces, n).n_sims))
+             for n in TRACE_SPLITS}
+    for i, a in enumerate(TRACE_SPLITS):
+        for b in TRACE_SPLITS[i + 1:]:
+            if seeds[a] & seeds[b]:
+                raise ConfigError(
+                    f"traces.{b}.first_seed={getattr(traces, b).first_seed} makes the {b} "
+                    f"SUMO seeds overlap the {a} seeds {min(seeds[a])}..{max(seeds[a])}: "
+                    f"training, validation (eval) and test traces must come from disjoint "
+                    f"seeds. Move traces.{b}.first_seed past them.")
     if traces.workers < 0:
         raise ConfigError(f"traces.workers must be >= 0, got {traces.workers}.")
 

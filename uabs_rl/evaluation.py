@@ -17,7 +17,7 @@ from uabs_rl.config import RunConfig
 from uabs_rl.env import DIAG, OBS, POSITION
 from uabs_rl.make import make_env, make_selector
 from uabs_rl.masking import ACTION_VALUE
-from uabs_rl.traces import TraceSet
+from uabs_rl.traces import TraceSet, get_traces
 
 
 def greedy_policy(qnet: nn.Module, env: TransformedEnv, cfg: RunConfig,
@@ -33,12 +33,18 @@ def greedy_policy(qnet: nn.Module, env: TransformedEnv, cfg: RunConfig,
 
 def make_eval_env(cfg: RunConfig, traces: TraceSet | None = None,
                   device: str | torch.device = "cpu", windows: int | None = None,
-                  compile: bool | None = None) -> TransformedEnv:
-    """The held-out env: ``windows`` (default ``train.eval_windows``) fixed windows, one
-    env each; compiled as ``train.compile`` unless ``compile`` says otherwise."""
+                  compile: bool | None = None, split: str = "eval") -> TransformedEnv:
+    """The held-out env of ``split`` ("eval": the validation traces that training
+    evaluates on; "test": the traces every reported figure comes from) with ``windows``
+    fixed windows, one env each (default: ``train.eval_windows`` for validation, every
+    window of the test traces for test); compiled as ``train.compile`` unless
+    ``compile`` says otherwise."""
     tr = cfg.train
-    n = tr.eval_windows if windows is None else windows
-    return make_env(cfg.scenario, cfg.channel, cfg.masking, traces or cfg.traces, "eval",
+    n = windows if windows is not None else (tr.eval_windows if split == "eval" else None)
+    if n is None:  # every non-overlapping window of the split
+        traces = traces or get_traces(cfg.scenario, cfg.traces, split)
+        n = traces.n_sims * (traces.steps // (cfg.scenario.episode_steps + 1))
+    return make_env(cfg.scenario, cfg.channel, cfg.masking, traces or cfg.traces, split,
                     n_envs=n, device=device, n_eval_windows=n, seed=tr.eval_seed,
                     compile=tr.compile if compile is None else compile, spec_mask=False)
 
@@ -70,7 +76,9 @@ class Evaluator:
             "proximity": last["ep_proximity"].sum().item(),
             "fallbacks": last["ep_fallbacks"].sum().item(),
             "served_fraction": td["next", DIAG, "served_fraction"].mean().item(),
+            "served_fractions": td["next", DIAG, "served_fraction"].mean(-1).tolist(),
             "pg": last["pg"].mean().item(),
+            "pgs": last["pg"].tolist(),
             "pg_curve": last["pg_curve"].mean(0).tolist(),
             "closest_approach": td["next", DIAG, "closest_approach"].min().item(),
             "coverage": self.coverage(td["next", POSITION]),

@@ -18,14 +18,16 @@ def make_env(scenario: ScenarioConfig, channel: ChannelConfig, masking: MaskingC
              device: str | torch.device = "cpu", n_eval_windows: int | None = None,
              seed: int | None = None, compile: bool = False,
              spec_mask: bool = True) -> TransformedEnv:
-    """``UABSEnv`` over the ``split`` traces, wrapped with the masking transform and,
+    """``UABSEnv`` over the ``split`` traces ("train": random windows; "eval"
+    (validation) or "test": fixed windows), wrapped with the masking transform and,
     with ``spec_mask``, TorchRL's ``ActionMask`` (so ``env.rand_action()`` respects the
     written mask; the trainer acts through the selector and skips it).
 
     ``traces`` is a :class:`TraceSet` or the ``traces`` config (then loaded or built)."""
     if not isinstance(traces, TraceSet):
         traces = get_traces(scenario, traces, split)
-    base = UABSEnv(scenario, channel, traces, n_envs=n_envs, mode=split, device=device,
+    mode = "train" if split == "train" else "eval"
+    base = UABSEnv(scenario, channel, traces, n_envs=n_envs, mode=mode, device=device,
                    n_eval_windows=n_eval_windows, seed=seed, compile_step=compile)
     rule = make_rule(masking, base.params).to(base.device)
     base.require_start_spacing(rule.start_margin)

@@ -1,6 +1,7 @@
 """Vehicle traces: run SUMO once, cache padded position tensors, load them back.
 
-A split (``train`` or ``eval``) is a :class:`TraceSet` of ``n_sims`` simulations:
+A split (``train``, ``eval`` (validation) or ``test``) is a :class:`TraceSet` of
+``n_sims`` simulations:
 ``positions [n_sims, steps, max_vehicles, 2]`` (metres, relative to the area's
 lower-left corner) and ``present [n_sims, steps, max_vehicles]``. Each split is
 cached in one file whose name is a hash of everything that changes it (network and
@@ -32,6 +33,7 @@ import torch
 from tqdm.auto import tqdm
 
 from uabs_rl.config import (
+    TRACE_SPLITS,
     ConfigError,
     ScenarioConfig,
     SplitConfig,
@@ -45,7 +47,7 @@ from uabs_rl.sumo_sim import SimRequest, SimResult, SumoRunError, load_result, r
 log = logging.getLogger(__name__)
 
 FORMAT_VERSION = 2
-SPLITS = ("train", "eval")
+SPLITS = TRACE_SPLITS
 
 
 class TraceCacheError(RuntimeError):
