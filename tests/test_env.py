@@ -276,3 +276,27 @@ def test_sampled_los_draws_only_where_they_matter(small_traces_cfg):
     rho = los_probability(d[1:2]).item()
     assert served[:, 0].all() and not served[:, 2].any()
     assert abs(served[:, 1].mean().item() - rho) < 0.03  # Bernoulli(ρ_L) in between
+
+
+def test_lookahead_observation_scores_each_candidate_move(small_traces_cfg):
+    """scenario.lookahead_obs: one vehicle 40 m east of the UABS is under its footprints
+    after a move right (20 m off) and after two (0 m), and nowhere else."""
+    from uabs_rl.traces import TraceSet
+
+    steps = 30
+    pos = torch.zeros(1, steps, 1, 2)
+    pos[..., 0], pos[..., 1] = 145.0, 85.0
+    traces = TraceSet(pos, torch.ones(1, steps, 1, dtype=torch.bool), {"split": "x", "dt": 1.0})
+    sc = scenario(small_traces_cfg, n_uabs=1, lookahead_obs=True)
+    env = UABSEnv(sc, ChannelConfig(), traces, n_envs=1, seed=0)
+    assert env.params.obs_dim == 3 + 2 + 9 + 8
+    env.reset()
+    st = env.state
+    st["pos"][:] = torch.tensor([[[105.0, 85.0]]])
+    env.math.observe(st, env.veh_pos, env.veh_present, env.rng)
+    look = st["look"][0, 0]
+    prio = max(1.0, float(st["priority"][0, 0]))
+    # order: up, right, down, left, then 2 x up, 2 x right, 2 x down, 2 x left
+    assert look.tolist() == [0.0, prio, 0.0, 0.0, 0.0, prio, 0.0, 0.0]
+    obs = env.math.observation(st["pos"], st["t"], st["b"], st["look"])
+    assert torch.allclose(obs[0, 0, -8:], look / sc.priority_obs_scale)

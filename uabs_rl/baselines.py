@@ -19,9 +19,9 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 from torchrl.envs import TransformedEnv
 
-from uabs_rl import channel as ch
 from uabs_rl.env import POSITION, UABSEnv
 from uabs_rl.masking import ACTION_VALUE, MaskedActionSelector
+from uabs_rl.service import move_scores
 
 BASELINES = ("random", "greedy", "oracle")
 
@@ -39,11 +39,7 @@ class CoverageScore(TensorDictModuleBase):
         env, p = self.env, self.env.params
         veh, present = env.vehicles(self.lookahead)  # [E, 2, V], [E, V]
         cand = td.get(POSITION)[:, :, None, :] + env.math.moves  # [E, M, 4, 2]
-        dx = veh[:, None, None, 0, :] - cand[..., 0:1]  # [E, M, 4, V]
-        dy = veh[:, None, None, 1, :] - cand[..., 1:2]
-        inside, _ = ch.assign_beams(dx, dy, p.r_b, p.n_beams)
-        weight = torch.where(present, env.priority.clamp_min(1.0), 0.0)
-        score = (inside * weight[:, None, None, :]).sum(-1)
+        score = move_scores(cand, veh, present, env.priority, p.r_b, p.n_beams)
         jitter = torch.rand(score.shape, generator=self.generator, device=score.device)
         td.set(ACTION_VALUE, score + 1e-3 * jitter)
         return td

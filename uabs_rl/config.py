@@ -143,6 +143,11 @@ class ScenarioConfig:
     lattice: bool = True  # positions on a lattice of pitch v·δt [decision]; false = continuous
     safe_start: bool = True  # the inner UABS starts ≥ d_th from the others [decision]
     priority_obs_scale: float = 10.0  # b_t is divided by this in the observation
+    # beyond the paper: the observation also holds, for each of the 4 moves and for 2
+    # steps in each direction, the priority the UABS's footprints would cover there at
+    # the vehicles' current positions (what the greedy baseline looks at); false = the
+    # paper's observation
+    lookahead_obs: bool = False
     time_is_terminal: bool = True  # t/T is observed: t = T ends the MDP, no bootstrap [decision]
 
 

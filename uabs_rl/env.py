@@ -58,6 +58,8 @@ class StepMath:
         self.geometry = Geometry(p, device)
         self.links = LinkModel(p, device)
         self.moves = self.geometry.moves
+        # lookahead observation: the 4 moves, then 2 steps in each direction
+        self.look_offsets = torch.cat([self.moves, 2 * self.moves])[: p.n_lookahead]
 
     def observe(self, st: dict[str, torch.Tensor], veh_pos: torch.Tensor,
                 veh_present: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
@@ -68,6 +70,10 @@ class StepMath:
         inside, beam, served = self.links.links(st["pos"], veh, present, gen)
         service.update_service(st, served, present, self.p.window_steps)
         st["b"] = service.beam_sums(inside, beam, st["priority"], self.p.n_beams)
+        if self.p.lookahead_obs:
+            cand = st["pos"][:, :, None, :] + self.look_offsets  # [E, M, 8, 2]
+            st["look"] = service.move_scores(cand, veh, present, st["priority"], self.p.r_b,
+                                             self.p.n_beams)
         return served, present
 
     # ------------------------------------------------------------------ reward
@@ -80,13 +86,18 @@ class StepMath:
                                                                           -p.lambda_c)
         return r, coll.flatten(1).sum(-1) / 2.0, prox.flatten(1).sum(-1) / 2.0
 
-    def observation(self, pos: torch.Tensor, t: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-        """o = (x/W, y/H, t/T, L_t, b_t / scale): [E, M, 3 + 2M + B]."""
+    def observation(self, pos: torch.Tensor, t: torch.Tensor, b: torch.Tensor,
+                    look: torch.Tensor) -> torch.Tensor:
+        """o = (x/W, y/H, t/T, L_t, b_t / scale[, lookahead / scale]):
+        [E, M, 3 + 2M + B (+ 8)]."""
         e, m, _ = pos.shape
         norm = pos / self.geometry.area
         tt = (t.float() / self.p.episode_steps)[:, None, None].expand(e, m, 1)
         fleet = norm.reshape(e, 1, 2 * m).expand(e, m, 2 * m)
-        return torch.cat([norm, tt, fleet, b / self.p.obs_scale], dim=-1)
+        parts = [norm, tt, fleet, b / self.p.obs_scale]
+        if self.p.lookahead_obs:
+            parts.append(look / self.p.obs_scale)
+        return torch.cat(parts, dim=-1)
 
     # ------------------------------------------------------------------ one step
     def step(self, st: dict[str, torch.Tensor], action: torch.Tensor, veh_pos: torch.Tensor,
@@ -127,7 +138,7 @@ class StepMath:
         never = torch.zeros_like(done)
         pg_curve = service.pg_curve(st["n_windows"], st["ns_hist"])
         return dict(
-            diag, observation=self.observation(st["pos"], st["t"], st["b"]),
+            diag, observation=self.observation(st["pos"], st["t"], st["b"], st["look"]),
             action_mask=self.geometry.boundary_mask(st["pos"]), position=st["pos"],
             beam_priority=st["b"], backup_action=st["backup"], done=done,
             terminated=done if p.time_is_terminal else never,
@@ -178,6 +189,7 @@ def empty_state(p: EnvParams, e: int, v: int, dev: torch.device) -> dict[str, to
         "priority": z(e, v), "served_count": z(e, v, dt=torch.long),
         "window_full": z(e, v, dt=torch.bool), "prev_present": z(e, v, dt=torch.bool),
         "n_windows": z(e, v), "ns_hist": z(e, v, n + 1), "b": z(e, m, p.n_beams),
+        "look": z(e, m, p.n_lookahead),
         **{f"ep_{k}": z(e) for k in ("return", "collisions", "proximity", "fallbacks")},
     }
 

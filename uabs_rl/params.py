@@ -29,6 +29,7 @@ class EnvParams:
     lattice: bool
     safe_start: bool
     obs_scale: float
+    lookahead_obs: bool
     time_is_terminal: bool
     # channel
     fc_ghz: float
@@ -59,7 +60,8 @@ class EnvParams:
             nhat_s=scenario.nhat_s, lambda_s=scenario.lambda_s, lambda_c=scenario.lambda_c,
             collision_distance=scenario.collision_distance, d_th=float(d_th),
             lattice=scenario.lattice, safe_start=scenario.safe_start,
-            obs_scale=scenario.priority_obs_scale, time_is_terminal=scenario.time_is_terminal,
+            obs_scale=scenario.priority_obs_scale, lookahead_obs=scenario.lookahead_obs,
+            time_is_terminal=scenario.time_is_terminal,
             fc_ghz=channel.carrier_ghz, h_ut=channel.ue_height, tx_dbm=channel.tx_power_dbm,
             tx_gain_db=channel.tx_gain_db, noise_dbm=channel.noise_dbm,
             snr_th_db=channel.snr_threshold_db, n_beams=channel.n_beams,
@@ -72,4 +74,9 @@ class EnvParams:
 
     @property
     def obs_dim(self) -> int:
-        return 3 + 2 * self.n_uabs + self.n_beams
+        return 3 + 2 * self.n_uabs + self.n_beams + self.n_lookahead
+
+    @property
+    def n_lookahead(self) -> int:
+        """Lookahead features per agent: 4 moves and 4 double moves, or none."""
+        return 8 if self.lookahead_obs else 0

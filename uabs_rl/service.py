@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import torch
 
+from uabs_rl.channel import assign_beams
+
 
 def vehicles_at(st: dict[str, torch.Tensor], veh_pos: torch.Tensor,
                 veh_present: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -58,3 +60,15 @@ def pg_curve(n_windows: torch.Tensor, ns_hist: torch.Tensor) -> torch.Tensor:
     per_ns = torch.bmm(inv[:, None, :], ns_hist).squeeze(1)  # [E, N+1] Σ_g share(N_s = j)
     at_least = per_ns.flip(-1).cumsum(-1).flip(-1)[:, 1:]  # Σ_g share(N_s ≥ k), k = 1..N
     return at_least / counted.sum(-1, keepdim=True).clamp_min(1)
+
+
+def move_scores(cand: torch.Tensor, veh: torch.Tensor, present: torch.Tensor,
+                priority: torch.Tensor, r_b: float, n_beams: int) -> torch.Tensor:
+    """[E, M, K] priority under the footprints of a UABS at each candidate position
+    ``cand [E, M, K, 2]``, for vehicles ``veh [E, 2, V]`` with ``priority [E, V]`` (every
+    present vehicle counts at least 1, so a fresh one is worth approaching)."""
+    dx = veh[:, None, None, 0, :] - cand[..., 0:1]  # [E, M, K, V]
+    dy = veh[:, None, None, 1, :] - cand[..., 1:2]
+    inside, _ = assign_beams(dx, dy, r_b, n_beams)
+    weight = torch.where(present, priority.clamp_min(1.0), 0.0)
+    return (inside * weight[:, None, None, :]).sum(-1)
