@@ -105,3 +105,18 @@ def test_uabs_eval_reports_on_test_traces_by_default(sweep, capsys):
     for metric in ("return", "served_fraction", "pg"):
         d = out["differences"]["greedy"][metric]
         assert d["ci_low"] <= d["diff"] <= d["ci_high"]
+
+
+def test_learned_vs_baselines_on_test_traces(sweep, report):
+    out, res = report
+    with open(out / "learned_vs_baselines.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert list(rows[0]) == ["mode", "n_uabs", "config", "metric", "baseline", "learned",
+                             "diff", "ci_low", "ci_high", "n_seeds"]
+    # 2 modes x 3 metrics x 3 baselines, 2 seeds each, smoke runs: recoverable, paper obs
+    assert len(rows) == 18 and {r["n_seeds"] for r in rows} == {"2"}
+    assert {r["config"] for r in rows} == {"paper"}
+    for r, full in zip(rows, res["learned_vs_baselines"], strict=True):
+        assert float(r["diff"]) == pytest.approx(full["learned"] - full["baseline_value"],
+                                                 abs=1e-6)
+        assert float(r["ci_low"]) <= float(r["diff"]) <= float(r["ci_high"])
