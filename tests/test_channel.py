@@ -108,3 +108,11 @@ def test_coverage_fraction():
                                  400.0, 1.0)
     assert same.item() == pytest.approx(one.item()) and apart.item() == pytest.approx(
         2 * one.item(), rel=0.01)
+
+
+def test_los_probability_height_term_stops_at_23_m():
+    """TR 38.901 UMa: C'(h_UT) grows up to h_UT = 23 m, where the model ends."""
+    d = torch.tensor([50.0, 100.0, 200.0])
+    assert torch.equal(ch.los_probability(d, 30.0), ch.los_probability(d, 23.0))
+    assert (ch.los_probability(d, 23.0) > ch.los_probability(d, 18.0)).all()
+    assert torch.equal(ch.los_probability(d, 13.0), ch.los_probability(d, 1.5))

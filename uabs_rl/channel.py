@@ -16,8 +16,10 @@ SPEED_OF_LIGHT = 299_792_458.0
 
 # ----------------------------------------------------------------------------- UMa
 def los_probability(d2d: torch.Tensor, h_ut: float = 1.5) -> torch.Tensor:
-    """TR 38.901 Table 7.4.2-1, UMa: ρ_L as a function of the horizontal distance."""
-    c_prime = 0.0 if h_ut <= 13.0 else ((h_ut - 13.0) / 10.0) ** 1.5
+    """TR 38.901 Table 7.4.2-1, UMa: ρ_L as a function of the horizontal distance.
+    C'(h_UT) = 0 up to 13 m, ((h_UT − 13)/10)^1.5 up to 23 m, where the model ends (held
+    at its 23 m value beyond)."""
+    c_prime = 0.0 if h_ut <= 13.0 else ((min(h_ut, 23.0) - 13.0) / 10.0) ** 1.5
     d = d2d.clamp_min(18.0)  # the formula is used beyond 18 m only
     p = (18.0 / d + torch.exp(-d / 63.0) * (1.0 - 18.0 / d)) * (
         1.0 + c_prime * 1.25 * (d / 100.0) ** 3 * torch.exp(-d / 150.0))

@@ -50,16 +50,28 @@ class ServiceRadii:
         """Served flags from squared horizontal distances ``d2``."""
         mode = self.p.los_mode
         if mode == "los":
-            return d2 <= self.r_los ** 2
+            return d2 <= _squared(self.r_los)
         if mode == "expected":
-            return d2 <= self.r_exp ** 2
-        sure = d2 <= self.r_nlos ** 2
+            return d2 <= _squared(self.r_exp)
+        sure = d2 <= _squared(self.r_nlos)
         if not self.needs_draw:
             return sure
-        maybe = d2 <= self.r_los ** 2
+        maybe = d2 <= _squared(self.r_los)
         los = torch.rand(d2.shape, generator=gen, device=d2.device) < los_probability(
             d2.sqrt(), self.p.h_ut)
         return sure | (maybe & los)
+
+
+def _squared(r: float) -> float:
+    """The squared radius, or -1 for "no distance is served" (r < 0): no d² is <= -1."""
+    return r * r if r >= 0 else -1.0
+
+
+def footprint_reach(r_b: float, n_beams: int) -> float:
+    """Farthest ground distance from the UABS that a footprint of its k × k grid covers:
+    the corner beam's centre, (k − 1)·r_b from the middle along each axis, plus r_b."""
+    k = beam_grid_side(n_beams)
+    return ((k - 1) * math.sqrt(2.0) + 1.0) * r_b
 
 
 def _radius(ok, hi: float = 1e6, iters: int = 80) -> float:
@@ -93,8 +105,9 @@ class LinkModel:
         self.radii: dict[float, ServiceRadii] = {}
         if not p.shadow:
             gains = [p.gain_db] + ([p.outside_gain_db] if p.outside_gain_db is not None else [])
-            reach = 3.0 * p.r_b * math.sqrt(2.0) if p.outside_gain_db is None else math.hypot(
-                p.width, p.height)  # farthest link that can be a candidate
+            # farthest link that can be a candidate: the footprints' reach, or the area
+            reach = footprint_reach(p.r_b, p.n_beams) if p.outside_gain_db is None else \
+                math.hypot(p.width, p.height)
             self.radii = {g: ServiceRadii(p, g, reach) for g in gains}
         self.always_served = p.outside_gain_db is None and bool(self.radii) and \
             self.radii[p.gain_db].always_within(reach)
