@@ -13,7 +13,7 @@ from hydra.errors import ConfigCompositionException
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from tests.conftest import compose_cfg
-from uabs_rl.checkpoint import CheckpointError, load_checkpoint
+from uabs_rl.checkpoint import CheckpointError, Interrupted, load_checkpoint
 from uabs_rl.config import ConfigError, validate_run
 from uabs_rl.evaluate import load_evaluation
 from uabs_rl.experiment import Experiment
@@ -126,21 +126,26 @@ def test_incompatible_or_damaged_checkpoint_is_refused(rank_run, trace_cache, tm
         load_checkpoint(tmp_path / "nowhere.pt")
 
 
-def test_ctrl_c_saves_last_before_exiting(trace_cache, tmp_path, monkeypatch):
+def test_ctrl_c_finishes_the_round_saves_last_and_stops(trace_cache, tmp_path, monkeypatch):
+    """Ctrl-C during the second episode: that episode ends, is logged and saved, and the
+    run stops with Interrupted (one line at the command line), counters consistent."""
+    import os
+    import signal
+
     exp = Experiment(smoke(trace_cache, "train.tensorboard=false"), tmp_path)
     real = exp.collect
-    calls = []
 
     def interrupted():
-        if calls:
-            raise KeyboardInterrupt
-        calls.append(1)
+        if exp.episode == 1:
+            os.kill(os.getpid(), signal.SIGINT)  # as if Ctrl-C were pressed now
         return real()
 
     monkeypatch.setattr(exp, "collect", interrupted)
-    with pytest.raises(KeyboardInterrupt):
+    with pytest.raises(Interrupted, match="interrupted at episode 2"):
         exp.fit()
-    assert load_checkpoint(tmp_path / "checkpoints" / "last.pt")["counters"]["episode"] == 1
+    c = load_checkpoint(tmp_path / "checkpoints" / "last.pt")["counters"]
+    assert c["episode"] == 2 and c["env_steps"] == 2 * exp.params.episode_steps
+    assert [r["episode"] for r in records(tmp_path) if r["kind"] == "train"] == [1, 2]
 
 
 @pytest.mark.parametrize("override,key", [

@@ -26,6 +26,10 @@ class CheckpointError(RuntimeError):
     """A checkpoint is missing, unreadable or from an incompatible config."""
 
 
+class Interrupted(Exception):
+    """Training stopped on Ctrl-C after saving a consistent ``last`` checkpoint."""
+
+
 def save_checkpoint(state: dict, path: Path) -> None:
     """Atomic write: a crash or Ctrl-C mid-write never damages the previous file."""
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -7,23 +7,33 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from uabs_rl.checkpoint import CheckpointError
+from uabs_rl.checkpoint import CheckpointError, Interrupted
 from uabs_rl.config import CONF_DIR, ConfigError, register_configs, to_container
 
 
-def hydra_main(config_name: str, body: Callable[[Any, Path], Any]) -> None:
-    """Run ``body(cfg, output_dir)`` under ``@hydra.main`` with ``conf/<config_name>``:
-    the config arrives as checked dataclasses; a config or checkpoint error is one line
-    on stderr and exit status 2, not a traceback."""
+def hydra_main(config_name: str, body: Callable[..., Any],
+               pass_overrides: bool = False) -> None:
+    """Run ``body(cfg, output_dir[, overrides])`` under ``@hydra.main`` with
+    ``conf/<config_name>``: the config arrives as checked dataclasses; a config or
+    checkpoint error is one line on stderr and exit status 2, Ctrl-C one line and
+    status 130, never a traceback."""
     import hydra
     from hydra.core.hydra_config import HydraConfig
 
     def app(dcfg) -> None:
+        hc = HydraConfig.get()
+        extra = (list(hc.overrides.task),) if pass_overrides else ()
         try:
-            body(to_container(dcfg), Path(HydraConfig.get().runtime.output_dir))
+            body(to_container(dcfg), Path(hc.runtime.output_dir), *extra)
         except (ConfigError, CheckpointError) as e:
             print(f"error: {e}", file=sys.stderr)
             sys.exit(2)
+        except Interrupted as e:
+            print(str(e), file=sys.stderr)
+            sys.exit(130)
+        except KeyboardInterrupt:
+            print("interrupted: the last checkpoint is kept", file=sys.stderr)
+            sys.exit(130)
 
     register_configs()
     hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name=config_name)(app)()

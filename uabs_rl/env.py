@@ -151,6 +151,24 @@ class StepMath:
 
 
 # ----------------------------------------------------------------------------- set-up
+def fleet_packing(geo: Geometry, margin: float) -> torch.Tensor:
+    """Lattice points at least d_th + ``margin`` apart, at least M of them, or a
+    ConfigError naming scenario.n_uabs and the largest fleet that fits."""
+    p = geo.p
+    spacing = p.d_th + margin
+    packing = geo.packing(spacing)
+    if p.n_uabs > packing.shape[0]:
+        need = "" if margin == 0 else (
+            f" (the {spacing:.1f} m = d_th + {margin:.0f} m that the recoverable masks "
+            f"need at the start; masking.recoverable=false needs d_th only)")
+        raise ConfigError(
+            f"scenario.n_uabs={p.n_uabs} but the {p.width:g} m x {p.height:g} m area "
+            f"holds at most {packing.shape[0]} UABS with every pair at least "
+            f"{spacing:.1f} m apart{need}: lower scenario.n_uabs to "
+            f"{packing.shape[0]} or enlarge scenario.area.")
+    return packing
+
+
 def check_traces(traces: TraceSet, p: EnvParams) -> None:
     """Refuse traces too short for an episode or sampled at another δt."""
     need = p.episode_steps + 1
@@ -299,19 +317,8 @@ class UABSEnv(EnvBase):
         """Every episode starts with every pair at least d_th + ``margin`` apart (the
         paper's placement where it achieves that, else random points of a packing of
         the area). Refuses a fleet the area cannot hold that far apart."""
-        p = self.params
-        spacing = p.d_th + margin
-        packing = self.math.geometry.packing(spacing)
-        if p.n_uabs > packing.shape[0]:
-            need = "" if margin == 0 else (
-                f" (the {spacing:.1f} m = d_th + {margin:.0f} m that the recoverable masks "
-                f"need at the start; masking.recoverable=false needs d_th only)")
-            raise ConfigError(
-                f"scenario.n_uabs={p.n_uabs} but the {p.width:g} m x {p.height:g} m area "
-                f"holds at most {packing.shape[0]} UABS with every pair at least "
-                f"{spacing:.1f} m apart{need}: lower scenario.n_uabs to "
-                f"{packing.shape[0]} or enlarge scenario.area.")
-        self.start_spacing, self.packing = spacing, packing
+        self.start_spacing = self.params.d_th + margin
+        self.packing = fleet_packing(self.math.geometry, margin)
 
     def _empty_state(self) -> dict[str, torch.Tensor]:
         return empty_state(self.params, self.n_envs, self.veh_pos.shape[3], self.device)

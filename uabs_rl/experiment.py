@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import logging
 import math
+import signal
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -13,8 +15,14 @@ from typing import Any
 import torch
 from tqdm.auto import tqdm
 
-from uabs_rl.checkpoint import CKPT_FORMAT, check_compatible, config_dict, save_checkpoint
-from uabs_rl.config import ConfigError, RunConfig, validate_run
+from uabs_rl.checkpoint import (
+    CKPT_FORMAT,
+    Interrupted,
+    check_compatible,
+    config_dict,
+    save_checkpoint,
+)
+from uabs_rl.config import ConfigError, RunConfig, TrainConfig, validate_run
 from uabs_rl.env import N_ACTIONS
 from uabs_rl.evaluation import Evaluator, greedy_policy, make_eval_env
 from uabs_rl.learner import DQNLearner
@@ -35,6 +43,51 @@ def resolve_device(name: str) -> torch.device:
         raise ConfigError(f"device={name} but CUDA is not available here: use device=cpu "
                           f"or device=auto.")
     return torch.device(name)
+
+
+class DeferredInterrupt:
+    """While active, the first SIGINT only sets :attr:`requested` (the loop stops at the
+    end of the round); a second one raises KeyboardInterrupt at once. Outside the main
+    thread it does nothing."""
+
+    def __init__(self):
+        self.requested = False
+        self._previous = None
+
+    def _handle(self, signum, frame) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+        print("\nCtrl-C: stopping after this round (press again to stop now)",
+              file=sys.stderr)
+
+    def __enter__(self) -> DeferredInterrupt:
+        if threading.current_thread() is threading.main_thread():
+            self._previous = signal.signal(signal.SIGINT, self._handle)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._previous is not None:
+            signal.signal(signal.SIGINT, self._previous)
+            self._previous = None
+
+
+class Progress:
+    """The progress bar of a run: episodes, last return, ε, collisions, last eval R."""
+
+    def __init__(self, train: TrainConfig, episode: int):
+        self.bar = tqdm(total=train.episodes, initial=episode, unit="ep",
+                        disable=not train.progress, dynamic_ncols=True)
+        self.collisions, self.last_eval = 0.0, float("nan")
+
+    def update(self, rec: dict[str, Any]) -> None:
+        self.collisions += rec["collisions"]
+        self.bar.update()
+        self.bar.set_postfix(R=f"{rec['return']:.0f}", eps=f"{rec['epsilon']:.2f}",
+                             coll=int(self.collisions), eval_R=f"{self.last_eval:.0f}")
+
+    def close(self) -> None:
+        self.bar.close()
 
 
 class Experiment:
@@ -70,6 +123,7 @@ class Experiment:
         self.evaluator = Evaluator(eval_env, tr.eval_seed)
         self.greedy = greedy_policy(self.qnet, eval_env, cfg, compile=tr.compile)
         self.log = RunLog(cfg, self.run_dir)
+        self.interrupt = DeferredInterrupt()
         self.total_steps = tr.episodes * p.episode_steps  # per-env steps of the protocol
         self.episode, self.best_eval = 0, -math.inf
 
@@ -105,7 +159,8 @@ class Experiment:
             "format": CKPT_FORMAT, "config": config_dict(self.cfg),
             "learner": self.learner.state_dict(),
             "counters": {"episode": self.episode, "env_steps": self.collector.env_steps,
-                         "update_credit": self.updates.credit, "best_eval": self.best_eval},
+                         "update_credit": self.updates.credit, "best_eval": self.best_eval,
+                         "total_steps": self.total_steps},
             "rng": {"torch": torch.get_rng_state(), "selector": self.gen.get_state(),
                     "env": self.collector.env.base_env.rng.get_state()},
             "replay": self.buffer.state_dict() if self.cfg.train.checkpoint_buffer else None,
@@ -118,6 +173,12 @@ class Experiment:
         c = state["counters"]
         self.episode, self.collector.env_steps = int(c["episode"]), int(c["env_steps"])
         self.updates.credit, self.best_eval = float(c["update_credit"]), float(c["best_eval"])
+        # the ε schedule as the run planned it, whatever train.episodes says now
+        planned = int(c.get("total_steps", self.total_steps))
+        if planned != self.total_steps:
+            log.info("train.episodes changed on resume: the ε schedule keeps the run's "
+                     "original length (%d env steps)", planned)
+        self.total_steps = planned
         torch.set_rng_state(state["rng"]["torch"])
         self.gen.set_state(state["rng"]["selector"])
         self.collector.env.base_env.rng.set_state(state["rng"]["env"])
@@ -132,37 +193,38 @@ class Experiment:
         save_checkpoint(self.state_dict(), path)
         return path
 
+    def _rounds(self) -> None:
+        """Collect and evaluate until ``train.episodes``, stopping early (after a whole
+        round, so the saved state is consistent) when Ctrl-C was pressed."""
+        tr = self.cfg.train
+        while self.episode < tr.episodes:
+            for rec in self.collect():
+                self.log.record(rec)
+                self.progress.update(rec)
+            if self.episode % tr.eval_every == 0 or self.episode >= tr.episodes:
+                self.progress.last_eval = self.evaluate()
+            if self.interrupt.requested:
+                path = self.save("last")
+                raise Interrupted(f"interrupted at episode {self.episode}: saved {path}; "
+                                  f"continue with resume={self.run_dir}")
+
     # ------------------------------------------------------------------ loop
     def fit(self) -> dict[str, Any]:
         """Train to ``train.episodes``, evaluating every ``train.eval_every`` episodes.
-        Ctrl-C saves ``last`` before exiting."""
-        tr = self.cfg.train
-        self.log.open()
-        bar = tqdm(total=tr.episodes, initial=self.episode, unit="ep", disable=not tr.progress,
-                   dynamic_ncols=True)
-        collisions, last_eval, t0 = 0.0, float("nan"), time.perf_counter()
+        Ctrl-C finishes the current round, saves ``last`` and raises :class:`Interrupted`
+        (a second Ctrl-C stops at once, keeping the last checkpoint)."""
+        self.log.open(resume_episode=self.episode if self.episode else None)
+        self.progress = Progress(self.cfg.train, self.episode)
+        t0 = time.perf_counter()
         try:
-            while self.episode < tr.episodes:
-                for rec in self.collect():
-                    self.log.record(rec)
-                    collisions += rec["collisions"]
-                    bar.update()
-                    bar.set_postfix(R=f"{rec['return']:.0f}", eps=f"{rec['epsilon']:.2f}",
-                                    coll=int(collisions), eval_R=f"{last_eval:.0f}")
-                if self.episode % tr.eval_every == 0 or self.episode >= tr.episodes:
-                    last_eval = self.evaluate()
-        except KeyboardInterrupt:
-            path = self.save("last")
-            bar.close()
-            print(f"\ninterrupted at episode {self.episode}: saved {path}; continue with "
-                  f"resume={self.run_dir}", file=sys.stderr)
-            raise
+            with self.interrupt:
+                self._rounds()
         finally:
-            bar.close()
+            self.progress.close()
             self.log.close()
         self.save("last")
         summary = {"episodes": self.episode, "updates": self.learner.updates,
-                   "best_eval_return": self.best_eval, "last_eval_return": last_eval,
+                   "best_eval_return": self.best_eval, "last_eval_return": self.progress.last_eval,
                    "minutes": (time.perf_counter() - t0) / 60}
         log.info("done: %s", summary)
         return summary

@@ -5,6 +5,7 @@ evaluation pictures under ``eval/``."""
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from typing import Any
 
@@ -22,8 +23,14 @@ class RunLog:
         self.metrics_path = self.run_dir / "metrics.jsonl"
         self.writer = None
 
-    def open(self) -> None:
+    def open(self, resume_episode: int | None = None) -> None:
+        """Create the run folder; on resume, drop what was logged after the checkpoint
+        (episode ``resume_episode``) so every episode and evaluation appears once."""
         self.run_dir.mkdir(parents=True, exist_ok=True)
+        for tmp in (self.run_dir / "checkpoints").glob(".*.tmp"):  # a write killed midway
+            tmp.unlink()
+        if resume_episode is not None:
+            self.truncate(resume_episode)
         if self.cfg.train.tensorboard:
             from torch.utils.tensorboard import SummaryWriter
 
@@ -32,6 +39,22 @@ class RunLog:
     def close(self) -> None:
         if self.writer is not None:
             self.writer.close()
+
+    def truncate(self, episode: int) -> None:
+        """Keep the records of episodes up to ``episode`` (and no half-written line)."""
+        if not self.metrics_path.exists():
+            return
+        keep = []
+        for line in self.metrics_path.read_text().splitlines():
+            try:
+                rec = json.loads(line)
+            except json.JSONDecodeError:
+                continue  # a line cut by a crash
+            if rec.get("episode", 0) <= episode:
+                keep.append(line + "\n")
+        tmp = self.metrics_path.with_suffix(".jsonl.tmp")
+        tmp.write_text("".join(keep))
+        os.replace(tmp, self.metrics_path)
 
     def record(self, record: dict[str, Any]) -> None:
         """One line of ``metrics.jsonl``; its numbers also go to TensorBoard."""

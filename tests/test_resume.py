@@ -1,0 +1,103 @@
+"""Interrupted runs resume exactly: kill -9 at random moments, resume by the folder's
+name typed as printed, and end with the metrics and parameters of an uninterrupted run."""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from tests.test_train import records, smoke
+from uabs_rl.checkpoint import CheckpointError, load_checkpoint
+from uabs_rl.train import run
+
+RUN = ["experiment=smoke", "train.episodes=60", "train.eval_every=5",
+       "train.checkpoint_buffer=true", "train.tensorboard=false",
+       "train.trajectory_images=false", "train.threads=1"]
+
+
+def train_cmd(*args: str) -> list[str]:
+    return [sys.executable, "-m", "uabs_rl.train", "train.progress=false", *args]
+
+
+def test_kill_9_and_resume_gives_the_uninterrupted_run(trace_cache, tmp_path):
+    cache = f"traces.cache_dir={trace_cache}"
+    ref = tmp_path / "ref"
+    run(smoke(trace_cache, *RUN[1:]), ref)
+    # a folder named like a sweep's: '=' and ',' in it, passed to resume= unquoted
+    run_dir = tmp_path / "masking=rank,seed=0"
+    rng = random.Random(7)
+    proc = subprocess.Popen(train_cmd(*RUN, cache, f"hydra.run.dir='{run_dir}'"),
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    kills = 0
+    deadline = time.monotonic() + 120
+    while not (run_dir / ".hydra" / "config.yaml").exists() and time.monotonic() < deadline:
+        time.sleep(0.2)  # a kill before Hydra wrote the config leaves nothing to resume
+    for _ in range(4):
+        time.sleep(rng.uniform(2.0, 6.0))
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGKILL)
+            kills += 1
+        proc.wait()
+        proc = subprocess.Popen(train_cmd(f"resume={run_dir}", cache),
+                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    _, err = proc.communicate(timeout=300)
+    assert proc.returncode == 0, err.decode()[-2000:]
+    assert kills >= 2  # the run really was killed midway, more than once
+    recs = records(run_dir)
+    assert [r["episode"] for r in recs if r["kind"] == "train"] == list(range(1, 61))
+    assert [r["episode"] for r in recs if r["kind"] == "eval"] == list(range(5, 61, 5))
+    assert recs == records(ref)  # every number as in the uninterrupted run
+    a = load_checkpoint(run_dir / "checkpoints" / "last.pt")
+    b = load_checkpoint(ref / "checkpoints" / "last.pt")
+    for k in b["learner"]["qnet"]:
+        assert torch.equal(a["learner"]["qnet"][k], b["learner"]["qnet"][k]), k
+    assert a["counters"] == b["counters"]
+    assert not list((run_dir / "checkpoints").glob(".*.tmp"))
+    assert not (tmp_path / "outputs").exists()  # no stray run folder
+
+
+def test_resume_takes_the_runs_own_config_and_refuses_result_changes(trace_cache, tmp_path):
+    run_dir = tmp_path / "run"
+    run(smoke(trace_cache, "train.episodes=3", "train.trajectory_images=false",
+              "masking=flat", "seed=4"), run_dir)
+    # composed defaults (rank, seed 0) + resume: the run's own flat / seed 4 are used
+    cfg = smoke(trace_cache, f"resume={run_dir}", "train.episodes=6")
+    out = run(cfg, Path("unused"), overrides=[f"resume={run_dir}", "train.episodes=6"])
+    assert out["episodes"] == 6
+    state = load_checkpoint(run_dir / "checkpoints" / "last.pt")
+    assert state["config"]["masking"]["mode"] == "flat" and state["config"]["seed"] == 4
+    with pytest.raises(CheckpointError, match=r"algo\.lr"):
+        run(smoke(trace_cache, f"resume={run_dir}"), Path("unused"),
+            overrides=[f"resume={run_dir}", "algo.lr=0.5"])
+    with pytest.raises(Exception, match="is a file"):
+        run(smoke(trace_cache, f"resume={run_dir / 'checkpoints' / 'last.pt'}"), Path("x"))
+
+
+def test_a_run_killed_before_its_first_checkpoint_restarts_in_place(trace_cache, tmp_path):
+    done = tmp_path / "done"
+    run(smoke(trace_cache, "train.trajectory_images=false"), done)
+    # what a kill before the first checkpoint leaves: .hydra/, a partial metrics file
+    stuck = tmp_path / "stuck"
+    shutil.copytree(done / ".hydra", stuck / ".hydra") if (done / ".hydra").exists() else \
+        (stuck / ".hydra").mkdir(parents=True)
+    from omegaconf import OmegaConf
+
+    from uabs_rl.checkpoint import config_dict
+    cfg = smoke(trace_cache, "train.trajectory_images=false")
+    OmegaConf.save(OmegaConf.create(config_dict(cfg)), stuck / ".hydra" / "config.yaml")
+    (stuck / "metrics.jsonl").write_text(
+        json.dumps(records(done)[0]) + "\n" + '{"kind": "train", "epis')
+    run(smoke(trace_cache, f"resume={stuck}"), Path("unused"), overrides=[f"resume={stuck}"])
+    assert [r["episode"] for r in records(stuck) if r["kind"] == "train"] == [1, 2, 3, 4, 5, 6]
+    assert records(stuck) == records(done)
+    assert os.path.isfile(stuck / "checkpoints" / "last.pt")
