@@ -9,6 +9,7 @@ optionally ``replay`` (``train.checkpoint_buffer``).
 from __future__ import annotations
 
 import os
+import pickle
 from pathlib import Path
 from typing import Any
 
@@ -44,9 +45,18 @@ def load_checkpoint(path: Path) -> dict:
                               f"checkpoints/last.pt, or a .pt file written by uabs-train.")
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as e:
+        if "weights_only" in str(e):  # torch's text advises an unsafe retry: not repeated
+            raise CheckpointError(
+                f"{path} holds Python objects beyond tensors and plain values, so it is "
+                f"not a uabs-train checkpoint; it was refused because loading it could "
+                f"run code. Use a checkpoint written by uabs-train.") from None
+        raise CheckpointError(f"cannot read checkpoint {path} (UnpicklingError); the "
+                              f"file is damaged or not a uabs-train checkpoint.") from None
     except Exception as e:
-        raise CheckpointError(f"cannot read checkpoint {path} ({type(e).__name__}: {e}); "
-                              f"the file is damaged or not a uabs-train checkpoint.") from e
+        raise CheckpointError(f"cannot read checkpoint {path} ({type(e).__name__}: "
+                              f"{str(e).splitlines()[0][:160]}); the file is damaged or not "
+                              f"a uabs-train checkpoint.") from None
     if not isinstance(state, dict) or state.get("format") != CKPT_FORMAT:
         raise CheckpointError(f"{path} is not a uabs-train checkpoint of format {CKPT_FORMAT}.")
     return state

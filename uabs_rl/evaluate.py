@@ -141,10 +141,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--gif", action="store_true", help="also write an animation (learned)")
     ap.add_argument("--out", type=Path, help="output folder (default: <run>/evaluation)")
     args = ap.parse_args(argv)
+    if args.windows is not None and args.windows < 1:
+        ap.error(f"--windows must be >= 1, got {args.windows}")
     try:
         ev = load_evaluation(args.path, args.checkpoint, args.windows, args.split)
     except (CheckpointError, ConfigError) as e:
-        print(f"error: {e}", file=sys.stderr)
+        msg = str(e)
+        if args.windows is not None:  # the env names its own argument: name the flag
+            msg = msg.replace(f"n_eval_windows={args.windows}", f"--windows {args.windows}")
+        print(f"error: {msg}", file=sys.stderr)
         return 2
     out = args.out or default_out_dir(args.path)
     policies = POLICIES if args.policy == "all" else (args.policy,)

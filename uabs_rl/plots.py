@@ -22,9 +22,9 @@ COLORS = plt.rcParams["axes.prop_cycle"].by_key()["color"]
 @lru_cache(maxsize=8)
 def lane_segments(net_file: str, x0: float, y0: float) -> np.ndarray:
     """[K, 2, 2] line segments of every lane (internal ones included), area-relative."""
-    import sumolib
+    from uabs_rl.traces import read_net
 
-    net = sumolib.net.readNet(net_file, withInternal=True)
+    net = read_net(net_file)
     segs = []
     for edge in net.getEdges(withInternal=True):
         for lane in edge.getLanes():

@@ -60,6 +60,22 @@ class Run:
         return max(self.evals, key=lambda r: r["return"])
 
 
+def read_metrics(path: Path) -> list[dict]:
+    """The records of a metrics.jsonl; a damaged line is an error naming file and line
+    (a run killed mid-write is repaired by resuming it)."""
+    recs = []
+    for i, line in enumerate(path.read_text().splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            recs.append(json.loads(line))
+        except json.JSONDecodeError as e:
+            raise SystemExit(f"error: {path}, line {i}, is not a JSON record ({e.msg}): "
+                             f"resume that run (uabs-train resume={path.parent}) to repair "
+                             f"its metrics, or move the folder out of the sweep.") from None
+    return recs
+
+
 def find_runs(root: Path) -> list[Run]:
     """Every run under ``root`` (a folder with metrics.jsonl and checkpoints/last.pt)."""
     runs = []
@@ -68,7 +84,7 @@ def find_runs(root: Path) -> list[Run]:
         if not ckpt.is_file():
             continue
         cfg = torch.load(ckpt, map_location="cpu", weights_only=True)["config"]
-        recs = [json.loads(line) for line in metrics.read_text().splitlines() if line.strip()]
+        recs = read_metrics(metrics)
         runs.append(Run(metrics.parent, cfg["masking"]["mode"], int(cfg["seed"]),
                         int(cfg["train"]["episodes"]),
                         [r for r in recs if r["kind"] == "train"],

@@ -168,13 +168,26 @@ def load_traceset(path: Path) -> TraceSet:
 
 
 # ----------------------------------------------------------------------------- build
+def read_net(net_file: Path | str):
+    """The SUMO network of ``net_file`` (sumolib), or a ConfigError naming the key and
+    the file when sumolib cannot read it."""
+    import sumolib
+
+    try:
+        return sumolib.net.readNet(str(net_file), withInternal=True)
+    except Exception as e:  # sumolib raises KeyError, ValueError, SAX errors, ...
+        raise ConfigError(
+            f"scenario.sumo.net_file: {net_file} is not a SUMO network sumolib can read "
+            f"({type(e).__name__}: {str(e)[:120]}). Rebuild it with netgenerate or "
+            f"netconvert (sumo/README.md), or point scenario.sumo.net_file at another "
+            f"file.") from None
+
+
 def check_area_contains_network(scenario: ScenarioConfig, net_file: Path | None) -> None:
     """Every lane (internal ones too) must lie inside the area: vehicles stay inside."""
     if net_file is None:
         return
-    import sumolib
-
-    net = sumolib.net.readNet(str(net_file), withInternal=True)
+    net = read_net(net_file)
     xs, ys = [], []
     for edge in net.getEdges(withInternal=True):
         for lane in edge.getLanes():

@@ -1,0 +1,103 @@
+"""Bad inputs get one clear message naming the input and the fix (docs/bad_inputs.md
+lists them with the test behind each)."""
+
+from __future__ import annotations
+
+import pickle
+import subprocess
+import sys
+
+import pytest
+import torch
+from omegaconf.errors import ValidationError
+
+from tests.conftest import SMALL_TRACES, compose_cfg
+from tests.test_train import records, smoke
+from uabs_rl.checkpoint import CheckpointError, load_checkpoint
+from uabs_rl.config import ConfigError, validate_run
+from uabs_rl.evaluate import main as eval_main
+from uabs_rl.experiment import resolve_device
+from uabs_rl.report import read_metrics
+from uabs_rl.train import run
+
+
+def test_malformed_network_file_names_the_key(tmp_path, trace_cache):
+    bad = tmp_path / "bad.net.xml"
+    bad.write_text('<net version="1.20"><location netOffset="0,0"/><edge id="e"/></net>')
+    from uabs_rl.traces import get_traces
+
+    cfg = compose_cfg("build_traces", SMALL_TRACES + [f"traces.cache_dir={trace_cache}",
+                                                      f"scenario.sumo.net_file={bad}"])
+    with pytest.raises(ConfigError, match=r"scenario\.sumo\.net_file: .* not a SUMO network"):
+        get_traces(cfg.scenario, cfg.traces, "eval")
+
+
+def test_uabs_traces_config_error_is_one_line(trace_cache):
+    proc = subprocess.run([sys.executable, "-m", "uabs_rl.traces", "scenario.dt=-1",
+                           f"traces.cache_dir={trace_cache}"], capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 2
+    assert proc.stderr.strip().splitlines() == ["error: scenario.dt must be > 0 seconds, "
+                                                "got -1.0."]
+
+
+def test_corrupt_metrics_line_names_the_file_and_line(tmp_path):
+    m = tmp_path / "metrics.jsonl"
+    m.write_text('{"kind": "train", "episode": 1}\n{"kind": "tr\n')
+    with pytest.raises(SystemExit, match=r"metrics\.jsonl, line 2, is not a JSON record"):
+        read_metrics(m)
+
+
+def test_pickled_objects_are_refused_without_unsafe_advice(tmp_path):
+    class Evil:
+        def __reduce__(self):
+            return (print, ("pwned",))
+
+    path = tmp_path / "evil.pt"
+    torch.save({"format": 1, "x": Evil()}, path, pickle_module=pickle)
+    with pytest.raises(CheckpointError, match="could run code") as e:
+        load_checkpoint(path)
+    assert "weights_only" not in str(e.value)
+
+
+def test_uabs_eval_windows_names_the_flag(rank_run, capsys):
+    with pytest.raises(SystemExit):
+        eval_main([str(rank_run), "--windows", "-1"])
+    assert "--windows must be >= 1" in capsys.readouterr().err
+    assert eval_main([str(rank_run), "--split", "eval", "--windows", "1000"]) == 2
+    err = capsys.readouterr().err
+    assert "--windows 1000" in err and "n_eval_windows" not in err
+
+
+@pytest.fixture(scope="module")
+def rank_run(trace_cache, tmp_path_factory):
+    d = tmp_path_factory.mktemp("bad_inputs_run")
+    run(smoke(trace_cache, "train.trajectory_images=false", "train.tensorboard=false"), d)
+    assert records(d)
+    return d
+
+
+@pytest.mark.parametrize("override,message", [
+    ("train.episodes=7", r"train\.episodes must be a multiple of train\.n_envs"),
+    ("scenario.episode_steps=400", r"traces hold \d+ steps but an episode needs"),
+])
+def test_more_config_values_fail_naming_the_key(trace_cache, tmp_path, override, message):
+    cfg = smoke(trace_cache, override, "train.n_envs=2") if "episodes" in override else \
+        smoke(trace_cache, override)
+    with pytest.raises(ConfigError, match=message):
+        validate_run(cfg)
+        run(cfg, tmp_path / "run")
+
+
+def test_unknown_masking_mode_is_rejected_at_composition(trace_cache):
+    with pytest.raises(Exception) as e:
+        smoke(trace_cache, "masking.mode=soft")
+    text = str(e.value) + str(e.value.__cause__)
+    assert "soft" in text and "penalty" in text and "rank" in text
+    assert isinstance(e.value, ValidationError) or "masking.mode" in text
+
+
+def test_cuda_on_a_machine_without_it(monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(ConfigError, match=r"device=cuda but CUDA is not available.*device=cpu"):
+        resolve_device("cuda")
