@@ -9,9 +9,13 @@ Groups the sweep's runs by masking mode (across seeds) and writes:
 the share of episodes with at least one), ``fig3_eval_return.png`` (evaluation return
 against training episode, mean ± std over seeds), ``fig4_pg.png`` (P_g against N̂_s
 from each run's best evaluation, with the baselines), ``baselines.csv`` and
-``summary.md`` (each claim of the paper, supported or not, with the numbers). Every
-number comes from the runs' ``metrics.jsonl`` and, for the baselines, from evaluating
-them on the same held-out windows with the same masks.
+``summary.md`` (each claim of the paper, supported or not, with the numbers) and
+``learned_vs_baselines.csv``/``.md``. Table 2 and Fig. 3 come from the runs'
+``metrics.jsonl`` (training episodes and the periodic evaluations on the validation
+traces); Fig. 4, the baselines and the learned-vs-baselines differences come from each
+run's ``best.pt`` (chosen on validation) evaluated on the test traces beside the
+random, greedy and oracle baselines with the same masks (``--no-baselines``: Fig. 4
+from the best validation evaluations instead).
 """
 
 from __future__ import annotations
@@ -152,7 +156,7 @@ def table2_markdown(rows: list[dict[str, Any]]) -> str:
     lines.append("| Mask fallbacks (train / eval) | " + " | ".join(
         f"{r['train_fallbacks']:.0f} / {r['eval_fallbacks']:.0f}" for r in rows) + " |")
     return "\n".join(lines) + "\n\nMeans over seeds (± standard deviation); an evaluation " \
-        "episode is one held-out window.\n"
+        "episode is one validation window.\n"
 
 
 # ----------------------------------------------------------------------------- figures
@@ -182,7 +186,7 @@ def fig3(by_mode: dict[str, list[Run]], path: Path) -> None:
         ax.fill_between(x, mean - std, mean + std, color=c, alpha=0.2)
     ax.set_xlabel("training episode")
     ax.set_ylabel("evaluation cumulative reward R")
-    ax.set_title("Fig. 3: greedy policy on held-out traces (mean ± std over seeds)")
+    ax.set_title("Fig. 3: greedy policy on validation traces (mean ± std over seeds)")
     ax.grid(alpha=0.3)
     ax.legend()
     fig.tight_layout()
@@ -190,7 +194,10 @@ def fig3(by_mode: dict[str, list[Run]], path: Path) -> None:
     plt.close(fig)
 
 
-def fig4(by_mode: dict[str, list[Run]], baselines: dict[str, dict], path: Path) -> None:
+def fig4(by_mode: dict[str, list[Run]], baselines: dict[str, dict], path: Path,
+         pg: dict[str, tuple[np.ndarray, np.ndarray]] | None = None) -> None:
+    """P_g(N̂_s) per mode, mean ± std over seeds: on the test traces when ``pg`` holds
+    those curves, else from each run's best validation evaluation."""
     import matplotlib.pyplot as plt
 
     from uabs_rl.plots import pg_curve_figure
@@ -198,9 +205,10 @@ def fig4(by_mode: dict[str, list[Run]], baselines: dict[str, dict], path: Path) 
     curves, bands = {}, {}
     for mode, runs in by_mode.items():
         curves[f"{mode} ({len(runs)} seeds)"], bands[f"{mode} ({len(runs)} seeds)"] = \
-            best_pg(runs)
-    fig = pg_curve_figure(curves, "Fig. 4: satisfied users, best evaluation of each run",
-                          bands)
+            pg[mode] if pg else best_pg(runs)
+    title = ("Fig. 4: satisfied users, best.pt on the test traces" if pg else
+             "Fig. 4: satisfied users, best validation evaluation of each run")
+    fig = pg_curve_figure(curves, title, bands)
     ax = fig.axes[0]
     for name, rec in baselines.items():
         x = np.arange(1, len(rec["pg_curve"]) + 1)
@@ -212,17 +220,32 @@ def fig4(by_mode: dict[str, list[Run]], baselines: dict[str, dict], path: Path) 
 
 
 # ----------------------------------------------------------------------------- baselines
-def evaluate_baselines(by_mode: dict[str, list[Run]]) -> dict[str, dict]:
-    """Random, greedy and oracle baselines on the held-out windows, with each mode's
-    masks (the run of the lowest seed of each mode provides the config)."""
-    from uabs_rl.evaluate import evaluate_policies, load_evaluation
+def evaluate_on_test(runs: list[Run]) -> dict[Path, dict[str, dict]]:
+    """Each run's ``best.pt`` (chosen on validation) and the random, greedy and oracle
+    baselines with the run's masks, on every window of the test traces."""
+    from uabs_rl.evaluate import POLICIES, evaluate_policies, load_evaluation
 
     out = {}
+    for run in runs:
+        ev = load_evaluation(run.path, "best", split="test")
+        out[run.path] = {k: rec for k, (rec, _) in evaluate_policies(ev, POLICIES).items()}
+    return out
+
+
+def test_baselines(by_mode: dict[str, list[Run]], tests: dict[Path, dict]) -> dict[str, dict]:
+    """The baselines' test records per mode (from the lowest seed's run: the baselines
+    depend on the masks, not on the learner)."""
+    return {f"{name} ({mode} masks)": tests[min(runs, key=lambda r: r.seed).path][name]
+            for mode, runs in by_mode.items() for name in ("random", "greedy", "oracle")}
+
+
+def test_pg(by_mode: dict[str, list[Run]],
+            tests: dict[Path, dict]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Mean and std over seeds of the learned P_g(N̂_s) curve on the test traces."""
+    out = {}
     for mode, runs in by_mode.items():
-        run = min(runs, key=lambda r: r.seed)
-        ev = load_evaluation(run.path, "last")
-        for name, (rec, _) in evaluate_policies(ev, ("random", "greedy", "oracle")).items():
-            out[f"{name} ({mode} masks)"] = rec
+        c = np.array([tests[run.path]["learned"]["pg_curve"] for run in runs])
+        out[mode] = (c.mean(0), c.std(0))
     return out
 
 
@@ -231,18 +254,17 @@ LVB_COLUMNS = ["mode", "n_uabs", "config", "metric", "baseline", "learned", "dif
                "ci_high", "n_seeds"]
 
 
-def learned_vs_baselines(runs: list[Run]) -> list[dict[str, Any]]:
+def learned_vs_baselines(runs: list[Run], tests: dict[Path, dict]) -> list[dict[str, Any]]:
     """Every run's ``best.pt`` (chosen on validation) and the baselines on the test
     traces, same windows and masks. Per group (mode, fleet size, config): the learned
     and baseline values (mean over seeds), the mean over seeds of each seed's per-window
     paired difference, and its bootstrap 95 % CI over seeds (over windows for one seed)."""
-    from uabs_rl.evaluate import METRICS, POLICIES, evaluate_policies, load_evaluation
+    from uabs_rl.evaluate import METRICS, POLICIES
     from uabs_rl.stats import bootstrap_ci
 
     groups: dict[tuple, list[dict]] = {}
     for run in runs:
-        ev = load_evaluation(run.path, "best", split="test")
-        res = {k: rec for k, (rec, _) in evaluate_policies(ev, POLICIES).items()}
+        res = tests[run.path]
         key = (run.mode, int(run.config["scenario"]["n_uabs"]), run.label)
         groups.setdefault(key, []).append(res)
     rows = []
@@ -276,13 +298,16 @@ def learned_vs_baselines_markdown(rows: list[dict[str, Any]]) -> str:
 
 # ----------------------------------------------------------------------------- summary
 def summary(by_mode: dict[str, list[Run]], rows: list[dict], baselines: dict[str, dict],
-            command: str, bound: float, nhat: int) -> str:
+            command: str, bound: float, nhat: int,
+            tests: dict[Path, dict] | None = None) -> str:
     r = {row["mode"]: row for row in rows}
     final = {m: float(np.mean([np.mean([e["return"] for e in run.evals[-5:]]) for run in runs]))
              for m, runs in by_mode.items()}
     best = {m: float(np.mean([run.best_eval["return"] for run in runs]))
             for m, runs in by_mode.items()}
-    pg = {m: best_pg(runs)[0] for m, runs in by_mode.items()}
+    pg = ({m: v[0] for m, v in test_pg(by_mode, tests).items()} if tests else
+          {m: best_pg(runs)[0] for m, runs in by_mode.items()})
+    where = ("best.pt on the test traces" if tests else "best validation evaluation")
     lines = ["# Sweep summary", "", f"Produced by: `{command}`", "",
              "Runs: " + ", ".join(f"{m}: {len(v)} seeds"
                                   + ("" if all(x.complete for x in v) else " (incomplete)")
@@ -311,20 +336,23 @@ def summary(by_mode: dict[str, list[Run]], rows: list[dict], baselines: dict[str
     c3 = None if not {"penalty", "flat", "rank"} <= have else bool(
         (pg["rank"] >= pg["flat"] - 1e-9).all() and (pg["flat"] > pg["penalty"]).all())
     lines += ["## Fig. 4: P_g rank ≥ flat, both above penalty", f"**{verdict(c3)}** "
-              "(P_g in % for N̂_s = 1..N, best evaluation, mean over seeds):", ""]
+              f"(P_g in % for N̂_s = 1..N, {where}, mean over seeds):", ""]
     lines += [f"- {m}: " + ", ".join(f"{100 * v:.1f}" for v in pg[m]) for m in pg]
     if baselines:
-        lines += ["", "## Baselines (same held-out windows and masks)", "",
+        lines += ["", "## Baselines (test traces, every window, the learned policies' masks)",
+                  "",
                   f"| policy | R | collisions | proximity | fallbacks | served | P_g(N̂_s={nhat}) |",
                   "|---|---|---|---|---|---|---|"]
         lines += [f"| {n} | {b['return']:.0f} | {b['collisions']:.0f} | {b['proximity']:.0f}"
                   f" | {b['fallbacks']:.0f} | {100 * b['served_fraction']:.1f} % | "
                   f"{100 * b['pg']:.1f} % |" for n, b in baselines.items()]
-        learned = {m: float(np.mean([run.best_eval["served_fraction"] for run in runs]))
-                   for m, runs in by_mode.items()}
-        cover = {m: [run.best_eval["coverage"] for run in runs if "coverage" in run.best_eval]
+        learned = {m: float(np.mean([tests[run.path]["learned"]["served_fraction"]
+                                     if tests else run.best_eval["served_fraction"]
+                                     for run in runs])) for m, runs in by_mode.items()}
+        cover = {m: [(tests[run.path]["learned"] if tests else run.best_eval)["coverage"]
+                     for run in runs if "coverage" in run.best_eval]
                  for m, runs in by_mode.items()}
-        lines += ["", "Learned policies' served fraction at their best evaluation: "
+        lines += ["", f"Learned policies' served fraction ({where}): "
                   + ", ".join(f"{m} {100 * v:.1f} %" for m, v in learned.items())
                   + "".join(f"; {m} area coverage {100 * np.mean(c):.1f} %"
                             for m, c in cover.items() if c)
@@ -347,7 +375,8 @@ def build_report(root: Path, out: Path, with_baselines: bool = True,
         w.writeheader()
         w.writerows(rows)
     fig3(by_mode, out / "fig3_eval_return.png")
-    baselines = evaluate_baselines(by_mode) if with_baselines else {}
+    tests = evaluate_on_test(runs) if with_baselines else {}
+    baselines = test_baselines(by_mode, tests) if tests else {}
     if baselines:
         with open(out / "baselines.csv", "w", newline="") as f:
             keys = ["policy", "return", "return_std", "collisions", "proximity", "fallbacks",
@@ -356,8 +385,8 @@ def build_report(root: Path, out: Path, with_baselines: bool = True,
             w.writerow(keys)
             for name, b in baselines.items():
                 w.writerow([name] + [b[k] for k in keys[1:]])
-    fig4(by_mode, baselines, out / "fig4_pg.png")
-    lvb = learned_vs_baselines(runs) if with_baselines else []
+    fig4(by_mode, baselines, out / "fig4_pg.png", test_pg(by_mode, tests) if tests else None)
+    lvb = learned_vs_baselines(runs, tests) if tests else []
     if lvb:
         with open(out / "learned_vs_baselines.csv", "w", newline="") as f:
             w = csv.DictWriter(f, fieldnames=LVB_COLUMNS, extrasaction="ignore")
@@ -381,7 +410,7 @@ def build_report(root: Path, out: Path, with_baselines: bool = True,
                            sc["area"]["width"] * sc["area"]["height"])
     (out / "summary.md").write_text(summary(by_mode, rows, baselines,
                                             command or f"uabs-report {root}", bound,
-                                            int(sc["nhat_s"])))
+                                            int(sc["nhat_s"]), tests or None))
     return {"rows": rows, "baselines": baselines, "by_mode": by_mode,
             "learned_vs_baselines": lvb}
 
