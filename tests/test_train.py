@@ -191,11 +191,14 @@ def test_cli_entry_point(trace_cache, tmp_path):
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert (out / ".hydra" / "config.yaml").is_file()
     assert len(records(out)) == 8
+    # the end of a run: its folder and the next commands, ready to copy
+    assert f"run folder: {out}" in proc.stdout and f"uabs-eval {out} --policy all" in proc.stdout
     bad = subprocess.run([sys.executable, "-m", "uabs_rl.train", "experiment=smoke",
                           "scenario.n_uabs=0", f"traces.cache_dir={trace_cache}",
                           f"hydra.run.dir={tmp_path / 'bad'}"],
                          capture_output=True, text=True, timeout=300)
     assert bad.returncode == 2 and "scenario.n_uabs must be >= 1" in bad.stderr
+    assert not (tmp_path / "bad").exists()  # no empty run folder left behind
 
 
 # ----------------------------------------------------------------------------- learning

@@ -2,13 +2,31 @@
 
 from __future__ import annotations
 
+import shutil
 import sys
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from uabs_rl.checkpoint import CheckpointError, Interrupted
 from uabs_rl.config import CONF_DIR, ConfigError, register_configs, to_container
+
+
+_STARTED = time.time()
+
+
+def _remove_if_empty(run_dir: Path) -> None:
+    """Remove the folder Hydra made for a run that failed its start-up checks: only
+    when it holds nothing but Hydra's config and log (never a run's results)."""
+    hydra_dir = run_dir / ".hydra"
+    if not hydra_dir.is_dir() or run_dir.resolve() == Path.cwd().resolve():
+        return
+    if hydra_dir.stat().st_mtime < _STARTED - 1.0:  # an earlier run's folder (a resume)
+        return
+    names = {p.name for p in run_dir.iterdir()}
+    if names <= {".hydra"} | {p.name for p in run_dir.glob("*.log")}:
+        shutil.rmtree(run_dir, ignore_errors=True)
 
 
 def hydra_main(config_name: str, body: Callable[..., Any],
@@ -26,6 +44,7 @@ def hydra_main(config_name: str, body: Callable[..., Any],
         try:
             body(to_container(dcfg), Path(hc.runtime.output_dir), *extra)
         except (ConfigError, CheckpointError) as e:
+            _remove_if_empty(Path(hc.runtime.output_dir))
             print(f"error: {e}", file=sys.stderr)
             sys.exit(2)
         except Interrupted as e:

@@ -95,6 +95,19 @@ def run(cfg: RunConfig, run_dir: Path, overrides: list[str] | None = None) -> di
     return exp.fit()
 
 
+def print_summary(summary: dict[str, Any], run_dir: Path) -> None:
+    """The end of a run: where it is, its headline figures, and what to run next."""
+    print(f"\nrun folder: {run_dir}\n"
+          f"  episodes {summary['episodes']}, updates {summary['updates']}, "
+          f"{summary['minutes']:.1f} min\n"
+          f"  validation return: best {summary['best_eval_return']:.0f}, last "
+          f"{summary['last_eval_return']:.0f}\n"
+          f"next:\n"
+          f"  uabs-eval {run_dir} --policy all   # test-set figures beside the baselines\n"
+          f"  tensorboard --logdir {run_dir / 'tb'}\n"
+          f"  uabs-report {run_dir.parent}   # tables and figures of a sweep's runs")
+
+
 def _quote_resume(argv: list[str]) -> list[str]:
     """``resume=<dir>`` as Hydra would not parse it: a run folder named after overrides
     holds '=' and ','. Quote it, and make the resumed job log into that folder without
@@ -109,10 +122,15 @@ def _quote_resume(argv: list[str]) -> list[str]:
     return out
 
 
+def _run_and_report(cfg: RunConfig, run_dir: Path, overrides: list[str]) -> None:
+    summary = run(cfg, run_dir, overrides)
+    print_summary(summary, Path(cfg.resume) if cfg.resume else run_dir)
+
+
 def main() -> None:
     """Entry point of ``uabs-train``."""
     sys.argv = [sys.argv[0], *_quote_resume(sys.argv[1:])]
-    hydra_main("config", run, pass_overrides=True)
+    hydra_main("config", _run_and_report, pass_overrides=True)
 
 
 if __name__ == "__main__":
