@@ -12,7 +12,6 @@ from typing import Any
 from uabs_rl.checkpoint import CheckpointError, Interrupted
 from uabs_rl.config import CONF_DIR, ConfigError, register_configs, to_container
 
-
 _STARTED = time.time()
 
 
