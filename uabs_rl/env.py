@@ -276,14 +276,14 @@ class UABSEnv(EnvBase):
         self.register_buffer("veh_pos", traces.positions.transpose(-1, -2).contiguous().to(device))
         self.register_buffer("veh_present", traces.present.to(device))  # [S, steps, V]
         # [K, 2] (sim, start) of the fixed evaluation windows; None in train mode
-        self.eval_windows = fixed_windows(
-            *self.veh_pos.shape[:2], self.params.episode_steps, n_eval_windows, device) \
-            if mode == "eval" else None
+        self.register_buffer("eval_windows", fixed_windows(
+            *self.veh_pos.shape[:2], self.params.episode_steps, n_eval_windows, device)
+            if mode == "eval" else None)
         self.rng = torch.Generator(device=device)
         self.rng.manual_seed(0 if seed is None else seed)
         self._build_math(device)
         self.start_spacing: float | None = None  # see require_start_spacing
-        self.packing: torch.Tensor | None = None
+        self.register_buffer("packing", None)  # [K, 2] start points, see there
         self.state = self._empty_state()
         specs = env_specs(self.params, n_envs, device)
         self.observation_spec, self.action_spec = specs["observation"], specs["action"]
@@ -303,10 +303,6 @@ class UABSEnv(EnvBase):
         if self.veh_pos.device != self.math.geometry.device:
             dev = self.veh_pos.device
             self.state = {k: fn(v) for k, v in self.state.items()}
-            if self.eval_windows is not None:
-                self.eval_windows = fn(self.eval_windows)
-            if self.packing is not None:
-                self.packing = fn(self.packing)
             seed = int(torch.randint(0, 2**62, (1,), generator=self.rng, device=self.rng.device))
             self.rng = torch.Generator(device=dev)
             self.rng.manual_seed(seed)

@@ -339,26 +339,33 @@ def summary(by_mode: dict[str, list[Run]], rows: list[dict], baselines: dict[str
               f"(P_g in % for N̂_s = 1..N, {where}, mean over seeds):", ""]
     lines += [f"- {m}: " + ", ".join(f"{100 * v:.1f}" for v in pg[m]) for m in pg]
     if baselines:
-        lines += ["", "## Baselines (test traces, every window, the learned policies' masks)",
-                  "",
-                  f"| policy | R | collisions | proximity | fallbacks | served | P_g(N̂_s={nhat}) |",
-                  "|---|---|---|---|---|---|---|"]
-        lines += [f"| {n} | {b['return']:.0f} | {b['collisions']:.0f} | {b['proximity']:.0f}"
-                  f" | {b['fallbacks']:.0f} | {100 * b['served_fraction']:.1f} % | "
-                  f"{100 * b['pg']:.1f} % |" for n, b in baselines.items()]
-        learned = {m: float(np.mean([tests[run.path]["learned"]["served_fraction"]
-                                     if tests else run.best_eval["served_fraction"]
-                                     for run in runs])) for m, runs in by_mode.items()}
-        cover = {m: [(tests[run.path]["learned"] if tests else run.best_eval)["coverage"]
-                     for run in runs if "coverage" in run.best_eval]
-                 for m, runs in by_mode.items()}
-        lines += ["", f"Learned policies' served fraction ({where}): "
-                  + ", ".join(f"{m} {100 * v:.1f} %" for m, v in learned.items())
-                  + "".join(f"; {m} area coverage {100 * np.mean(c):.1f} %"
-                            for m, c in cover.items() if c)
-                  + f". Coverage bound (share of the area under footprints, ideal beams, "
-                    f"no overlap): {100 * bound:.1f} %.", ""]
+        lines += baselines_section(by_mode, baselines, bound, nhat, tests, where)
     return "\n".join(lines) + "\n"
+
+
+def baselines_section(by_mode: dict[str, list[Run]], baselines: dict[str, dict], bound: float,
+                      nhat: int, tests: dict[Path, dict] | None, where: str) -> list[str]:
+    """The summary's baselines table and the learned policies' served fraction."""
+    lines = ["", "## Baselines (test traces, every window, the learned policies' masks)",
+              "",
+              f"| policy | R | collisions | proximity | fallbacks | served | P_g(N̂_s={nhat}) |",
+              "|---|---|---|---|---|---|---|"]
+    lines += [f"| {n} | {b['return']:.0f} | {b['collisions']:.0f} | {b['proximity']:.0f}"
+              f" | {b['fallbacks']:.0f} | {100 * b['served_fraction']:.1f} % | "
+              f"{100 * b['pg']:.1f} % |" for n, b in baselines.items()]
+    learned = {m: float(np.mean([tests[run.path]["learned"]["served_fraction"]
+                                 if tests else run.best_eval["served_fraction"]
+                                 for run in runs])) for m, runs in by_mode.items()}
+    cover = {m: [(tests[run.path]["learned"] if tests else run.best_eval)["coverage"]
+                 for run in runs if "coverage" in run.best_eval]
+             for m, runs in by_mode.items()}
+    lines += ["", f"Learned policies' served fraction ({where}): "
+              + ", ".join(f"{m} {100 * v:.1f} %" for m, v in learned.items())
+              + "".join(f"; {m} area coverage {100 * np.mean(c):.1f} %"
+                        for m, c in cover.items() if c)
+              + f". Coverage bound (share of the area under footprints, ideal beams, "
+                f"no overlap): {100 * bound:.1f} %.", ""]
+    return lines
 
 
 # ----------------------------------------------------------------------------- main
