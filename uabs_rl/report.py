@@ -52,7 +52,7 @@ class Run:
         """``paper`` or ``lookahead`` (the observation), ``-literal`` for the paper's
         literal masks (runs written before masks became recoverable are literal)."""
         label = "lookahead" if self.config["scenario"].get("lookahead_obs") else "paper"
-        literal = self.mode != "penalty" and not self.config["masking"].get("recoverable")
+        literal = not self.config["masking"].get("recoverable")  # absent: written before
         return label + ("-literal" if literal else "")
 
     @property
