@@ -37,7 +37,7 @@ def test_kill_9_and_resume_gives_the_uninterrupted_run(trace_cache, tmp_path):
     run_dir = tmp_path / "masking=rank,seed=0"
     rng = random.Random(7)
     proc = subprocess.Popen(train_cmd(*RUN, cache, f"hydra.run.dir='{run_dir}'"),
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, cwd=tmp_path)
     kills = 0
     deadline = time.monotonic() + 120
     while not (run_dir / ".hydra" / "config.yaml").exists() and time.monotonic() < deadline:
@@ -49,7 +49,7 @@ def test_kill_9_and_resume_gives_the_uninterrupted_run(trace_cache, tmp_path):
             kills += 1
         proc.wait()
         proc = subprocess.Popen(train_cmd(f"resume={run_dir}", cache),
-                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, cwd=tmp_path)
     _, err = proc.communicate(timeout=300)
     assert proc.returncode == 0, err.decode()[-2000:]
     assert kills >= 2  # the run really was killed midway, more than once
@@ -63,7 +63,7 @@ def test_kill_9_and_resume_gives_the_uninterrupted_run(trace_cache, tmp_path):
         assert torch.equal(a["learner"]["qnet"][k], b["learner"]["qnet"][k]), k
     assert a["counters"] == b["counters"]
     assert not list((run_dir / "checkpoints").glob(".*.tmp"))
-    assert not (tmp_path / "outputs").exists()  # no stray run folder
+    assert not (tmp_path / "outputs").exists()  # no stray run folder in the cwd
 
 
 def test_resume_takes_the_runs_own_config_and_refuses_result_changes(trace_cache, tmp_path):
