@@ -62,7 +62,8 @@ class StepMath:
         self.look_offsets = torch.cat([self.moves, 2 * self.moves])[: p.n_lookahead]
 
     def observe(self, st: dict[str, torch.Tensor], veh_pos: torch.Tensor,
-                veh_present: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
+                veh_present: torch.Tensor,
+                gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
         """Service at step ``st["t"]`` for UABS at ``st["pos"]``: updates priorities, the
         window tallies and the beam sums ``st["b"]`` in place; returns the served flags
         and the presence of the vehicles ``[E, V]``."""
@@ -182,14 +183,19 @@ def check_traces(traces: TraceSet, p: EnvParams) -> None:
                           f"scenario.dt is {p.dt}: rebuild the traces.")
 
 
+def window_count(n_sims: int, steps: int, episode_steps: int) -> int:
+    """Non-overlapping windows of T + 1 steps in ``n_sims`` traces of ``steps`` steps."""
+    return n_sims * (steps // (episode_steps + 1))
+
+
 def fixed_windows(n_sims: int, steps: int, episode_steps: int, n: int | None,
                   device: torch.device) -> torch.Tensor:
     """[K, 2] (sim, start) of non-overlapping held-out windows, sims interleaved."""
-    per_sim = steps // (episode_steps + 1)
-    n = n_sims * per_sim if n is None else n
-    if not 1 <= n <= n_sims * per_sim:
+    most = window_count(n_sims, steps, episode_steps)
+    n = most if n is None else n
+    if not 1 <= n <= most:
         raise ConfigError(
-            f"n_eval_windows={n} but the held-out traces hold {n_sims * per_sim} "
+            f"n_eval_windows={n} but the held-out traces hold {most} "
             f"non-overlapping windows of {episode_steps + 1} steps: lower it "
             f"or raise traces.eval.n_sims / traces.eval.duration_s.")
     k = torch.arange(n, device=device)

@@ -14,7 +14,7 @@ from torchrl.envs import TransformedEnv
 
 from uabs_rl.channel import coverage_fraction
 from uabs_rl.config import RunConfig
-from uabs_rl.env import DIAG, OBS, POSITION
+from uabs_rl.env import DIAG, OBS, POSITION, window_count
 from uabs_rl.make import make_env, make_selector
 from uabs_rl.masking import ACTION_VALUE
 from uabs_rl.traces import TraceSet, get_traces
@@ -43,7 +43,7 @@ def make_eval_env(cfg: RunConfig, traces: TraceSet | None = None,
     n = windows if windows is not None else (tr.eval_windows if split == "eval" else None)
     if n is None:  # every non-overlapping window of the split
         traces = traces or get_traces(cfg.scenario, cfg.traces, split)
-        n = traces.n_sims * (traces.steps // (cfg.scenario.episode_steps + 1))
+        n = window_count(traces.n_sims, traces.steps, cfg.scenario.episode_steps)
     return make_env(cfg.scenario, cfg.channel, cfg.masking, traces or cfg.traces, split,
                     n_envs=n, device=device, n_eval_windows=n, seed=tr.eval_seed,
                     compile=tr.compile if compile is None else compile, spec_mask=False)

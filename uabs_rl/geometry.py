@@ -4,6 +4,7 @@ pair distances and the closest approach between two steps, as batched tensor mat
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 
 import torch
 
@@ -73,29 +74,10 @@ class Geometry:
         return torch.cat([inner[:, :1], ring], dim=1)
 
     # ------------------------------------------------------------------ packing
-    def packing(self, spacing: float, restarts: int = 2000) -> torch.Tensor:
+    def packing(self, spacing: float) -> torch.Tensor:
         """[K, 2] the largest set of lattice points found with every pair at least
-        ``spacing`` apart: greedy packings over ``restarts`` seeded random orders (the
-        first in lattice order), run side by side. A lower bound on the largest such
-        fleet; deterministic for given params."""
-        n = self.lattice_n.tolist()
-        pts = torch.cartesian_prod(torch.arange(n[0]), torch.arange(n[1])).float()
-        xy = self.lattice_point(pts[:, 0].to(self.device), pts[:, 1].to(self.device)).cpu()
-        p_n = xy.shape[0]
-        close = torch.cdist(xy.double(), xy.double()) < spacing - 1e-9  # [P, P]
-        gen = torch.Generator().manual_seed(0)
-        order = torch.rand(restarts, p_n, generator=gen).argsort(-1)
-        order[0] = torch.arange(p_n)
-        rows = torch.arange(restarts)
-        taken = torch.zeros(restarts, p_n, dtype=torch.bool)
-        chosen = torch.zeros(restarts, p_n, dtype=torch.bool)
-        for j in range(p_n):
-            idx = order[:, j]
-            free = ~taken[rows, idx]
-            chosen[rows, idx] = free
-            taken |= close[idx] & free[:, None]
-        best = chosen.sum(-1).argmax()
-        return xy[chosen[best]].to(self.device)
+        ``spacing`` apart (see :func:`lattice_packing`; computed once per area)."""
+        return lattice_packing(self.p, spacing).to(self.device, copy=True)
 
     def spread_start(self, pos: torch.Tensor, packing: torch.Tensor, spacing: float,
                      gen: torch.Generator) -> torch.Tensor:
@@ -128,9 +110,34 @@ class Geometry:
         """[E] smallest pair distance along the straight paths from ``old`` to ``new``."""
         r0 = old[:, :, None, :] - old[:, None, :, :]  # [E, M, M, 2]
         dv = (new - old)[:, :, None, :] - (new - old)[:, None, :, :]
-        s = (-(r0 * dv).sum(-1) / (dv * dv).sum(-1).clamp_min(1e-12)).clamp(0.0, 1.0)
-        d = (r0 + s[..., None] * dv).norm(dim=-1).masked_fill(self.eye, math.inf)
+        d = path_distance(r0, dv).masked_fill(self.eye, math.inf)
         return d.flatten(1).amin(-1)
+
+
+@lru_cache(maxsize=32)
+def lattice_packing(p: EnvParams, spacing: float, restarts: int = 2000) -> torch.Tensor:
+    """[K, 2] (CPU) the largest set of lattice points found with every pair at least
+    ``spacing`` apart: greedy packings over ``restarts`` seeded random orders (the first
+    in lattice order), run side by side. A lower bound on the largest such fleet;
+    deterministic for given params, and cached (the train and eval envs share it)."""
+    geo = Geometry(p, torch.device("cpu"))
+    n = geo.lattice_n.tolist()
+    pts = torch.cartesian_prod(torch.arange(n[0]), torch.arange(n[1])).float()
+    xy = geo.lattice_point(pts[:, 0], pts[:, 1])
+    p_n = xy.shape[0]
+    close = torch.cdist(xy.double(), xy.double()) < spacing - 1e-9  # [P, P]
+    gen = torch.Generator().manual_seed(0)
+    order = torch.rand(restarts, p_n, generator=gen).argsort(-1)
+    order[0] = torch.arange(p_n)
+    rows = torch.arange(restarts)
+    taken = torch.zeros(restarts, p_n, dtype=torch.bool)
+    chosen = torch.zeros(restarts, p_n, dtype=torch.bool)
+    for j in range(p_n):
+        idx = order[:, j]
+        free = ~taken[rows, idx]
+        chosen[rows, idx] = free
+        taken |= close[idx] & free[:, None]
+    return xy[chosen[chosen.sum(-1).argmax()]]
 
 
 def path_distance(r0: torch.Tensor, dr: torch.Tensor) -> torch.Tensor:

@@ -232,14 +232,14 @@ def evaluate_on_test(runs: list[Run]) -> dict[Path, dict[str, dict]]:
     return out
 
 
-def test_baselines(by_mode: dict[str, list[Run]], tests: dict[Path, dict]) -> dict[str, dict]:
+def baselines_on_test(by_mode: dict[str, list[Run]], tests: dict[Path, dict]) -> dict[str, dict]:
     """The baselines' test records per mode (from the lowest seed's run: the baselines
     depend on the masks, not on the learner)."""
     return {f"{name} ({mode} masks)": tests[min(runs, key=lambda r: r.seed).path][name]
             for mode, runs in by_mode.items() for name in ("random", "greedy", "oracle")}
 
 
-def test_pg(by_mode: dict[str, list[Run]],
+def learned_pg_on_test(by_mode: dict[str, list[Run]],
             tests: dict[Path, dict]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """Mean and std over seeds of the learned P_g(N̂_s) curve on the test traces."""
     out = {}
@@ -305,7 +305,7 @@ def summary(by_mode: dict[str, list[Run]], rows: list[dict], baselines: dict[str
              for m, runs in by_mode.items()}
     best = {m: float(np.mean([run.best_eval["return"] for run in runs]))
             for m, runs in by_mode.items()}
-    pg = ({m: v[0] for m, v in test_pg(by_mode, tests).items()} if tests else
+    pg = ({m: v[0] for m, v in learned_pg_on_test(by_mode, tests).items()} if tests else
           {m: best_pg(runs)[0] for m, runs in by_mode.items()})
     where = ("best.pt on the test traces" if tests else "best validation evaluation")
     lines = ["# Sweep summary", "", f"Produced by: `{command}`", "",
@@ -383,7 +383,7 @@ def build_report(root: Path, out: Path, with_baselines: bool = True,
         w.writerows(rows)
     fig3(by_mode, out / "fig3_eval_return.png")
     tests = evaluate_on_test(runs) if with_baselines else {}
-    baselines = test_baselines(by_mode, tests) if tests else {}
+    baselines = baselines_on_test(by_mode, tests) if tests else {}
     if baselines:
         with open(out / "baselines.csv", "w", newline="") as f:
             keys = ["policy", "return", "return_std", "collisions", "proximity", "fallbacks",
@@ -392,7 +392,8 @@ def build_report(root: Path, out: Path, with_baselines: bool = True,
             w.writerow(keys)
             for name, b in baselines.items():
                 w.writerow([name] + [b[k] for k in keys[1:]])
-    fig4(by_mode, baselines, out / "fig4_pg.png", test_pg(by_mode, tests) if tests else None)
+    fig4(by_mode, baselines, out / "fig4_pg.png",
+         learned_pg_on_test(by_mode, tests) if tests else None)
     lvb = learned_vs_baselines(runs, tests) if tests else []
     if lvb:
         with open(out / "learned_vs_baselines.csv", "w", newline="") as f:
