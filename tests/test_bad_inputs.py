@@ -16,7 +16,7 @@ from tests.test_train import records, smoke
 from uabs_rl.checkpoint import CheckpointError, load_checkpoint
 from uabs_rl.config import ConfigError, validate_run
 from uabs_rl.evaluate import main as eval_main
-from uabs_rl.experiment import resolve_device
+from uabs_rl.make import resolve_device
 from uabs_rl.report import read_metrics
 from uabs_rl.train import run
 

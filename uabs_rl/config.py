@@ -199,15 +199,6 @@ def validate_masking(masking: MaskingConfig) -> None:
 
 
 @dataclass
-class TracesAppConfig:
-    """Top-level config of ``uabs-traces``."""
-
-    scenario: ScenarioConfig = field(default_factory=ScenarioConfig)
-    traces: TracesConfig = field(default_factory=TracesConfig)
-    split: str = "all"  # which traces to build: train, eval, test or all (uabs-traces split=test)
-
-
-@dataclass
 class AlgoConfig:
     """3DQN: shared dueling double DQN (SPEC §7). Defaults follow the authors' single-UABS
     3DQN where the paper is silent (see README, "Hyper-parameters")."""
@@ -262,6 +253,14 @@ class RunConfig:
     seed: int = 0  # network init, exploration, training windows and start positions
     device: str = "cpu"  # cpu | cuda | cuda:N | auto
     resume: str | None = None  # a run directory (outputs/runs/...) to continue
+
+
+@dataclass
+class TracesAppConfig(RunConfig):
+    """Top-level config of ``uabs-traces``: the same groups and presets as ``uabs-train``
+    (only ``scenario`` and ``traces`` decide the traces), plus which split to build."""
+
+    split: str = "all"  # which traces to build: train, eval, test or all (uabs-traces split=test)
 
 
 def validate_run(cfg: RunConfig) -> None:

@@ -22,11 +22,11 @@ from uabs_rl.checkpoint import (
     config_dict,
     save_checkpoint,
 )
-from uabs_rl.config import ConfigError, RunConfig, TrainConfig, validate_run
+from uabs_rl.config import RunConfig, TrainConfig, validate_run
 from uabs_rl.env import N_ACTIONS
 from uabs_rl.evaluation import Evaluator, greedy_policy, make_eval_env
 from uabs_rl.learner import DQNLearner
-from uabs_rl.make import make_env, make_selector
+from uabs_rl.make import make_env, make_selector, resolve_device
 from uabs_rl.model import DuelingQNet
 from uabs_rl.replay import ReplayBuffer
 from uabs_rl.rollout import Collector, UpdateSchedule, episode_records, epsilon
@@ -34,15 +34,6 @@ from uabs_rl.runlog import RunLog
 from uabs_rl.traces import TraceSet
 
 log = logging.getLogger(__name__)
-
-
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise ConfigError(f"device={name} but CUDA is not available here: use device=cpu "
-                          f"or device=auto.")
-    return torch.device(name)
 
 
 class DeferredInterrupt:

@@ -7,7 +7,13 @@ import torch
 from torchrl.envs import Compose, TransformedEnv
 from torchrl.envs.transforms import ActionMask
 
-from uabs_rl.config import ChannelConfig, MaskingConfig, ScenarioConfig, TracesConfig
+from uabs_rl.config import (
+    ChannelConfig,
+    ConfigError,
+    MaskingConfig,
+    ScenarioConfig,
+    TracesConfig,
+)
 from uabs_rl.env import ACTION, MASK, UABSEnv
 from uabs_rl.masking import MaskedActionSelector, SafetyTransform, make_rule
 from uabs_rl.traces import TraceSet, get_traces
@@ -44,3 +50,13 @@ def make_selector(env: TransformedEnv, masking: MaskingConfig, eps: float = 0.0,
     rule = make_rule(masking, base.params).to(base.device)
     return MaskedActionSelector(rule, eps=eps, generator=generator, compile=compile).to(
         base.device)
+
+
+def resolve_device(name: str) -> torch.device:
+    """The torch device of the ``device`` setting (cpu, cuda, cuda:N or auto)."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise ConfigError(f"device={name} but CUDA is not available here: use device=cpu "
+                          f"or device=auto.")
+    return torch.device(name)

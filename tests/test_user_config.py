@@ -1,0 +1,119 @@
+"""A user's own config folder outside the package (``--config-dir``), presets that do
+not override a user's scenario, and ``uabs-eval RUN [overrides]`` on another network
+and fleet."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from tests.test_train import smoke
+from uabs_rl.evaluate import main as eval_main
+from uabs_rl.train import run
+
+
+def _netgenerate() -> str:
+    exe = shutil.which("netgenerate") or str(Path(sys.executable).parent / "netgenerate")
+    if not Path(exe).exists():
+        pytest.skip("netgenerate not installed (pip install eclipse-sumo)")
+    return exe
+
+
+@pytest.fixture(scope="module")
+def user_dir(tmp_path_factory) -> Path:
+    """What sumo/README.md tells a user to make: a 4 x 4 grid built with netgenerate,
+    a scenario file and a preset of their own, in a folder outside the package."""
+    d = tmp_path_factory.mktemp("myconf")
+    (d / "scenario").mkdir()
+    (d / "experiment").mkdir()
+    subprocess.run([_netgenerate(), "--grid", "--grid.number", "4", "--grid.length", "60",
+                    "--default.lanenumber", "1", "--default.junctions.type", "allway_stop",
+                    "--offset.x", "2", "--offset.y", "2", "--output-file",
+                    str(d / "grid4.net.xml")], check=True, capture_output=True)
+    (d / "scenario" / "grid4.yaml").write_text(yaml.safe_dump({
+        "name": "grid4", "area": {"width": 184, "height": 184},
+        "sumo": {"net_file": str(d / "grid4.net.xml"), "fleet_size": 30}}))
+    (d / "experiment" / "wide.yaml").write_text(
+        "# @package _global_\nalgo:\n  hidden: [48, 48]\n")
+    return d
+
+
+def _composed(*args: str) -> dict:
+    """The job config ``uabs-train`` composes for ``args`` (``--cfg job``: nothing runs)."""
+    proc = subprocess.run([sys.executable, "-m", "uabs_rl.train", *args, "--cfg", "job"],
+                          capture_output=True, text=True, check=True)
+    return yaml.safe_load(proc.stdout)
+
+
+def test_user_config_folder_composes_and_preset_keeps_user_values(user_dir):
+    cfg = _composed("--config-dir", str(user_dir), "scenario=grid4", "experiment=smoke")
+    assert cfg["scenario"]["name"] == "grid4"
+    # the user's file sets fleet_size: the preset (which sets 20) does not replace it ...
+    assert cfg["scenario"]["sumo"]["fleet_size"] == 30
+    assert cfg["scenario"]["area"]["width"] == 184
+    # ... while what the user's file leaves alone still comes from the preset
+    assert cfg["scenario"]["episode_steps"] == 20 and cfg["train"]["episodes"] == 6
+    # a preset of the user's own, and the command line still wins over everything
+    cfg = _composed("--config-dir", str(user_dir), "scenario=grid4", "experiment=wide",
+                    "scenario.sumo.fleet_size=12")
+    assert cfg["algo"]["hidden"] == [48, 48] and cfg["scenario"]["sumo"]["fleet_size"] == 12
+    # without a user scenario the preset applies in full, as before
+    assert _composed("experiment=smoke")["scenario"]["sumo"]["fleet_size"] == 20
+
+
+def test_uabs_traces_accepts_the_training_groups(user_dir, tmp_path):
+    proc = subprocess.run(
+        [sys.executable, "-m", "uabs_rl.traces", "--config-dir", str(user_dir),
+         "scenario=grid4", "experiment=smoke", "masking=flat", "split=eval",
+         f"traces.cache_dir={tmp_path}"], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    assert "built with SUMO" in proc.stdout and "30 slots" in proc.stdout
+    assert len(list(tmp_path.glob("grid4-eval-*.pt"))) == 1
+
+
+@pytest.fixture(scope="module")
+def smoke_run(trace_cache, tmp_path_factory) -> Path:
+    run_dir = tmp_path_factory.mktemp("smoke_run")
+    run(smoke(trace_cache, "train.tensorboard=false", "train.trajectory_images=false"),
+        run_dir)
+    return run_dir
+
+
+def test_uabs_eval_on_another_network_and_fleet(smoke_run, user_dir, capsys):
+    test_traces = ["traces.test.n_sims=1", "traces.test.duration_s=170",
+                   "traces.test.warmup_s=10"]
+    overrides = ["scenario=grid4", "scenario.sumo.fleet_size=12", *test_traces]
+    assert eval_main([str(smoke_run), "--config-dir", str(user_dir), *overrides,
+                      "--policy", "all", "--checkpoint", "last"]) == 0
+    out = smoke_run / "evaluation" / ",".join(overrides)
+    res = json.loads((out / "eval.json").read_text())
+    assert res["scenario"] == "grid4" and res["overrides"] == overrides
+    # the grid's own episode length (the schema's 80 steps): 170 s hold 2 windows
+    assert res["windows"] == 2
+    assert set(res["policies"]) == {"learned", "random", "greedy", "oracle"}
+    assert "scenario grid4" in capsys.readouterr().out
+    # the run's own evaluation folder is left alone
+    assert not (smoke_run / "evaluation" / "eval.json").exists()
+
+
+@pytest.mark.parametrize("override, names", [
+    ("scenario.n_uabs=4", ["scenario.n_uabs=4", "observations of size"]),
+    ("channel.n_beams=16", ["channel.n_beams=16", "cannot change at evaluation"]),
+    ("algo.lr=0.1", ["algo.lr=0.1", "belongs to the trained policy"]),
+    ("train.episodes=3", ["train.episodes=3", "belongs to the trained policy"]),
+    ("experiment=smoke", ["presets change how a policy is trained"]),
+    ("scenario=nowhere", ["no nowhere.yaml", "--config-dir"]),
+    ("scenario.sumo.fleetsize=3", ["fleetsize", "SumoConfig"]),
+])
+def test_uabs_eval_refuses_what_cannot_change(smoke_run, override, names, capsys):
+    assert eval_main([str(smoke_run), override, "--checkpoint", "last"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and len(err.strip().splitlines()) == 1
+    for n in names:
+        assert n in err
