@@ -61,7 +61,7 @@ def training_rate(n_envs: int, device: str, rounds: int) -> tuple[float, float]:
     from uabs_rl.experiment import Experiment
 
     cfg = compose("config", [f"train.n_envs={n_envs}", f"train.episodes={n_envs * 100}",
-                             "train.progress=false", "train.tensorboard=false",
+                             "train.progress=false", "train.logger=none",
                              f"device={device}", "train.compile=false"])
     tr = Experiment(cfg, tempfile.mkdtemp(prefix="uabs_scaling_"))
     while len(tr.buffer) < cfg.algo.learning_starts:

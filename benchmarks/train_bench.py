@@ -57,7 +57,7 @@ def main() -> None:
     ap.add_argument("--episodes", type=int, default=30)
     ap.add_argument("overrides", nargs="*", help="uabs-train overrides")
     args = ap.parse_args()
-    cfg = compose("config", ["train.progress=false", "train.tensorboard=false",
+    cfg = compose("config", ["train.progress=false", "train.logger=none",
                                  *args.overrides])
     tr = Experiment(cfg, tempfile.mkdtemp(prefix="uabs_bench_"))
     wrap(tr.collector.env, "step", "env")

@@ -72,7 +72,7 @@ def test_uabs_eval_windows_names_the_flag(rank_run, capsys):
 @pytest.fixture(scope="module")
 def rank_run(trace_cache, tmp_path_factory):
     d = tmp_path_factory.mktemp("bad_inputs_run")
-    run(smoke(trace_cache, "train.trajectory_images=false", "train.tensorboard=false"), d)
+    run(smoke(trace_cache, "train.trajectory_images=false", "train.logger=none"), d)
     assert records(d)
     return d
 

@@ -16,7 +16,7 @@ def test_two_job_local_parallel_multirun(trace_cache, tmp_path):
     proc = subprocess.run(
         [sys.executable, "-m", "uabs_rl.train", "-m", "hydra/launcher=local_parallel",
          "hydra.launcher.n_jobs=2", "experiment=smoke", "train.threads=1",
-         "train.tensorboard=false", "train.trajectory_images=false",
+         "train.logger=none", "train.trajectory_images=false",
          f"traces.cache_dir={trace_cache}", "train.progress=false", "seed=0,1",
          f"hydra.sweep.dir={tmp_path}"], capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]

@@ -36,7 +36,7 @@ def test_training_and_checkpoint_selection_never_read_test_traces(trace_cache, t
 
     for mod in ("uabs_rl.traces", "uabs_rl.make", "uabs_rl.evaluation"):
         monkeypatch.setattr(f"{mod}.get_traces", spy)
-    run(smoke(trace_cache, "train.tensorboard=false", "train.trajectory_images=false"),
+    run(smoke(trace_cache, "train.logger=none", "train.trajectory_images=false"),
         tmp_path / "run")
     assert "test" not in asked and {"train", "eval"} <= set(asked)
     from uabs_rl.evaluate import main as eval_main

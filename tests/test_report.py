@@ -20,7 +20,7 @@ def sweep(trace_cache, tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("multirun")
     for mode in ("penalty", "rank"):
         for seed in (0, 1):
-            run(smoke(trace_cache, f"masking={mode}", f"seed={seed}", "train.tensorboard=false",
+            run(smoke(trace_cache, f"masking={mode}", f"seed={seed}", "train.logger=none",
                       "train.trajectory_images=false", "scenario.n_uabs=4"),
                 root / f"masking={mode},seed={seed}")
     return root

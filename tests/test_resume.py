@@ -21,7 +21,7 @@ from uabs_rl.checkpoint import CheckpointError, load_checkpoint
 from uabs_rl.train import run
 
 RUN = ["experiment=smoke", "train.episodes=60", "train.eval_every=5",
-       "train.checkpoint_buffer=true", "train.tensorboard=false",
+       "train.checkpoint_buffer=true", "train.logger=none",
        "train.trajectory_images=false", "train.threads=1"]
 
 

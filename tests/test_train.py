@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import subprocess
 import sys
@@ -69,11 +70,43 @@ def test_smoke_run_writes_metrics_tensorboard_and_checkpoints(rank_run):
         assert tag in scalars, tag
     assert [e.value for e in ea.Scalars("train/return")] == pytest.approx(
         [r["return"] for r in train])
+    # env steps on the x-axis; counters are not curves; the machine's speed is
+    assert [e.step for e in ea.Scalars("eval/return")] == [r["env_steps"] for r in evals]
+    assert not {"train/updates", "train/episode", "train/env_steps", "eval/windows",
+                "eval/episode"} & scalars
+    assert "speed/env_steps_per_s" in scalars
+    assert all(e.value > 0 for e in ea.Scalars("speed/env_steps_per_s"))
     assert {"eval/trajectories", "eval/pg_curve"} <= set(ea.Tags()["images"])
+    # the hyper-parameters, as TensorBoard's HPARAMS tab reads them
+    hp = [d for d in (rank_run / "tb").iterdir() if d.is_dir()]
+    assert len(hp) == 1
+    hp_ea = EventAccumulator(str(hp[0]))
+    hp_ea.Reload()
+    assert hp_ea.PluginTagToContent("hparams")  # the hparams plugin's records
     for name in ("best", "last"):
         assert (rank_run / "checkpoints" / f"{name}.pt").is_file()
     png = rank_run / "eval" / "last_trajectories.png"
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
+
+
+def test_csv_logger_and_missing_optional_loggers(trace_cache, tmp_path):
+    run(smoke(trace_cache, "train.logger=csv", "train.trajectory_images=false"),
+        tmp_path / "csv_run")
+    scalars = tmp_path / "csv_run" / "csv" / "scalars"
+    train = [r for r in records(tmp_path / "csv_run") if r["kind"] == "train"]
+    rows = [line.split(",") for line in (scalars / "train" / "return.csv").read_text()
+            .splitlines()]
+    assert [(int(s), float(v)) for s, v in rows] == [
+        (r["env_steps"], pytest.approx(r["return"])) for r in train]
+    assert not (scalars / "train" / "updates.csv").exists()
+    assert "algo.gamma: 0.8" in (tmp_path / "csv_run" / "csv" / "texts" / "hparams0.txt"
+                                 ).read_text()
+    for kind, pkg in (("wandb", "wandb"), ("mlflow", "mlflow")):
+        if importlib.util.find_spec(pkg) is not None:
+            continue
+        with pytest.raises(ConfigError, match=f"pip install {pkg}"):
+            Experiment(smoke(trace_cache, f"train.logger={kind}"), tmp_path / kind)
+        assert not (tmp_path / kind).exists()
 
 
 def test_best_checkpoint_reloads_to_identical_parameters_and_figures(rank_run, trace_cache,
@@ -132,7 +165,7 @@ def test_ctrl_c_finishes_the_round_saves_last_and_stops(trace_cache, tmp_path, m
     import os
     import signal
 
-    exp = Experiment(smoke(trace_cache, "train.tensorboard=false"), tmp_path)
+    exp = Experiment(smoke(trace_cache, "train.logger=none"), tmp_path)
     real = exp.collect
 
     def interrupted():
@@ -215,7 +248,7 @@ def parked_vehicles(steps: int) -> TraceSet:
 LEARN = ["scenario.n_uabs=1", "scenario.area.width=150", "scenario.area.height=90",
          "channel.los_mode=los", "algo.lr=1e-3", "algo.hidden=[64,64]", "algo.batch_size=64",
          "algo.target_update=50", "train.episodes=60", "train.eval_every=1000",
-         "train.eval_windows=4", "train.tensorboard=false", "train.trajectory_images=false"]
+         "train.eval_windows=4", "train.logger=none", "train.trajectory_images=false"]
 
 
 def test_greedy_policy_beats_a_random_one_after_training(trace_cache, tmp_path):
@@ -247,3 +280,16 @@ def test_loss_falls_when_fitting_a_fixed_buffer(trace_cache, tmp_path):
     for _ in range(1000):
         lrn.update(b)
     assert lrn.fused_loss(b)[0].item() < 0.1 * first
+
+
+def test_checkpoint_of_an_earlier_version_still_loads(rank_run, tmp_path):
+    """Checkpoints written before ``train.logger`` stored ``train.tensorboard``."""
+    state = load_checkpoint(rank_run / "checkpoints" / "last.pt")
+    cfg = dict(state["config"])
+    train = dict(cfg["train"])
+    train.pop("logger")
+    cfg["train"] = {**train, "tensorboard": False}
+    state["config"] = cfg
+    torch.save(state, tmp_path / "old.pt")
+    ev = load_evaluation(tmp_path / "old.pt", split="eval")
+    assert ev.cfg.train.logger == "none"

@@ -80,7 +80,7 @@ def test_uabs_traces_accepts_the_training_groups(user_dir, tmp_path):
 @pytest.fixture(scope="module")
 def smoke_run(trace_cache, tmp_path_factory) -> Path:
     run_dir = tmp_path_factory.mktemp("smoke_run")
-    run(smoke(trace_cache, "train.tensorboard=false", "train.trajectory_images=false"),
+    run(smoke(trace_cache, "train.logger=none", "train.trajectory_images=false"),
         run_dir)
     return run_dir
 

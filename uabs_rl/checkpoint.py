@@ -75,9 +75,20 @@ def config_dict(cfg: RunConfig) -> dict:
     return d
 
 
+def upgrade_config(d: Any) -> Any:
+    """A stored run config (checkpoint or ``.hydra/config.yaml``) in today's keys:
+    ``train.tensorboard: true|false`` became ``train.logger: tensorboard|none``."""
+    train = d.get("train") if hasattr(d, "get") else None
+    if train is not None and "tensorboard" in train:
+        train = dict(train)
+        train["logger"] = "tensorboard" if train.pop("tensorboard") else "none"
+        d = {**d, "train": train}
+    return d
+
+
 def config_from_checkpoint(state: dict) -> RunConfig:
     """The run's config (dataclasses) as stored in a checkpoint."""
-    merged = OmegaConf.merge(OmegaConf.structured(RunConfig), state["config"])
+    merged = OmegaConf.merge(OmegaConf.structured(RunConfig), upgrade_config(state["config"]))
     return OmegaConf.to_object(merged)
 
 
@@ -102,7 +113,7 @@ def config_differences(saved: dict, current: dict) -> list[str]:
 
 def check_compatible(state: dict, cfg: RunConfig, source: Path) -> None:
     """Refuse a checkpoint written with other result-changing settings, naming them."""
-    diffs = config_differences(state["config"], config_dict(cfg))
+    diffs = config_differences(upgrade_config(state["config"]), config_dict(cfg))
     if diffs:
         raise CheckpointError(f"{source} was written with other settings:\n  "
                               + "\n  ".join(diffs)

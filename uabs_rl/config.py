@@ -49,6 +49,16 @@ class LosMode(StrEnum):
     los = "los"
 
 
+class LoggerKind(StrEnum):
+    """Where a run's scalars go besides ``metrics.jsonl`` (TorchRL's loggers)."""
+
+    tensorboard = "tensorboard"
+    csv = "csv"
+    wandb = "wandb"
+    mlflow = "mlflow"
+    none = "none"
+
+
 class LossKind(StrEnum):
     """Which implementation of the 3DQN loss (``uabs_rl.learner``)."""
 
@@ -230,7 +240,9 @@ class TrainConfig:
     # episodes in parallel; updates per collector step = n_envs / algo.update_every
     n_envs: int = 1
     checkpoint_buffer: bool = False  # also store the replay buffer in checkpoints (~20 MB)
-    tensorboard: bool = True
+    # TorchRL logger: tensorboard (<run>/tb) | csv (<run>/csv) | wandb | mlflow
+    # (<run>/mlruns) | none; wandb and mlflow need their package installed
+    logger: LoggerKind = LoggerKind.tensorboard
     trajectory_images: bool = True  # held-out trajectory picture at each evaluation
     progress: bool = True  # progress bar
     # torch.compile the env step and the action selection: ~2x faster training, ~20 s to
@@ -269,6 +281,7 @@ def validate_run(cfg: RunConfig) -> None:
     validate_env(cfg.scenario, cfg.channel)
     validate_masking(cfg.masking)
     enum_value(LossKind, cfg.algo.loss, "algo.loss")
+    enum_value(LoggerKind, cfg.train.logger, "train.logger")
     a, t = cfg.algo, cfg.train
     checks = [
         (a.lr > 0, "algo.lr", "must be > 0", a.lr),

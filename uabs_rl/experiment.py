@@ -30,7 +30,7 @@ from uabs_rl.make import make_env, make_selector, resolve_device
 from uabs_rl.model import DuelingQNet
 from uabs_rl.replay import ReplayBuffer
 from uabs_rl.rollout import Collector, UpdateSchedule, episode_records, epsilon
-from uabs_rl.runlog import RunLog
+from uabs_rl.runlog import RunLog, check_logger
 from uabs_rl.traces import TraceSet
 
 log = logging.getLogger(__name__)
@@ -89,6 +89,7 @@ class Experiment:
         """``traces`` may hold ready TraceSets per split ("train", "eval"); by default
         they come from the trace cache (built with SUMO if missing)."""
         validate_run(cfg)
+        check_logger(cfg.train.logger)
         self.cfg, self.run_dir = cfg, Path(run_dir)
         dev = self.device = resolve_device(cfg.device)
         tr = cfg.train
@@ -217,5 +218,6 @@ class Experiment:
         summary = {"episodes": self.episode, "updates": self.learner.updates,
                    "best_eval_return": self.best_eval, "last_eval_return": self.progress.last_eval,
                    "minutes": (time.perf_counter() - t0) / 60}
-        log.info("done: %s", summary)
+        log.info("done: %d episodes, %d updates, best validation return %.0f, %.1f min",
+                 self.episode, self.learner.updates, self.best_eval, summary["minutes"])
         return summary

@@ -7,7 +7,8 @@
     uabs-train resume=outputs/runs/<run dir>      # continue a stopped run
 
 Every run writes under its Hydra output directory: ``metrics.jsonl`` (one line per
-training episode and per evaluation), ``tb/`` (TensorBoard), ``checkpoints/last.pt``
+training episode and per evaluation), ``tb/`` (TensorBoard; ``train.logger`` picks
+another TorchRL logger), ``checkpoints/last.pt``
 and ``checkpoints/best.pt`` (by evaluation return), ``eval/*.png``. The run itself is
 :class:`uabs_rl.experiment.Experiment`.
 
@@ -19,7 +20,9 @@ overrides typed beside it may change only what does not change results
 
 from __future__ import annotations
 
+import json
 import logging
+import shlex
 import sys
 from pathlib import Path
 from typing import Any
@@ -32,9 +35,10 @@ from uabs_rl.checkpoint import (
     config_differences,
     config_from_checkpoint,
     load_checkpoint,
+    upgrade_config,
 )
 from uabs_rl.cli import hydra_main
-from uabs_rl.config import ConfigError, RunConfig, to_container
+from uabs_rl.config import ConfigError, LoggerKind, RunConfig, to_container
 from uabs_rl.experiment import Experiment
 
 log = logging.getLogger(__name__)
@@ -51,7 +55,8 @@ def saved_config(run_dir: Path) -> tuple[RunConfig, dict | None]:
         raise CheckpointError(f"resume={run_dir}: no checkpoints/last.pt and no "
                               f".hydra/config.yaml there: pass the folder of a uabs-train "
                               f"run (the one printed when it started).")
-    merged = OmegaConf.merge(OmegaConf.structured(RunConfig), OmegaConf.load(hydra_cfg))
+    stored = OmegaConf.to_container(OmegaConf.load(hydra_cfg))
+    merged = OmegaConf.merge(OmegaConf.structured(RunConfig), upgrade_config(stored))
     return to_container(merged), None
 
 
@@ -95,17 +100,56 @@ def run(cfg: RunConfig, run_dir: Path, overrides: list[str] | None = None) -> di
     return exp.fit()
 
 
-def print_summary(summary: dict[str, Any], run_dir: Path) -> None:
-    """The end of a run: where it is, its headline figures, and what to run next."""
-    print(f"\nrun folder: {run_dir}\n"
-          f"  episodes {summary['episodes']}, updates {summary['updates']}, "
-          f"{summary['minutes']:.1f} min\n"
-          f"  validation return: best {summary['best_eval_return']:.0f}, last "
-          f"{summary['last_eval_return']:.0f}\n"
-          f"next:\n"
-          f"  uabs-eval {run_dir} --policy all   # test-set figures beside the baselines\n"
-          f"  tensorboard --logdir {run_dir / 'tb'}\n"
-          f"  uabs-report {run_dir.parent}   # tables and figures of a sweep's runs")
+def _records(run_dir: Path) -> list[dict[str, Any]]:
+    path = run_dir / "metrics.jsonl"
+    if not path.is_file():
+        return []
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
+def summary_text(cfg: RunConfig, summary: dict[str, Any], run_dir: Path) -> str:
+    """The end of a run: where it is, a table of its headline figures (from its whole
+    ``metrics.jsonl``, so a resumed run counts every episode), and the next commands,
+    ready to copy."""
+    recs = _records(run_dir)
+    train = [r for r in recs if r["kind"] == "train"]
+    evals = [r for r in recs if r["kind"] == "eval"]
+    steps = train[-1]["env_steps"] if train else 0
+    lines = [f"\nrun folder: {run_dir}",
+             f"  {summary['episodes']} episodes, {steps} env steps, {summary['updates']} "
+             f"updates; this session {summary['minutes']:.1f} min"]
+    if evals:
+        best = max(evals, key=lambda r: r["return"])  # the checkpoint best.pt holds
+        last = evals[-1]
+        nhat = cfg.scenario.nhat_s
+        rows = [("return R", "{:.0f}", "return"),
+                ("served fraction", "{:.1%}", "served_fraction"),
+                (f"P_g(N̂s={nhat})", "{:.1%}", "pg"),
+                ("collisions", "{:.0f}", "collisions"),
+                ("proximity events", "{:.0f}", "proximity"),
+                ("mask fallbacks", "{:.0f}", "fallbacks")]
+        head_b, head_l = f"best (ep {best['episode']})", f"last (ep {last['episode']})"
+        title = f"validation ({best['windows']} windows)"
+        lines.append(f"  {title:<24} {head_b:>16} {head_l:>16}")
+        for name, fmt, key in rows:
+            lines.append(f"  {name:<24} {fmt.format(best[key]):>16} {fmt.format(last[key]):>16}")
+    if train:
+        lines.append("  training: " + ", ".join(
+            f"{sum(r[k] for r in train):.0f} {name}" for k, name in (
+                ("collisions", "collisions"), ("proximity", "proximity events"),
+                ("fallbacks", "mask fallbacks"))) + f" in {len(train)} episodes")
+    q = shlex.quote(str(run_dir))
+    lines += ["next:",
+              f"  uabs-eval {q} --policy all   # test traces, beside the baselines, with CIs",
+              f"  uabs-report {shlex.quote(str(run_dir.parent))}   # tables and figures of "
+              f"the runs in that folder"]
+    logger = LoggerKind(cfg.train.logger)
+    if logger is LoggerKind.tensorboard:
+        lines.append(f"  tensorboard --logdir {shlex.quote(str(run_dir / 'tb'))}")
+    elif logger is LoggerKind.csv:
+        lines.append(f"  ls {shlex.quote(str(run_dir / 'csv' / 'scalars'))}   # one CSV per "
+                     f"curve")
+    return "\n".join(lines)
 
 
 def _quote_resume(argv: list[str]) -> list[str]:
@@ -124,7 +168,7 @@ def _quote_resume(argv: list[str]) -> list[str]:
 
 def _run_and_report(cfg: RunConfig, run_dir: Path, overrides: list[str]) -> None:
     summary = run(cfg, run_dir, overrides)
-    print_summary(summary, Path(cfg.resume) if cfg.resume else run_dir)
+    print(summary_text(cfg, summary, Path(cfg.resume) if cfg.resume else run_dir))
 
 
 def main() -> None:
