@@ -54,12 +54,55 @@ def test_table2_equals_the_runs_metrics(sweep, report):
     assert "Collisions in training" in (out / "table2.md").read_text()
 
 
-def test_figures_are_sane_pngs(report):
+def test_figures_exist_as_png_and_pdf(report):
     out, _ = report
-    for name in ("fig3_eval_return.png", "fig4_pg.png"):
-        data = (out / name).read_bytes()
+    for name in ("fig3_eval_return", "fig4_pg"):
+        data = (out / f"{name}.png").read_bytes()
         assert data[:8] == b"\x89PNG\r\n\x1a\n"
         assert 15_000 < len(data) < 2_000_000
+        pdf = (out / f"{name}.pdf").read_bytes()
+        assert pdf[:5] == b"%PDF-" and len(pdf) > 5_000
+
+
+def test_figures_have_panels_and_no_figure_numbers(sweep, report, tmp_path):
+    """Penalty gets its own panel in Fig. 3; Fig. 4 has a panel per mode, its baselines
+    in greys and dashes; no title says 'Fig.'; the legend lies outside the axes."""
+    import matplotlib
+
+    from uabs_rl.plots import MODE_COLORS
+    from uabs_rl.report import best_pg, fig3, fig4, find_runs
+
+    runs = find_runs(sweep)
+    by_mode = {m: [r for r in runs if r.mode == m] for m in ("penalty", "rank")}
+    figs = []
+    real_close = matplotlib.pyplot.close
+    matplotlib.pyplot.close = figs.append  # keep the figures to look at them
+    try:
+        fig3(by_mode, tmp_path / "f3")
+        base = {"rank": {"greedy": {"pg_curve": list(best_pg(by_mode["rank"]).mean(0))}}}
+        fig4(by_mode, base, tmp_path / "f4")
+    finally:
+        matplotlib.pyplot.close = real_close
+    f3, f4 = figs
+    assert [ax.get_title() for ax in f3.axes] == ["rank masking", "penalty (reward penalties)"]
+    assert len(f4.axes) == 2
+    for fig in (f3, f4):
+        assert not any("Fig" in ax.get_title() for ax in fig.axes)
+        assert len(fig.legends) == 1 and all(ax.get_legend() is None for ax in fig.axes)
+        legend_box = fig.legends[0].get_window_extent(fig.canvas.get_renderer())
+        for ax in fig.axes:
+            assert not legend_box.overlaps(ax.get_window_extent())
+    rank_ax = f4.axes[1]
+    learned, greedy = rank_ax.get_lines()[:2]
+    assert matplotlib.colors.same_color(learned.get_color(), MODE_COLORS["rank"])
+    assert greedy.get_linestyle() == "--" and greedy.get_color() != learned.get_color()
+    for fig in figs:
+        real_close(fig)
+
+
+def test_report_warns_on_short_runs(report, capsys):
+    out, _ = report
+    assert "WARNING: the shortest run trained 6 episodes" in (out / "summary.md").read_text()
 
 
 def test_baselines_and_summary(report):

@@ -296,20 +296,26 @@ def main(argv: list[str] | None = None) -> int:
 
 def _write_pictures(ev: Evaluation, results: dict, out: Path, gif: bool) -> None:
     import matplotlib.pyplot as plt
+    import torch
 
-    from uabs_rl.plots import animate_episode, scenario_lanes, trajectory_figure
+    from uabs_rl.env import DIAG
+    from uabs_rl.plots import animate_episode, save_figure, scenario_lanes, trajectory_figure
 
     a, p = ev.cfg.scenario.area, ev.evaluator.params
     lanes = scenario_lanes(ev.cfg.scenario)
     for name, (rec, td) in results.items():
         fig = trajectory_figure(a, *ev.evaluator.trajectory_of(td), p.r_b, p.n_beams, lanes,
-                                title=f"{name} ({ev.cfg.masking.mode} masking), held-out "
+                                title=f"{name} ({ev.cfg.masking.mode} masking), test "
                                       f"window 0: R = {rec['returns'][0]:.0f}")
-        fig.savefig(out / f"trajectories_{name}.png")
+        save_figure(fig, out / f"trajectories_{name}.png")
         plt.close(fig)
     if gif and "learned" in results:
-        animate_episode(a, *ev.evaluator.trajectory_of(results["learned"][1]), p.r_b,
-                        p.n_beams, lanes, out / "episode_learned.gif")
+        td = results["learned"][1]
+        running = torch.cat([td["next", DIAG, "ep_return"][0, :1] * 0,
+                             td["next", DIAG, "ep_return"][0]])
+        animate_episode(a, *ev.evaluator.trajectory_of(td), p.r_b, p.n_beams, lanes,
+                        out / "episode_learned.gif", returns=running,
+                        title=f"learned policy, {ev.cfg.masking.mode} masking, test window 0")
 
 
 def run_main() -> None:

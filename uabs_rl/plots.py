@@ -1,8 +1,10 @@
-"""Figures: evaluated trajectories over the street map, P_g(N̂_s) curves."""
+"""Figures: evaluated trajectories over the street map, P_g(N̂_s) curves, and the
+style every report figure shares (sizes for a paper's columns, PNG and PDF)."""
 
 from __future__ import annotations
 
 from functools import lru_cache
+from pathlib import Path
 
 import matplotlib
 
@@ -11,12 +13,36 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from matplotlib.collections import LineCollection  # noqa: E402
+from matplotlib.lines import Line2D  # noqa: E402
 from matplotlib.patches import Circle  # noqa: E402
 
 from uabs_rl.channel import beam_centres  # noqa: E402
 from uabs_rl.config import AreaConfig, ScenarioConfig  # noqa: E402
 
 COLORS = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+# a paper's single column and full text width (inches, IEEE two-column)
+COLUMN_IN, TEXT_IN = 3.5, 7.16
+# report figures: 8 pt text at print size, so they stay legible in a column
+PAPER_RC = {"font.size": 8, "axes.titlesize": 8, "axes.labelsize": 8, "legend.fontsize": 7,
+            "xtick.labelsize": 7, "ytick.labelsize": 7, "lines.linewidth": 1.2,
+            "lines.markersize": 3.5, "axes.spines.top": False, "axes.spines.right": False,
+            "pdf.fonttype": 42, "savefig.dpi": 300}
+# learned policies in colour, one per masking mode; baselines in greys, one line style
+# each, so the two never look alike
+MODE_COLORS = {"penalty": "#d62728", "flat": "#1f77b4", "rank": "#2ca02c"}
+BASELINE_STYLES = {"random": {"color": "0.6", "ls": ":", "marker": "v"},
+                   "greedy": {"color": "0.35", "ls": "--", "marker": "s"},
+                   "oracle": {"color": "0.0", "ls": "-.", "marker": "^"}}
+
+
+def save_figure(fig, path: Path | str) -> list[Path]:
+    """``path`` as PNG and PDF (vector, for a paper), cropped to the drawn content;
+    returns the two files."""
+    path = Path(path)
+    outs = [path.with_suffix(".png"), path.with_suffix(".pdf")]
+    for out in outs:
+        fig.savefig(out, bbox_inches="tight")
+    return outs
 
 
 @lru_cache(maxsize=8)
@@ -77,9 +103,19 @@ def trajectory_figure(area: AreaConfig, uabs: torch.Tensor, vehicles: torch.Tens
     ax.set_aspect("equal")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
-    ax.set_title(title or "UABS trajectories (o start, * end; beam footprints at "
-                 f"t = {', '.join(map(str, instants))})", fontsize=10)
-    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
+    ax.set_title(title or "UABS trajectories", fontsize=10)
+    handles, _ = ax.get_legend_handles_labels()
+    handles += [
+        Line2D([], [], color="0.4", marker="o", ls="", ms=7, label="start (t = 0)"),
+        Line2D([], [], color="0.4", marker="*", ls="", ms=12, mec="k",
+               label=f"end (t = {steps - 1})"),
+        Line2D([], [], color="0.4", marker="o", ls="", ms=9, mfc="none",
+               label=f"beam footprints at t = {', '.join(map(str, instants))} "
+                     f"(fainter = earlier)"),
+        Line2D([], [], color="0.6", lw=0.6, label="vehicle tracks"),
+    ] + ([Line2D([], [], color="0.8", lw=1.5, label="lanes")] if lanes is not None else [])
+    ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8,
+              frameon=False)
     fig.tight_layout()
     return fig
 
@@ -99,20 +135,29 @@ def pg_curve_figure(curves: dict[str, np.ndarray], title: str = "Satisfied users
     ax.set_ylabel(r"$P_g$ (% satisfied users)")
     ax.set_title(title)
     ax.grid(alpha=0.3)
-    ax.legend()
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
     fig.tight_layout()
     return fig
 
 
 def animate_episode(area: AreaConfig, uabs: torch.Tensor, vehicles: torch.Tensor,
                     present: torch.Tensor, r_b: float, n_beams: int,
-                    lanes: np.ndarray | None, path, fps: int = 8) -> None:
-    """A GIF of one episode: vehicles, UABS with their beam footprints, paths so far."""
+                    lanes: np.ndarray | None, path, fps: int = 8,
+                    returns: torch.Tensor | None = None, title: str = "") -> None:
+    """A GIF of one episode: vehicles, UABS with their beam footprints, paths so far, a
+    legend, and with ``returns`` (``[T+1]``, the return after each step) a running
+    return counter."""
     from matplotlib.animation import FuncAnimation, PillowWriter
 
     uabs, vehicles, present = uabs.cpu().numpy(), vehicles.cpu().numpy(), present.cpu().numpy()
+    ret = None if returns is None else returns.cpu().numpy()
     centres = beam_centres(r_b, n_beams).numpy()
-    fig, ax = plt.subplots(figsize=(7, 7 * area.height / area.width + 0.6), dpi=80)
+    fig, ax = plt.subplots(figsize=(8.5, 7 * area.height / area.width + 0.6), dpi=80)
+    handles = [Line2D([], [], color=COLORS[u % len(COLORS)], lw=1.5, marker="*", ms=10,
+                      mec="k", label=f"UABS {u} (path so far)") for u in range(uabs.shape[1])]
+    handles += [Line2D([], [], color="0.4", marker="o", ls="", ms=9, mfc="none",
+                       label="beam footprints"),
+                Line2D([], [], color="k", marker=".", ls="", label="vehicles")]
 
     def draw(t: int):
         ax.clear()
@@ -129,8 +174,14 @@ def animate_episode(area: AreaConfig, uabs: torch.Tensor, vehicles: torch.Tensor
         ax.set_xlim(0, area.width)
         ax.set_ylim(0, area.height)
         ax.set_aspect("equal")
-        ax.set_title(f"t = {t}")
+        counter = f"t = {t} / {uabs.shape[0] - 1}"
+        if ret is not None:
+            counter += f"    return so far R = {ret[t]:.0f}"
+        ax.set_title(f"{title}\n{counter}" if title else counter, fontsize=10)
+        ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0),
+                  fontsize=8, frameon=False)
 
     anim = FuncAnimation(fig, draw, frames=uabs.shape[0])
+    fig.subplots_adjust(left=0.06, right=0.72)
     anim.save(str(path), writer=PillowWriter(fps=fps))
     plt.close(fig)

@@ -6,9 +6,10 @@
 
 Groups the sweep's runs by masking mode (across seeds) and writes:
 ``table2.md``/``table2.csv`` (collisions in training and evaluation, as events and as
-the share of episodes with at least one), ``fig3_eval_return.png`` (evaluation return
-against training episode, mean ± std over seeds), ``fig4_pg.png`` (P_g against N̂_s
-from each run's best evaluation, with the baselines), ``baselines.csv`` and
+the share of episodes with at least one), ``fig3_eval_return.png``/``.pdf`` (validation
+return against training episode, mean and 95 % bootstrap CI over seeds; penalty in a
+panel of its own), ``fig4_pg.png``/``.pdf`` (P_g against N̂_s, one panel per masking
+mode, the learned policy beside the baselines under the same masks), ``baselines.csv`` and
 ``summary.md`` (each claim of the paper, supported or not, with the numbers) and
 ``learned_vs_baselines.csv``/``.md``. Table 2 and Fig. 3 come from the runs'
 ``metrics.jsonl`` (training episodes and the periodic evaluations on the validation
@@ -33,6 +34,7 @@ import torch
 
 from uabs_rl.channel import coverage_bound
 from uabs_rl.config import MaskingMode
+from uabs_rl.stats import bootstrap_ci
 
 MODES = tuple(m.value for m in MaskingMode)
 
@@ -160,63 +162,118 @@ def table2_markdown(rows: list[dict[str, Any]]) -> str:
 
 
 # ----------------------------------------------------------------------------- figures
-def eval_curves(runs: list[Run]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Episodes, mean and std over seeds of the evaluation return (common episodes)."""
+def ci_over_seeds(values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Mean over seeds (axis 0) and its 95 % bootstrap interval, per column."""
+    cols = [bootstrap_ci(values[:, j], n_boot=2000) for j in range(values.shape[1])]
+    return tuple(np.array(c) for c in zip(*cols, strict=True))
+
+
+def eval_curves(runs: list[Run]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Episodes, mean and 95 % bootstrap CI over seeds of the evaluation return, at the
+    episodes every run evaluated."""
     common = sorted(set.intersection(*[{r["episode"] for r in run.evals} for run in runs]))
     vals = np.array([[next(r["return"] for r in run.evals if r["episode"] == e)
                       for e in common] for run in runs])
-    return np.array(common), vals.mean(0), vals.std(0)
+    return (np.array(common), *ci_over_seeds(vals))
 
 
-def best_pg(runs: list[Run]) -> tuple[np.ndarray, np.ndarray]:
-    curves = np.array([run.best_eval["pg_curve"] for run in runs])
-    return curves.mean(0), curves.std(0)
+def best_pg(runs: list[Run]) -> np.ndarray:
+    """[seeds, N] P_g curves of each run's best validation evaluation."""
+    return np.array([run.best_eval["pg_curve"] for run in runs])
 
 
-def fig3(by_mode: dict[str, list[Run]], path: Path) -> None:
+_BAND = "shaded: 95 % bootstrap CI over seeds"
+
+
+def _band_handle():
+    from matplotlib.patches import Patch
+
+    return Patch(facecolor="0.5", alpha=0.25, lw=0)
+
+
+def fig3(by_mode: dict[str, list[Run]], path: Path) -> list[Path]:
+    """Validation return against training episode, mean and 95 % CI over seeds. The
+    penalty mode, whose collisions cost λ_c each, gets a panel (and scale) of its own
+    so it does not flatten the masking modes into one line."""
     import matplotlib.pyplot as plt
 
-    from uabs_rl.plots import COLORS
+    from uabs_rl.plots import COLUMN_IN, MODE_COLORS, PAPER_RC, TEXT_IN, save_figure
 
-    fig, ax = plt.subplots(figsize=(7, 4.2), dpi=110)
-    for i, (mode, runs) in enumerate(by_mode.items()):
-        x, mean, std = eval_curves(runs)
-        c = COLORS[i % len(COLORS)]
-        ax.plot(x, mean, color=c, label=f"{mode} ({len(runs)} seeds)")
-        ax.fill_between(x, mean - std, mean + std, color=c, alpha=0.2)
-    ax.set_xlabel("training episode")
-    ax.set_ylabel("evaluation cumulative reward R")
-    ax.set_title("Fig. 3: greedy policy on validation traces (mean ± std over seeds)")
-    ax.grid(alpha=0.3)
-    ax.legend()
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
+    groups = [[m for m in by_mode if m != "penalty"], [m for m in by_mode if m == "penalty"]]
+    groups = [g for g in groups if g]
+    with plt.rc_context(PAPER_RC):
+        fig, axes = plt.subplots(1, len(groups), squeeze=False,
+                                 figsize=(TEXT_IN if len(groups) > 1 else COLUMN_IN, 2.4))
+        for ax, modes in zip(axes[0], groups, strict=True):
+            for mode in modes:
+                x, mean, lo, hi = eval_curves(by_mode[mode])
+                c = MODE_COLORS.get(mode, "0.3")
+                ax.plot(x, mean, color=c, label=f"{mode} ({len(by_mode[mode])} seeds)")
+                ax.fill_between(x, lo, hi, color=c, alpha=0.2, lw=0)
+            ax.set_xlabel("training episode")
+            ax.set_title(" and ".join(modes) + (" masking" if modes != ["penalty"] else
+                                                 " (reward penalties)"))
+            ax.grid(alpha=0.3)
+        axes[0][0].set_ylabel("validation return R")
+        handles = [h for ax in axes[0] for h in ax.get_legend_handles_labels()[0]]
+        labels = [lab for ax in axes[0] for lab in ax.get_legend_handles_labels()[1]]
+        fig.legend([*handles, _band_handle()], [*labels, _BAND], loc="upper center",
+                   bbox_to_anchor=(0.5, 0.0), ncol=len(labels) + 1, frameon=False)
+        fig.tight_layout()
+        files = save_figure(fig, path)
+        plt.close(fig)
+    return files
 
 
-def fig4(by_mode: dict[str, list[Run]], baselines: dict[str, dict], path: Path,
-         pg: dict[str, tuple[np.ndarray, np.ndarray]] | None = None) -> None:
-    """P_g(N̂_s) per mode, mean ± std over seeds: on the test traces when ``pg`` holds
-    those curves, else from each run's best validation evaluation."""
+def fig4(by_mode: dict[str, list[Run]], baselines: dict[str, dict[str, dict]], path: Path,
+         pg: dict[str, np.ndarray] | None = None) -> list[Path]:
+    """P_g(N̂_s), one panel per masking mode: the learned policy (mean and 95 % CI over
+    seeds; on the test traces when ``pg`` holds those curves, else each run's best
+    validation evaluation) beside the baselines under the same masks
+    (``baselines[mode][name]``)."""
     import matplotlib.pyplot as plt
 
-    from uabs_rl.plots import pg_curve_figure
+    from uabs_rl.plots import (
+        BASELINE_STYLES,
+        COLUMN_IN,
+        MODE_COLORS,
+        PAPER_RC,
+        TEXT_IN,
+        save_figure,
+    )
 
-    curves, bands = {}, {}
-    for mode, runs in by_mode.items():
-        curves[f"{mode} ({len(runs)} seeds)"], bands[f"{mode} ({len(runs)} seeds)"] = \
-            pg[mode] if pg else best_pg(runs)
-    title = ("Fig. 4: satisfied users, best.pt on the test traces" if pg else
-             "Fig. 4: satisfied users, best validation evaluation of each run")
-    fig = pg_curve_figure(curves, title, bands)
-    ax = fig.axes[0]
-    for name, rec in baselines.items():
-        x = np.arange(1, len(rec["pg_curve"]) + 1)
-        ax.plot(x, 100 * np.asarray(rec["pg_curve"]), ls="--", lw=1, marker=".",
-                label=f"baseline: {name}")
-    ax.legend(fontsize=8)
-    fig.savefig(path)
-    plt.close(fig)
+    modes = list(by_mode)
+    with plt.rc_context(PAPER_RC):
+        fig, axes = plt.subplots(1, len(modes), squeeze=False, sharey=True,
+                                 figsize=(TEXT_IN if len(modes) > 1 else COLUMN_IN, 2.4))
+        for ax, mode in zip(axes[0], modes, strict=True):
+            curves = pg[mode] if pg else best_pg(by_mode[mode])
+            mean, lo, hi = ci_over_seeds(100 * curves)
+            x = np.arange(1, len(mean) + 1)
+            c = MODE_COLORS.get(mode, "0.3")
+            ax.plot(x, mean, color=c, marker="o", label=f"learned, {mode} masks")
+            ax.fill_between(x, lo, hi, color=c, alpha=0.2, lw=0)
+            for name, rec in baselines.get(mode, {}).items():
+                ax.plot(x, 100 * np.asarray(rec["pg_curve"]), lw=1,
+                        label=f"{name} baseline", **BASELINE_STYLES[name])
+            ax.set_title(f"{mode} masks ({len(by_mode[mode])} seeds)" if mode != "penalty"
+                         else f"penalty ({len(by_mode[mode])} seeds)")
+            ax.set_xlabel(r"$\hat{N}_s$ (served steps required per window)")
+            ax.set_xticks(x[::max(1, len(x) // 5)])
+            ax.grid(alpha=0.3)
+        axes[0][0].set_ylabel(r"$P_g$ (% satisfied users)")
+        seen: dict[str, object] = {}
+        for ax in axes[0]:
+            for h, lab in zip(*ax.get_legend_handles_labels(), strict=True):
+                seen.setdefault(lab, h)
+        order = sorted(seen, key=lambda lab: not lab.startswith("learned"))  # learned first
+        handles = [seen[lab] for lab in order] + [_band_handle()]
+        fig.legend(handles, [*order, _BAND], loc="upper center", bbox_to_anchor=(0.5, 0.0),
+                   ncol=min(len(handles), 4), frameon=False)
+        fig.tight_layout()
+        files = save_figure(fig, path)
+        plt.close(fig)
+    return files
 
 
 # ----------------------------------------------------------------------------- baselines
@@ -240,13 +297,19 @@ def baselines_on_test(by_mode: dict[str, list[Run]], tests: dict[Path, dict]) ->
 
 
 def learned_pg_on_test(by_mode: dict[str, list[Run]],
-            tests: dict[Path, dict]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Mean and std over seeds of the learned P_g(N̂_s) curve on the test traces."""
-    out = {}
-    for mode, runs in by_mode.items():
-        c = np.array([tests[run.path]["learned"]["pg_curve"] for run in runs])
-        out[mode] = (c.mean(0), c.std(0))
-    return out
+                       tests: dict[Path, dict]) -> dict[str, np.ndarray]:
+    """[seeds, N] learned P_g(N̂_s) curves on the test traces, per mode."""
+    return {mode: np.array([tests[run.path]["learned"]["pg_curve"] for run in runs])
+            for mode, runs in by_mode.items()}
+
+
+def baselines_by_mode(by_mode: dict[str, list[Run]],
+                      tests: dict[Path, dict]) -> dict[str, dict[str, dict]]:
+    """``{mode: {baseline: test record}}`` (the lowest seed's run, as
+    :func:`baselines_on_test`)."""
+    return {mode: {name: tests[min(runs, key=lambda r: r.seed).path][name]
+                   for name in ("random", "greedy", "oracle")}
+            for mode, runs in by_mode.items()}
 
 
 # ----------------------------------------------------------------------------- test set
@@ -297,6 +360,29 @@ def learned_vs_baselines_markdown(rows: list[dict[str, Any]]) -> str:
 
 
 # ----------------------------------------------------------------------------- summary
+# below these the verdicts are not worth much: validation curves of the paper's protocol
+# level off after about 100 episodes (docs/results/learning.md), and a CI over fewer
+# than 3 seeds says little
+MIN_EPISODES, MIN_SEEDS = 200, 3
+
+
+def short_run_warning(by_mode: dict[str, list[Run]]) -> str | None:
+    """A warning when the sweep is too short or too small for its verdicts, else None."""
+    episodes = min(run.train[-1]["episode"] if run.train else 0
+                   for runs in by_mode.values() for run in runs)
+    seeds = min(len(runs) for runs in by_mode.values())
+    problems = []
+    if episodes < MIN_EPISODES:
+        problems.append(f"the shortest run trained {episodes} episodes (< {MIN_EPISODES}; "
+                        f"the paper's protocol trains 1000)")
+    if seeds < MIN_SEEDS:
+        problems.append(f"a mode has {seeds} seed{'s' if seeds != 1 else ''} (< {MIN_SEEDS})")
+    if not problems:
+        return None
+    return ("WARNING: " + "; ".join(problems) + ". The verdicts below are not evidence "
+            "for or against the paper's claims; run the full protocol for that.")
+
+
 def summary(by_mode: dict[str, list[Run]], rows: list[dict], baselines: dict[str, dict],
             command: str, bound: float, nhat: int,
             tests: dict[Path, dict] | None = None) -> str:
@@ -305,13 +391,16 @@ def summary(by_mode: dict[str, list[Run]], rows: list[dict], baselines: dict[str
              for m, runs in by_mode.items()}
     best = {m: float(np.mean([run.best_eval["return"] for run in runs]))
             for m, runs in by_mode.items()}
-    pg = ({m: v[0] for m, v in learned_pg_on_test(by_mode, tests).items()} if tests else
-          {m: best_pg(runs)[0] for m, runs in by_mode.items()})
+    pg = ({m: v.mean(0) for m, v in learned_pg_on_test(by_mode, tests).items()} if tests
+          else {m: best_pg(runs).mean(0) for m, runs in by_mode.items()})
     where = ("best.pt on the test traces" if tests else "best validation evaluation")
     lines = ["# Sweep summary", "", f"Produced by: `{command}`", "",
              "Runs: " + ", ".join(f"{m}: {len(v)} seeds"
                                   + ("" if all(x.complete for x in v) else " (incomplete)")
                                   for m, v in by_mode.items()), ""]
+    warning = short_run_warning(by_mode)
+    if warning:
+        lines += [f"**{warning}**", ""]
 
     def verdict(ok: bool | None) -> str:
         return "n/a (mode missing)" if ok is None else ("supported" if ok else "NOT supported")
@@ -381,7 +470,7 @@ def build_report(root: Path, out: Path, with_baselines: bool = True,
         w = csv.DictWriter(f, fieldnames=list(rows[0]))
         w.writeheader()
         w.writerows(rows)
-    fig3(by_mode, out / "fig3_eval_return.png")
+    fig3(by_mode, out / "fig3_eval_return")
     tests = evaluate_on_test(runs) if with_baselines else {}
     baselines = baselines_on_test(by_mode, tests) if tests else {}
     if baselines:
@@ -392,7 +481,7 @@ def build_report(root: Path, out: Path, with_baselines: bool = True,
             w.writerow(keys)
             for name, b in baselines.items():
                 w.writerow([name] + [b[k] for k in keys[1:]])
-    fig4(by_mode, baselines, out / "fig4_pg.png",
+    fig4(by_mode, baselines_by_mode(by_mode, tests) if tests else {}, out / "fig4_pg",
          learned_pg_on_test(by_mode, tests) if tests else None)
     lvb = learned_vs_baselines(runs, tests) if tests else []
     if lvb:
@@ -431,9 +520,12 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     out = args.out or args.root / "report"
     cmd = "uabs-report " + " ".join(sys.argv[1:] if argv is None else argv)
-    build_report(args.root, out, args.baselines, cmd)
+    res = build_report(args.root, out, args.baselines, cmd)
     print((out / "summary.md").read_text())
-    print(f"wrote {out}")
+    warning = short_run_warning(res["by_mode"])
+    if warning:
+        print(warning, file=sys.stderr)
+    print(f"wrote {out} (figures as PNG and PDF)")
     return 0
 
 
