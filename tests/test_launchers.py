@@ -1,4 +1,5 @@
-"""Sweeps through Hydra launchers: a local-parallel multirun, and the SLURM config."""
+"""Sweeps through Hydra launchers: a local-parallel multirun, the submitit launcher run
+for real through its local executor (slow), and the SLURM config."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ import json
 import subprocess
 import sys
 
+import pytest
 from hydra import compose, initialize_config_dir
 from hydra.utils import get_class
 
@@ -37,3 +39,25 @@ def test_slurm_launcher_config_composes():
     assert launcher.partition == "gpu" and launcher.gpus_per_node == 1
     assert launcher.cpus_per_task == 2 and launcher.timeout_min == 120
     assert launcher.submitit_folder.endswith(".submitit/%j")
+
+
+@pytest.mark.slow
+def test_submitit_local_multirun(trace_cache, tmp_path):
+    """The cluster path for real: Hydra's submitit launcher with its local executor
+    (``hydra/launcher=submitit_local``) submits, runs and collects two jobs; SLURM
+    (``hydra/launcher=slurm``) differs from it only by the executor."""
+    proc = subprocess.run(
+        [sys.executable, "-m", "uabs_rl.train", "-m", "hydra/launcher=submitit_local",
+         "hydra.launcher.timeout_min=10", "hydra.launcher.cpus_per_task=1",
+         "experiment=smoke", "train.threads=1", "train.logger=none",
+         "train.trajectory_images=false", f"traces.cache_dir={trace_cache}",
+         "train.progress=false", "seed=0,1", f"hydra.sweep.dir={tmp_path}"],
+        capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    for seed in (0, 1):
+        run_dir = tmp_path / f"experiment=smoke,seed={seed}"
+        recs = [json.loads(x) for x in (run_dir / "metrics.jsonl").read_text().splitlines()]
+        assert [r["kind"] for r in recs].count("train") == 6
+        assert (run_dir / "checkpoints" / "best.pt").is_file()
+    # submitit's own records of the jobs: one result pickle per job
+    assert len(list((tmp_path / ".submitit").rglob("*_result.pkl"))) == 2
