@@ -163,3 +163,23 @@ def test_learned_vs_baselines_on_test_traces(sweep, report):
         assert float(r["diff"]) == pytest.approx(full["learned"] - full["baseline_value"],
                                                  abs=1e-6)
         assert float(r["ci_low"]) <= float(r["diff"]) <= float(r["ci_high"])
+
+
+def test_report_refuses_runs_of_different_experiments(sweep, tmp_path):
+    """Seeds of another scenario or preset must not be averaged with the sweep's."""
+    import shutil
+
+    import torch
+
+    from uabs_rl.report import find_runs
+
+    root = tmp_path / "mixed"
+    for name in ("masking=rank,seed=0", "masking=rank,seed=1"):
+        shutil.copytree(sweep / name, root / name)
+    ckpt = root / "masking=rank,seed=1" / "checkpoints" / "last.pt"
+    state = torch.load(ckpt, weights_only=True)
+    state["config"]["scenario"]["name"] = "elsewhere"
+    torch.save(state, ckpt)
+    with pytest.raises(SystemExit, match=r"not one experiment.*scenario\.name"):
+        find_runs(root)
+    assert len(find_runs(sweep / "masking=rank,seed=0")) == 1  # a single run folder works

@@ -92,18 +92,18 @@ def config_from_checkpoint(state: dict) -> RunConfig:
     return OmegaConf.to_object(merged)
 
 
-def _flatten(d: Any, prefix: str = "") -> dict[str, Any]:
+def flatten(d: Any, prefix: str = "") -> dict[str, Any]:
     if isinstance(d, dict):
         out: dict[str, Any] = {}
         for k, v in d.items():
-            out.update(_flatten(v, f"{prefix}{k}."))
+            out.update(flatten(v, f"{prefix}{k}."))
         return out
     return {prefix[:-1]: d}
 
 
 def config_differences(saved: dict, current: dict) -> list[str]:
     """Settings of ``COMPAT_KEYS`` that differ between a checkpoint and a config."""
-    a, b = _flatten(saved), _flatten(current)
+    a, b = flatten(saved), flatten(current)
     keys = sorted(k for k in set(a) | set(b) if any(
         k == c or k.startswith(c + ".") for c in COMPAT_KEYS) and not k.endswith("cache_dir")
         and not k.startswith("traces.test."))  # test traces never touch a training run

@@ -97,7 +97,39 @@ def find_runs(root: Path) -> list[Run]:
                         [r for r in recs if r["kind"] == "eval"], cfg))
     if not runs:
         raise SystemExit(f"error: no run (metrics.jsonl + checkpoints/last.pt) under {root}")
+    check_one_experiment(runs, root)
     return runs
+
+
+# settings that may differ between the runs of one report: what a sweep varies (seed,
+# masking mode) and what does not change results
+SWEPT_OR_NEUTRAL = ("seed", "masking.mode", "resume", "device", "train.progress",
+                    "train.logger", "train.tensorboard", "train.threads", "train.compile",
+                    "train.trajectory_images", "train.checkpoint_buffer", "traces.cache_dir",
+                    "traces.workers")
+
+
+def check_one_experiment(runs: list[Run], root: Path) -> None:
+    """Refuse a folder whose runs differ in other settings (another scenario, preset or
+    length): their seeds would be averaged as if they were one experiment."""
+    from uabs_rl.checkpoint import flatten
+
+    def key(run: Run) -> dict[str, Any]:
+        return {k: v for k, v in flatten(run.config).items()
+                if not any(k == s or k.startswith(s + ".") for s in SWEPT_OR_NEUTRAL)}
+
+    ref = key(runs[0])
+    for run in runs[1:]:
+        other = key(run)
+        diff = sorted(k for k in set(ref) | set(other) if ref.get(k) != other.get(k))
+        if diff:
+            shown = ", ".join(f"{k} ({ref.get(k)!r} vs {other.get(k)!r})" for k in diff[:4])
+            raise SystemExit(
+                f"error: the runs under {root} are not one experiment: {runs[0].path} and "
+                f"{run.path} differ in {shown}"
+                f"{f' and {len(diff) - 4} more' if len(diff) > 4 else ''}. Report "
+                f"one sweep (or run folder) at a time: pass its folder, or move the other "
+                f"runs out.")
 
 
 # ----------------------------------------------------------------------------- table 2
@@ -165,6 +197,8 @@ def table2_markdown(rows: list[dict[str, Any]]) -> str:
 def ci_over_seeds(values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Mean over seeds (axis 0) and its 95 % bootstrap interval, per column."""
     cols = [bootstrap_ci(values[:, j], n_boot=2000) for j in range(values.shape[1])]
+    if not cols:  # no common column (a run that has not evaluated yet)
+        return np.zeros(0), np.zeros(0), np.zeros(0)
     return tuple(np.array(c) for c in zip(*cols, strict=True))
 
 
