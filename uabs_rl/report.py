@@ -413,7 +413,7 @@ def short_run_warning(by_mode: dict[str, list[Run]]) -> str | None:
         problems.append(f"a mode has {seeds} seed{'s' if seeds != 1 else ''} (< {MIN_SEEDS})")
     if not problems:
         return None
-    return ("WARNING: " + "; ".join(problems) + ". The verdicts below are not evidence "
+    return ("WARNING: " + "; ".join(problems) + ". This report's verdicts are not evidence "
             "for or against the paper's claims; run the full protocol for that.")
 
 
