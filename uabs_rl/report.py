@@ -219,6 +219,10 @@ def best_pg(runs: list[Run]) -> np.ndarray:
 _BAND = "shaded: 95 % bootstrap CI over seeds"
 
 
+def _seeds(runs: list[Run]) -> str:
+    return f"{len(runs)} seed{'s' if len(runs) != 1 else ''}"
+
+
 def _band_handle():
     from matplotlib.patches import Patch
 
@@ -230,6 +234,7 @@ def fig3(by_mode: dict[str, list[Run]], path: Path) -> list[Path]:
     penalty mode, whose collisions cost λ_c each, gets a panel (and scale) of its own
     so it does not flatten the masking modes into one line."""
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import MaxNLocator
 
     from uabs_rl.plots import COLUMN_IN, MODE_COLORS, PAPER_RC, TEXT_IN, save_figure
 
@@ -242,9 +247,10 @@ def fig3(by_mode: dict[str, list[Run]], path: Path) -> list[Path]:
             for mode in modes:
                 x, mean, lo, hi = eval_curves(by_mode[mode])
                 c = MODE_COLORS.get(mode, "0.3")
-                ax.plot(x, mean, color=c, label=f"{mode} ({len(by_mode[mode])} seeds)")
+                ax.plot(x, mean, color=c, label=f"{mode} ({_seeds(by_mode[mode])})")
                 ax.fill_between(x, lo, hi, color=c, alpha=0.2, lw=0)
             ax.set_xlabel("training episode")
+            ax.xaxis.set_major_locator(MaxNLocator(integer=True))
             ax.set_title(" and ".join(modes) + (" masking" if modes != ["penalty"] else
                                                  " (reward penalties)"))
             ax.grid(alpha=0.3)
@@ -252,7 +258,8 @@ def fig3(by_mode: dict[str, list[Run]], path: Path) -> list[Path]:
         handles = [h for ax in axes[0] for h in ax.get_legend_handles_labels()[0]]
         labels = [lab for ax in axes[0] for lab in ax.get_legend_handles_labels()[1]]
         fig.legend([*handles, _band_handle()], [*labels, _BAND], loc="upper center",
-                   bbox_to_anchor=(0.5, 0.0), ncol=len(labels) + 1, frameon=False)
+                   bbox_to_anchor=(0.5, 0.0), ncol=len(labels) + 1 if len(groups) > 1 else 2,
+                   frameon=False)
         fig.tight_layout()
         files = save_figure(fig, path)
         plt.close(fig)
@@ -290,8 +297,8 @@ def fig4(by_mode: dict[str, list[Run]], baselines: dict[str, dict[str, dict]], p
             for name, rec in baselines.get(mode, {}).items():
                 ax.plot(x, 100 * np.asarray(rec["pg_curve"]), lw=1,
                         label=f"{name} baseline", **BASELINE_STYLES[name])
-            ax.set_title(f"{mode} masks ({len(by_mode[mode])} seeds)" if mode != "penalty"
-                         else f"penalty ({len(by_mode[mode])} seeds)")
+            ax.set_title(f"{mode} masks ({_seeds(by_mode[mode])})" if mode != "penalty"
+                         else f"penalty ({_seeds(by_mode[mode])})")
             ax.set_xlabel(r"$\hat{N}_s$ (served steps required per window)")
             ax.set_xticks(x[::max(1, len(x) // 5)])
             ax.grid(alpha=0.3)
@@ -303,7 +310,7 @@ def fig4(by_mode: dict[str, list[Run]], baselines: dict[str, dict[str, dict]], p
         order = sorted(seen, key=lambda lab: not lab.startswith("learned"))  # learned first
         handles = [seen[lab] for lab in order] + [_band_handle()]
         fig.legend(handles, [*order, _BAND], loc="upper center", bbox_to_anchor=(0.5, 0.0),
-                   ncol=min(len(handles), 4), frameon=False)
+                   ncol=min(len(handles), 4 if len(modes) > 1 else 2), frameon=False)
         fig.tight_layout()
         files = save_figure(fig, path)
         plt.close(fig)
