@@ -177,3 +177,42 @@ def test_user_scenario_with_route_file(tmp_path, trace_cache):
     runs = int(p[0].sum() + (p[1:] - p[:-1] == 1).sum())
     assert runs == 25
     assert ts.max_vehicles < 25
+
+
+def test_net_file_is_built_from_its_netgcfg(tmp_path, monkeypatch):
+    """A network kept in the repository as its netgenerate config (sumo/city) is built
+    on first use, next to the config, and then found as any network."""
+    from uabs_rl.traces import net_file
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "g").mkdir()
+    (tmp_path / "g" / "tiny.netgcfg").write_text(
+        '<netgenerateConfiguration><grid_network><grid value="true"/>'
+        '<grid.number value="3"/><grid.length value="50"/></grid_network>'
+        '</netgenerateConfiguration>')
+    built = net_file("g/tiny.net.xml")
+    assert built == (tmp_path / "g" / "tiny.net.xml").resolve() and built.stat().st_size > 1000
+    assert [p.name for p in (tmp_path / "g").iterdir() if p.name.startswith(".")] == []
+    mtime = built.stat().st_mtime_ns
+    assert net_file("g/tiny.net.xml") == built and built.stat().st_mtime_ns == mtime
+    (tmp_path / "g" / "bad.netgcfg").write_text("<netgenerateConfiguration><nonsense/>")
+    with pytest.raises(ConfigError, match="netgenerate failed"):
+        net_file("g/bad.net.xml")
+    assert not (tmp_path / "g" / "bad.net.xml").exists()
+    with pytest.raises(ConfigError, match="file not found"):
+        net_file("g/absent.net.xml")
+
+
+def test_city_scenario_holds_its_fleet():
+    """scenario=city: 2 km x 1 km, 2000 vehicles, 25 UABS, traces sized for it; the
+    recoverable masks' start spacing fits 30 UABS and more."""
+    from uabs_rl.geometry import lattice_packing
+    from uabs_rl.params import EnvParams
+
+    cfg = compose_cfg("config", ["scenario=city"])
+    sc = cfg.scenario
+    assert (sc.name, sc.n_uabs, sc.sumo.fleet_size) == ("city", 25, 2000)
+    assert (sc.area.width, sc.area.height) == (2004, 1004)
+    assert cfg.traces.train.n_sims == 2 and cfg.traces.train.duration_s == 900
+    p = EnvParams.from_config(sc, cfg.channel)
+    assert lattice_packing(p, p.d_th + 2 * sc.speed * sc.dt).shape[0] >= 30

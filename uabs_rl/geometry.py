@@ -114,17 +114,24 @@ class Geometry:
         return d.flatten(1).amin(-1)
 
 
+PACKING_BUDGET = 500_000_000  # restarts x lattice points², about 2 s of CPU
+
+
 @lru_cache(maxsize=32)
 def lattice_packing(p: EnvParams, spacing: float, restarts: int = 2000) -> torch.Tensor:
     """[K, 2] (CPU) the largest set of lattice points found with every pair at least
     ``spacing`` apart: greedy packings over ``restarts`` seeded random orders (the first
     in lattice order), run side by side. A lower bound on the largest such fleet;
-    deterministic for given params, and cached (the train and eval envs share it)."""
+    deterministic for given params, and cached (the train and eval envs share it).
+    The work grows as restarts x points²: on large areas (a city of thousands of
+    lattice points, which holds far more UABS than a fleet) fewer restarts are run, at
+    most PACKING_BUDGET / points² (the paper's area keeps all 2000)."""
     geo = Geometry(p, torch.device("cpu"))
     n = geo.lattice_n.tolist()
     pts = torch.cartesian_prod(torch.arange(n[0]), torch.arange(n[1])).float()
     xy = geo.lattice_point(pts[:, 0], pts[:, 1])
     p_n = xy.shape[0]
+    restarts = min(restarts, max(8, PACKING_BUDGET // (p_n * p_n)))
     close = torch.cdist(xy.double(), xy.double()) < spacing - 1e-9  # [P, P]
     gen = torch.Generator().manual_seed(0)
     order = torch.rand(restarts, p_n, generator=gen).argsort(-1)

@@ -19,6 +19,7 @@ import json
 import logging
 import os
 import pickle
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -33,6 +34,7 @@ import torch
 from tqdm.auto import tqdm
 
 from uabs_rl.config import (
+    PROJECT_ROOT,
     TRACE_SPLITS,
     ConfigError,
     ScenarioConfig,
@@ -99,8 +101,39 @@ def scenario_inputs(scenario: ScenarioConfig) -> dict[str, Any]:
                 "net_file": None, "route_files": []}
     routes = [resolve_path(r, f"scenario.sumo.route_files[{i}]")
               for i, r in enumerate(sumo.route_files)]
-    return {"sumocfg": None, "net_file": resolve_path(sumo.net_file, "scenario.sumo.net_file"),
-            "route_files": routes}
+    return {"sumocfg": None, "net_file": net_file(sumo.net_file), "route_files": routes}
+
+
+def net_file(value: str) -> Path:
+    """The network file ``scenario.sumo.net_file``; a ``<name>.net.xml`` that does not
+    exist yet but has its ``<name>.netgcfg`` beside it (a network too big to keep in
+    the repository, such as sumo/city) is built with netgenerate first."""
+    try:
+        return resolve_path(value, "scenario.sumo.net_file")
+    except ConfigError:
+        if not value.endswith(".net.xml"):
+            raise
+        cfg_name = Path(value).name[: -len(".net.xml")] + ".netgcfg"
+        for base in (Path.cwd(), PROJECT_ROOT):
+            source = (base / value).parent / cfg_name
+            if source.is_file():
+                break
+        else:
+            raise
+    target = source.parent / Path(value).name
+    exe = shutil.which("netgenerate") or str(Path(sys.executable).parent / "netgenerate")
+    log.info("building %s from %s with netgenerate", target, source.name)
+    tmp = target.with_name(f".tmp{os.getpid()}.{target.name}")  # no half-written network
+    proc = subprocess.run([exe, "-c", source.name, "--output-file", tmp.name],
+                          cwd=source.parent, capture_output=True, text=True)
+    if proc.returncode == 0 and tmp.is_file():
+        os.replace(tmp, target)
+    else:
+        tmp.unlink(missing_ok=True)
+        tail = (proc.stderr or proc.stdout).strip().splitlines()[-3:]
+        raise ConfigError(f"scenario.sumo.net_file: building {target} from {source} with "
+                          f"netgenerate failed: {' | '.join(tail)}. Run it by hand to see why.")
+    return target.resolve()
 
 
 def split_key(scenario: ScenarioConfig, split_cfg: SplitConfig,
