@@ -158,7 +158,9 @@ def test_learned_vs_baselines_on_test_traces(sweep, report):
                              "diff", "ci_low", "ci_high", "n_seeds"]
     # 2 modes x 3 metrics x 3 baselines, 2 seeds each, smoke runs: recoverable, paper obs
     assert len(rows) == 18 and {r["n_seeds"] for r in rows} == {"2"}
-    assert {r["config"] for r in rows} == {"paper"}
+    # the smoke preset's network and learning settings differ from the defaults: named
+    (config,) = {r["config"] for r in rows}
+    assert config.startswith("paper ") and "algo.hidden=[32, 32]" in config
     for r, full in zip(rows, res["learned_vs_baselines"], strict=True):
         assert float(r["diff"]) == pytest.approx(full["learned"] - full["baseline_value"],
                                                  abs=1e-6)

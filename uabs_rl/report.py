@@ -25,7 +25,7 @@ import argparse
 import csv
 import json
 import sys
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 from uabs_rl.channel import coverage_bound
-from uabs_rl.config import MaskingMode
+from uabs_rl.config import AlgoConfig, MaskingMode
 from uabs_rl.stats import bootstrap_ci
 
 MODES = tuple(m.value for m in MaskingMode)
@@ -52,10 +52,15 @@ class Run:
     @property
     def label(self) -> str:
         """``paper`` or ``lookahead`` (the observation), ``-literal`` for the paper's
-        literal masks (runs written before masks became recoverable are literal)."""
+        literal masks (runs written before masks became recoverable are literal), then
+        any learning hyper-parameter that differs from the defaults
+        (``lookahead algo.lr=0.0003``)."""
         label = "lookahead" if self.config["scenario"].get("lookahead_obs") else "paper"
         literal = not self.config["masking"].get("recoverable")  # absent: written before
-        return label + ("-literal" if literal else "")
+        defaults = asdict(AlgoConfig())
+        tuned = [f"algo.{k}={v}" for k, v in self.config.get("algo", {}).items()
+                 if k in defaults and k != "loss" and v != defaults[k]]
+        return " ".join([label + ("-literal" if literal else ""), *tuned])
 
     @property
     def complete(self) -> bool:
