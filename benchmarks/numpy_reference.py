@@ -182,17 +182,22 @@ def main() -> None:
             return time.perf_counter() - t0
         return run
 
-    def env_episode():
-        td = env.reset()
-        t0 = time.perf_counter()
-        for a in actions:
-            td = env.step(td.set(ACTION, a))["next"]
-        return time.perf_counter() - t0
+    def env_episode(e: UABSEnv):
+        def run():
+            td = e.reset()
+            t0 = time.perf_counter()
+            for a in actions:
+                td = e.step(td.set(ACTION, a))["next"]
+            return time.perf_counter() - t0
+        return run
 
     variants = {"numpy": numpy_episode, "step math, eager": raw_episode(env.math.step)}
     if compiled is not None:
         variants["step math, compiled"] = raw_episode(compiled)
-    variants["env.step (TensorDict)"] = env_episode
+    variants["env.step (TensorDict)"] = env_episode(env)
+    if compiled is not None:  # what training runs with train.compile=true
+        variants["env.step, compiled math"] = env_episode(
+            UABSEnv(scenario, channel, traces, n_envs=1, seed=0, compile_step=True))
     best = dict.fromkeys(variants, float("inf"))
     for fn in variants.values():  # warm-up (and compilation)
         fn()
