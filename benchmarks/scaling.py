@@ -3,6 +3,8 @@ cost against fleet size M and vehicle count |G|.
 
     python benchmarks/scaling.py                  # prints three tables, saves scaling.png
     python benchmarks/scaling.py --device cuda --out scaling_cuda.png
+    python benchmarks/scaling.py --law-only --out docs/cost_law.png   # table 3 only,
+                                                   # plotted against M·|G|
 
 Vehicle counts beyond the cached SUMO traces use synthetic traces (vehicles on a random
 walk over the area): the env's cost depends on how many there are, not on where.
@@ -81,7 +83,14 @@ def main() -> None:
     ap.add_argument("--train-n-envs", type=int, nargs="+", default=[1, 4, 16])
     ap.add_argument("--fleets", type=int, nargs="+", default=[3, 10, 30])
     ap.add_argument("--vehicles", type=int, nargs="+", default=[80, 800, 8000])
+    ap.add_argument("--law-only", action="store_true",
+                    help="only table 3, plotted as cost per step against M·|G|")
     args = ap.parse_args()
+    if args.law_only:
+        grid = _cost_table(args)
+        _plot_law(grid, args.vehicles, args.out)
+        print(f"\nsaved {args.out}")
+        return
     scenario, channel = ScenarioConfig(), ChannelConfig()
     traces = get_traces(scenario, TracesConfig(), "train", verbose=False)
 
@@ -100,6 +109,12 @@ def main() -> None:
         sps, ups = training_rate(n, args.device, max(1, 8 // n))
         print(f"{n:>7} {sps:>12.0f} {ups:>10.0f}")
 
+    grid = _cost_table(args)
+    _plot(env_rows, grid, args.vehicles, args.out)
+    print(f"\nsaved {args.out}")
+
+
+def _cost_table(args) -> dict[int, list[float]]:
     print("\n3. environment cost (ms per batched step, n_envs=64) against M and |G|")
     print(f"{'M, |G|=':>8} " + " ".join(f"{v:>9}" for v in args.vehicles))
     grid = {}
@@ -107,8 +122,39 @@ def main() -> None:
         row = [step_cost(m, v, 64, args.device) for v in args.vehicles]
         grid[m] = row
         print(f"{m:>8} " + " ".join(f"{c:>9.2f}" for c in row))
-    _plot(env_rows, grid, args.vehicles, args.out)
-    print(f"\nsaved {args.out}")
+    return grid
+
+
+def _plot_law(grid: dict[int, list[float]], vehicles: list[int], path: Path) -> None:
+    """Cost per env step against the links per env M·|G|, with the proportional line
+    through the largest point (the law the cost tends to)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from uabs_rl.plots import COLUMN_IN, PAPER_RC, save_figure
+
+    with plt.rc_context(PAPER_RC):
+        fig, ax = plt.subplots(figsize=(COLUMN_IN, 2.6))
+        pts = []
+        for m, row in grid.items():
+            x = [m * v for v in vehicles]
+            y = [1000 * c / 64 for c in row]  # µs per env step
+            pts += list(zip(x, y, strict=True))
+            ax.loglog(x, y, marker="o", ls="", label=f"M = {m}")
+        x_max, y_max = max(pts)
+        xs = np.array([min(x for x, _ in pts), x_max])
+        ax.loglog(xs, y_max * xs / x_max, color="0.4", ls="--", lw=1,
+                  label="proportional to M·|G|")
+        ax.set_xlabel("links per env step, M·|G|")
+        ax.set_ylabel("µs per env step")
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), frameon=False)
+        fig.tight_layout()
+        save_figure(fig, path)
+        plt.close(fig)
 
 
 def _plot(env_rows, grid, vehicles, path: Path) -> None:
