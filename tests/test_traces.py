@@ -214,5 +214,10 @@ def test_city_scenario_holds_its_fleet():
     assert (sc.name, sc.n_uabs, sc.sumo.fleet_size) == ("city", 25, 2000)
     assert (sc.area.width, sc.area.height) == (2004, 1004)
     assert cfg.traces.train.n_sims == 2 and cfg.traces.train.duration_s == 900
+    from uabs_rl.env import window_count
+
+    ev = cfg.traces.eval
+    steps = int(ev.duration_s / sc.dt)
+    assert window_count(ev.n_sims, steps, sc.episode_steps) >= cfg.train.eval_windows
     p = EnvParams.from_config(sc, cfg.channel)
     assert lattice_packing(p, p.d_th + 2 * sc.speed * sc.dt).shape[0] >= 30
