@@ -79,7 +79,9 @@ def main() -> None:
     episodes = args.episodes // cfg.train.n_envs * cfg.train.n_envs
     per_ep = wall / episodes
     full = cfg.train.episodes * per_ep
-    print(f"masking={cfg.masking.mode} loss={cfg.algo.loss} n_envs={cfg.train.n_envs} "
+    print(f"scenario={cfg.scenario.name} M={cfg.scenario.n_uabs} "
+          f"vehicles={tr.collector.env.base_env.veh_present.shape[-1]} "
+          f"masking={cfg.masking.mode} loss={cfg.algo.loss} n_envs={cfg.train.n_envs} "
           f"threads={torch.get_num_threads()} hidden={list(cfg.algo.hidden)} "
           f"batch={cfg.algo.batch_size}")
     print(f"{episodes} episodes, {updates} updates in {wall:.1f} s: "

@@ -116,3 +116,25 @@ def test_los_probability_height_term_stops_at_23_m():
     assert torch.equal(ch.los_probability(d, 30.0), ch.los_probability(d, 23.0))
     assert (ch.los_probability(d, 23.0) > ch.los_probability(d, 18.0)).all()
     assert torch.equal(ch.los_probability(d, 13.0), ch.los_probability(d, 1.5))
+
+
+@pytest.mark.parametrize("width, height, m, n_beams, spacing", [
+    (350.0, 170.0, 3, 9, 10.0), (350.0, 170.0, 6, 9, 5.0), (350.0, 170.0, 8, 16, 10.0),
+    (254.0, 254.0, 3, 4, 7.0)])
+def test_coverage_fraction_equals_the_direct_count(width, height, m, n_beams, spacing):
+    """The reach-limited count equals testing every sample point against every beam
+    centre, for UABS anywhere (edges and corners included) and on the 20 m lattice."""
+    r_b = 11.635100534062271
+    g = torch.Generator().manual_seed(m)
+    anywhere = torch.rand(60, 4, m, 2, generator=g) * torch.tensor([width, height])
+    lattice = (torch.randint(0, 9, (60, 4, m, 2), generator=g) * 20.0 + 5.0)
+    for pos in (anywhere, lattice, torch.zeros(1, m, 2)):
+        xs = torch.arange(spacing / 2, width, spacing)
+        ys = torch.arange(spacing / 2, height, spacing)
+        gx, gy = torch.meshgrid(xs, ys, indexing="ij")
+        pts = torch.stack([gx.flatten(), gy.flatten()], -1)
+        centres = (pos[..., :, None, :] + ch.beam_centres(r_b, n_beams)).flatten(-3, -2)
+        d2 = ((pts[:, None, :] - centres[..., None, :, :]) ** 2).sum(-1)
+        direct = (d2 <= r_b * r_b).any(-1).float().mean(-1)
+        assert torch.equal(ch.coverage_fraction(pos, r_b, n_beams, width, height, spacing),
+                           direct)

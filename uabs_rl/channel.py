@@ -129,15 +129,32 @@ def beam_cells(gx: torch.Tensor, gy: torch.Tensor, k: int,
 def coverage_fraction(pos: torch.Tensor, r_b: float, n_beams: int, width: float,
                       height: float, spacing: float = 5.0) -> torch.Tensor:
     """Share of the area under at least one beam footprint, ``pos [..., M, 2]`` -> ``[...]``,
-    measured on a grid of sample points ``spacing`` metres apart (cell centres)."""
-    xs = torch.arange(spacing / 2, width, spacing, device=pos.device)
-    ys = torch.arange(spacing / 2, height, spacing, device=pos.device)
-    gx, gy = torch.meshgrid(xs, ys, indexing="ij")
-    pts = torch.stack([gx.flatten(), gy.flatten()], -1)  # [P, 2]
-    centres = (pos[..., :, None, :] + beam_centres(r_b, n_beams).to(pos.device))  # [..., M, B, 2]
-    centres = centres.flatten(-3, -2)  # [..., M*B, 2]
-    d2 = ((pts[:, None, :] - centres[..., None, :, :]) ** 2).sum(-1)  # [..., P, M*B]
-    return (d2 <= r_b * r_b).any(-1).float().mean(-1)
+    measured on a grid of sample points ``spacing`` metres apart (cell centres).
+
+    Only the sample points within reach of each UABS (its k × k footprints span
+    ± k·r_b) are tested, each against its nearest beam centre, and the covered ones
+    are marked on the grid: the cost grows with M, not with the area (a city-size area
+    has tens of thousands of sample points)."""
+    nx = len(torch.arange(spacing / 2, width, spacing))
+    ny = len(torch.arange(spacing / 2, height, spacing))
+    k = beam_grid_side(n_beams)
+    w = math.ceil(k * r_b / spacing) + 1
+    offs = torch.arange(-w, w + 1, device=pos.device)
+    batch = pos.shape[:-2]
+    flat = pos.reshape(-1, pos.shape[-2], 2)  # [N, M, 2]
+    ix = torch.floor(flat[..., 0] / spacing).long()[..., None, None] + offs[:, None]
+    iy = torch.floor(flat[..., 1] / spacing).long()[..., None, None] + offs[None, :]
+    px = spacing / 2 + ix * spacing  # [N, M, 2w+1, 1]
+    py = spacing / 2 + iy * spacing  # [N, M, 1, 2w+1]
+    dx = (px - flat[..., 0, None, None]).expand(-1, -1, -1, 2 * w + 1)
+    dy = (py - flat[..., 1, None, None]).expand(-1, -1, 2 * w + 1, -1)
+    inside, _ = assign_beams(dx.clone(), dy.clone(), r_b, n_beams)
+    ixx, iyy = ix.expand_as(inside), iy.expand_as(inside)
+    inside &= (ixx >= 0) & (ixx < nx) & (iyy >= 0) & (iyy < ny)
+    idx = (ixx.clamp(0, nx - 1) * ny + iyy.clamp(0, ny - 1)).flatten(1)  # [N, M·(2w+1)²]
+    covered = torch.zeros(flat.shape[0], nx * ny, device=pos.device)
+    covered.scatter_reduce_(1, idx, inside.flatten(1).float(), "amax")
+    return covered.mean(-1).reshape(batch)
 
 
 def coverage_bound(n_uabs: int, n_beams: int, r_b: float, area_m2: float) -> float:
