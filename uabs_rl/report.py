@@ -117,10 +117,12 @@ SWEPT_OR_NEUTRAL = ("seed", "masking.mode", "resume", "device", "train.progress"
 def check_one_experiment(runs: list[Run], root: Path) -> None:
     """Refuse a folder whose runs differ in other settings (another scenario, preset or
     length): their seeds would be averaged as if they were one experiment."""
-    from uabs_rl.checkpoint import flatten
+    from uabs_rl.checkpoint import config_dict, config_from_checkpoint, flatten
 
     def key(run: Run) -> dict[str, Any]:
-        return {k: v for k, v in flatten(run.config).items()
+        # today's keys, with the defaults of settings added since the run was written
+        full = config_dict(config_from_checkpoint({"config": run.config}))
+        return {k: v for k, v in flatten(full).items()
                 if not any(k == s or k.startswith(s + ".") for s in SWEPT_OR_NEUTRAL)}
 
     ref = key(runs[0])
