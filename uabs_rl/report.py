@@ -299,14 +299,15 @@ def fig4(by_mode: dict[str, list[Run]], baselines: dict[str, dict[str, dict]], p
             mean, lo, hi = ci_over_seeds(100 * curves)
             x = np.arange(1, len(mean) + 1)
             c = MODE_COLORS.get(mode, "0.3")
-            ax.plot(x, mean, color=c, marker="o", label=f"learned, {mode} masks")
+            ax.plot(x, mean, color=c, marker="o",
+                    label=f"learned, {mode}" + (" masks" if mode != "penalty" else ""))
             ax.fill_between(x, lo, hi, color=c, alpha=0.2, lw=0)
             for name, rec in baselines.get(mode, {}).items():
                 ax.plot(x, 100 * np.asarray(rec["pg_curve"]), lw=1,
                         label=f"{name} baseline", **BASELINE_STYLES[name])
             ax.set_title(f"{mode} masks ({_seeds(by_mode[mode])})" if mode != "penalty"
                          else f"penalty ({_seeds(by_mode[mode])})")
-            ax.set_xlabel(r"$\hat{N}_s$ (served steps required per window)")
+            ax.set_xlabel(r"$\hat{N}_s$ (served steps per window)")
             ax.set_xticks(x[::max(1, len(x) // 5)])
             ax.grid(alpha=0.3)
         axes[0][0].set_ylabel(r"$P_g$ (% satisfied users)")
