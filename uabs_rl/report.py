@@ -223,53 +223,22 @@ def best_pg(runs: list[Run]) -> np.ndarray:
     return np.array([run.best_eval["pg_curve"] for run in runs])
 
 
-_BAND = "shaded: 95 % bootstrap CI over seeds"
-
-
 def _seeds(runs: list[Run]) -> str:
     return f"{len(runs)} seed{'s' if len(runs) != 1 else ''}"
 
 
-def _band_handle():
-    from matplotlib.patches import Patch
-
-    return Patch(facecolor="0.5", alpha=0.25, lw=0)
-
-
 def fig3(by_mode: dict[str, list[Run]], path: Path) -> list[Path]:
-    """Validation return against training episode, mean and 95 % CI over seeds. The
-    penalty mode, whose collisions cost λ_c each, gets a panel (and scale) of its own
-    so it does not flatten the masking modes into one line."""
+    """Validation return against training episode, mean and 95 % CI over seeds
+    (:func:`uabs_rl.plots.return_curves_figure`), as PNG and PDF."""
     import matplotlib.pyplot as plt
-    from matplotlib.ticker import MaxNLocator
 
-    from uabs_rl.plots import COLUMN_IN, MODE_COLORS, PAPER_RC, TEXT_IN, save_figure
+    from uabs_rl.plots import PAPER_RC, return_curves_figure, save_figure
 
-    groups = [[m for m in by_mode if m != "penalty"], [m for m in by_mode if m == "penalty"]]
-    groups = [g for g in groups if g]
-    with plt.rc_context(PAPER_RC):
-        fig, axes = plt.subplots(1, len(groups), squeeze=False,
-                                 figsize=(TEXT_IN if len(groups) > 1 else COLUMN_IN, 2.4))
-        for ax, modes in zip(axes[0], groups, strict=True):
-            for mode in modes:
-                x, mean, lo, hi = eval_curves(by_mode[mode])
-                c = MODE_COLORS.get(mode, "0.3")
-                ax.plot(x, mean, color=c, label=f"{mode} ({_seeds(by_mode[mode])})")
-                ax.fill_between(x, lo, hi, color=c, alpha=0.2, lw=0)
-            ax.set_xlabel("training episode")
-            ax.xaxis.set_major_locator(MaxNLocator(integer=True))
-            ax.set_title(" and ".join(modes) + (" masking" if modes != ["penalty"] else
-                                                 " (reward penalties)"))
-            ax.grid(alpha=0.3)
-        axes[0][0].set_ylabel("validation return R")
-        handles = [h for ax in axes[0] for h in ax.get_legend_handles_labels()[0]]
-        labels = [lab for ax in axes[0] for lab in ax.get_legend_handles_labels()[1]]
-        fig.legend([*handles, _band_handle()], [*labels, _BAND], loc="upper center",
-                   bbox_to_anchor=(0.5, 0.0), ncol=len(labels) + 1 if len(groups) > 1 else 2,
-                   frameon=False)
-        fig.tight_layout()
+    with plt.rc_context(PAPER_RC):  # ticks and text are laid out when saved
+        fig = return_curves_figure({f"{mode} ({_seeds(runs)})": (mode, *eval_curves(runs))
+                                    for mode, runs in by_mode.items()})
         files = save_figure(fig, path)
-        plt.close(fig)
+    plt.close(fig)
     return files
 
 
@@ -278,50 +247,19 @@ def fig4(by_mode: dict[str, list[Run]], baselines: dict[str, dict[str, dict]], p
     """P_g(N̂_s), one panel per masking mode: the learned policy (mean and 95 % CI over
     seeds; on the test traces when ``pg`` holds those curves, else each run's best
     validation evaluation) beside the baselines under the same masks
-    (``baselines[mode][name]``)."""
+    (``baselines[mode][name]``; :func:`uabs_rl.plots.pg_panels_figure`), as PNG and PDF."""
     import matplotlib.pyplot as plt
 
-    from uabs_rl.plots import (
-        BASELINE_STYLES,
-        COLUMN_IN,
-        MODE_COLORS,
-        PAPER_RC,
-        TEXT_IN,
-        save_figure,
-    )
+    from uabs_rl.plots import PAPER_RC, pg_panels_figure, save_figure
 
-    modes = list(by_mode)
-    with plt.rc_context(PAPER_RC):
-        fig, axes = plt.subplots(1, len(modes), squeeze=False, sharey=True,
-                                 figsize=(TEXT_IN if len(modes) > 1 else COLUMN_IN, 2.4))
-        for ax, mode in zip(axes[0], modes, strict=True):
-            curves = pg[mode] if pg else best_pg(by_mode[mode])
-            mean, lo, hi = ci_over_seeds(100 * curves)
-            x = np.arange(1, len(mean) + 1)
-            c = MODE_COLORS.get(mode, "0.3")
-            ax.plot(x, mean, color=c, marker="o",
-                    label=f"learned, {mode}" + (" masks" if mode != "penalty" else ""))
-            ax.fill_between(x, lo, hi, color=c, alpha=0.2, lw=0)
-            for name, rec in baselines.get(mode, {}).items():
-                ax.plot(x, 100 * np.asarray(rec["pg_curve"]), lw=1,
-                        label=f"{name} baseline", **BASELINE_STYLES[name])
-            ax.set_title(f"{mode} masks ({_seeds(by_mode[mode])})" if mode != "penalty"
-                         else f"penalty ({_seeds(by_mode[mode])})")
-            ax.set_xlabel(r"$\hat{N}_s$ (served steps per window)")
-            ax.set_xticks(x[::max(1, len(x) // 5)])
-            ax.grid(alpha=0.3)
-        axes[0][0].set_ylabel(r"$P_g$ (% satisfied users)")
-        seen: dict[str, object] = {}
-        for ax in axes[0]:
-            for h, lab in zip(*ax.get_legend_handles_labels(), strict=True):
-                seen.setdefault(lab, h)
-        order = sorted(seen, key=lambda lab: not lab.startswith("learned"))  # learned first
-        handles = [seen[lab] for lab in order] + [_band_handle()]
-        fig.legend(handles, [*order, _BAND], loc="upper center", bbox_to_anchor=(0.5, 0.0),
-                   ncol=min(len(handles), 4 if len(modes) > 1 else 2), frameon=False)
-        fig.tight_layout()
+    panels = {mode: (_seeds(runs), *ci_over_seeds(100 * (pg[mode] if pg else best_pg(runs))))
+              for mode, runs in by_mode.items()}
+    with plt.rc_context(PAPER_RC):  # ticks and text are laid out when saved
+        fig = pg_panels_figure(panels, {m: {name: 100 * np.asarray(rec["pg_curve"])
+                                            for name, rec in b.items()}
+                                        for m, b in baselines.items()})
         files = save_figure(fig, path)
-        plt.close(fig)
+    plt.close(fig)
     return files
 
 
