@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 from uabs_rl.channel import coverage_bound
-from uabs_rl.config import AlgoConfig, MaskingMode
+from uabs_rl.config import AlgoConfig, MaskingMode, TrainConfig
 from uabs_rl.stats import bootstrap_ci
 
 MODES = tuple(m.value for m in MaskingMode)
@@ -53,13 +53,16 @@ class Run:
     def label(self) -> str:
         """``paper`` or ``lookahead`` (the observation), ``-literal`` for the paper's
         literal masks (runs written before masks became recoverable are literal), then
-        any learning hyper-parameter that differs from the defaults
-        (``lookahead algo.lr=0.0003``)."""
+        any learning setting (``algo``, ``train.n_envs``, ``train.episodes``) that
+        differs from the defaults (``lookahead algo.lr=0.0003``)."""
         label = "lookahead" if self.config["scenario"].get("lookahead_obs") else "paper"
         literal = not self.config["masking"].get("recoverable")  # absent: written before
         defaults = asdict(AlgoConfig())
         tuned = [f"algo.{k}={v}" for k, v in self.config.get("algo", {}).items()
                  if k in defaults and k != "loss" and v != defaults[k]]
+        train, train_defaults = self.config.get("train", {}), asdict(TrainConfig())
+        tuned += [f"train.{k}={train[k]}" for k in ("n_envs", "episodes")
+                  if k in train and train[k] != train_defaults[k]]
         return " ".join([label + ("-literal" if literal else ""), *tuned])
 
     @property
