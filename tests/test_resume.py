@@ -18,7 +18,7 @@ import torch
 
 from tests.test_train import records, smoke
 from uabs_rl.checkpoint import CheckpointError, load_checkpoint
-from uabs_rl.train import run
+from uabs_rl.train import prepare, run, summary_text
 
 RUN = ["experiment=smoke", "train.episodes=60", "train.eval_every=5",
        "train.checkpoint_buffer=true", "train.logger=none",
@@ -72,8 +72,13 @@ def test_resume_takes_the_runs_own_config_and_refuses_result_changes(trace_cache
               "masking=flat", "seed=4"), run_dir)
     # composed defaults (rank, seed 0) + resume: the run's own flat / seed 4 are used
     cfg = smoke(trace_cache, f"resume={run_dir}", "train.episodes=6")
-    out = run(cfg, Path("unused"), overrides=[f"resume={run_dir}", "train.episodes=6"])
-    assert out["episodes"] == 6
+    exp = prepare(cfg, Path("unused"), overrides=[f"resume={run_dir}", "train.episodes=6"])
+    # the experiment (and the end-of-run summary drawn from it) has the run's own config
+    assert exp.cfg.masking.mode == "flat" and exp.cfg.seed == 4 and exp.run_dir == run_dir
+    summary = exp.fit()
+    assert summary["episodes"] == 6
+    text = summary_text(exp.cfg, summary, exp.run_dir)
+    assert f"run folder: {run_dir}" in text and "6 episodes" in text
     state = load_checkpoint(run_dir / "checkpoints" / "last.pt")
     assert state["config"]["masking"]["mode"] == "flat" and state["config"]["seed"] == 4
     with pytest.raises(CheckpointError, match=r"algo\.lr"):

@@ -5,7 +5,6 @@ and fleet."""
 from __future__ import annotations
 
 import json
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -15,11 +14,12 @@ import yaml
 
 from tests.test_train import smoke
 from uabs_rl.evaluate import main as eval_main
+from uabs_rl.traces import netgenerate_path
 from uabs_rl.train import run
 
 
 def _netgenerate() -> str:
-    exe = shutil.which("netgenerate") or str(Path(sys.executable).parent / "netgenerate")
+    exe = netgenerate_path()
     if not Path(exe).exists():
         pytest.skip("netgenerate not installed (pip install eclipse-sumo)")
     return exe

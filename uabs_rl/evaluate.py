@@ -289,14 +289,14 @@ def main(argv: list[str] | None = None) -> int:
          "overrides": args.overrides, "scenario": ev.cfg.scenario.name,
          "policies": {k: r for k, (r, _) in results.items()}, "differences": diffs},
         indent=1))
-    _write_pictures(ev, results, out, args.gif)
+    _write_pictures(ev, results, out, args.gif, args.split)
     print(f"wrote {out / 'eval.json'} and pictures under {out}")
     return 0
 
 
-def _write_pictures(ev: Evaluation, results: dict, out: Path, gif: bool) -> None:
+def _write_pictures(ev: Evaluation, results: dict, out: Path, gif: bool, split: str) -> None:
     import matplotlib.pyplot as plt
-    import torch
+    import torch.nn.functional as F
 
     from uabs_rl.env import DIAG
     from uabs_rl.plots import animate_episode, save_figure, scenario_lanes, trajectory_figure
@@ -305,17 +305,17 @@ def _write_pictures(ev: Evaluation, results: dict, out: Path, gif: bool) -> None
     lanes = scenario_lanes(ev.cfg.scenario)
     for name, (rec, td) in results.items():
         fig = trajectory_figure(a, *ev.evaluator.trajectory_of(td), p.r_b, p.n_beams, lanes,
-                                title=f"{name} ({ev.cfg.masking.mode} masking), test "
+                                title=f"{name} ({ev.cfg.masking.mode} masking), {split} "
                                       f"window 0: R = {rec['returns'][0]:.0f}")
         save_figure(fig, out / f"trajectories_{name}.png")
         plt.close(fig)
     if gif and "learned" in results:
         td = results["learned"][1]
-        running = torch.cat([td["next", DIAG, "ep_return"][0, :1] * 0,
-                             td["next", DIAG, "ep_return"][0]])
+        after = td["next", DIAG, "ep_return"][0]  # the return after each step
         animate_episode(a, *ev.evaluator.trajectory_of(td), p.r_b, p.n_beams, lanes,
-                        out / "episode_learned.gif", returns=running,
-                        title=f"learned policy, {ev.cfg.masking.mode} masking, test window 0")
+                        out / "episode_learned.gif", returns=F.pad(after, (1, 0)),  # R = 0 at t = 0
+                        title=f"learned policy, {ev.cfg.masking.mode} masking, {split} "
+                              f"window 0")
 
 
 def run_main() -> None:

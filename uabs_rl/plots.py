@@ -35,14 +35,25 @@ BASELINE_STYLES = {"random": {"color": "0.6", "ls": ":", "marker": "v"},
                    "oracle": {"color": "0.0", "ls": "-.", "marker": "^"}}
 
 
-def save_figure(fig, path: Path | str, dpi: float | None = None) -> list[Path]:
-    """``path`` as PNG (at ``dpi``, default matplotlib's) and PDF (vector, for a paper),
-    cropped to the drawn content; returns the two files."""
+def save_figure(fig, path: Path | str) -> list[Path]:
+    """``path`` as PNG and PDF (vector, for a paper), cropped to the drawn content;
+    returns the two files."""
     path = Path(path)
     outs = [path.with_suffix(".png"), path.with_suffix(".pdf")]
     for out in outs:
-        fig.savefig(out, bbox_inches="tight", dpi=dpi)
+        fig.savefig(out, bbox_inches="tight")
     return outs
+
+
+def save_paper_figure(draw, path: Path | str) -> list[Path]:
+    """Draw (``draw()`` returns the figure) and save a report figure in the paper style
+    (``PAPER_RC``: sizes, fonts, 300 dpi; ticks and text are laid out when saved, so
+    both happen inside it), then close it; returns the PNG and PDF."""
+    with plt.rc_context(PAPER_RC):
+        fig = draw()
+        files = save_figure(fig, path)
+    plt.close(fig)
+    return files
 
 
 @lru_cache(maxsize=8)
@@ -120,17 +131,13 @@ def trajectory_figure(area: AreaConfig, uabs: torch.Tensor, vehicles: torch.Tens
     return fig
 
 
-def pg_curve_figure(curves: dict[str, np.ndarray], title: str = "Satisfied users",
-                    bands: dict[str, np.ndarray] | None = None):
-    """P_g against N̂_s = 1..N, one line per label (optional ± band)."""
+def pg_curve_figure(curves: dict[str, np.ndarray], title: str = "Satisfied users"):
+    """P_g against N̂_s = 1..N, one line per label."""
     fig, ax = plt.subplots(figsize=(6, 4), dpi=100)
     for i, (label, curve) in enumerate(curves.items()):
         x = np.arange(1, len(curve) + 1)
         c = COLORS[i % len(COLORS)]
         ax.plot(x, 100 * np.asarray(curve), marker="o", color=c, label=label)
-        if bands and label in bands:
-            lo, hi = 100 * (curve - bands[label]), 100 * (curve + bands[label])
-            ax.fill_between(x, lo, hi, color=c, alpha=0.2)
     ax.set_xlabel(r"$\hat{N}_s$ (served steps required per window)")
     ax.set_ylabel(r"$P_g$ (% satisfied users)")
     ax.set_title(title)
@@ -153,69 +160,68 @@ def return_curves_figure(curves: dict[str, tuple]):
     """Evaluation return against training episode: ``curves[label] = (mode, x, mean,
     lo, hi)``, one line with its band each, in the mode's colour. Penalty, whose
     collisions cost λ_c each, gets a panel (and scale) of its own so it does not
-    flatten the masking modes into one line."""
+    flatten the masking modes into one line. Drawn for :func:`save_paper_figure`."""
     from matplotlib.ticker import MaxNLocator
 
     groups = [[k for k, c in curves.items() if c[0] != "penalty"],
               [k for k, c in curves.items() if c[0] == "penalty"]]
     groups = [g for g in groups if g]
-    with plt.rc_context(PAPER_RC):
-        fig, axes = plt.subplots(1, len(groups), squeeze=False,
-                                 figsize=(TEXT_IN if len(groups) > 1 else COLUMN_IN, 2.4))
-        for ax, labels in zip(axes[0], groups, strict=True):
-            modes = [curves[k][0] for k in labels]
-            for label in labels:
-                mode, x, mean, lo, hi = curves[label]
-                c = MODE_COLORS.get(mode, "0.3")
-                ax.plot(x, mean, color=c, label=label)
-                ax.fill_between(x, lo, hi, color=c, alpha=0.2, lw=0)
-            ax.set_xlabel("training episode")
-            ax.xaxis.set_major_locator(MaxNLocator(integer=True))
-            ax.set_title(" and ".join(modes) + (" masking" if modes != ["penalty"] else
-                                                 " (reward penalties)"))
-            ax.grid(alpha=0.3)
-        axes[0][0].set_ylabel("validation return R")
-        handles = [h for ax in axes[0] for h in ax.get_legend_handles_labels()[0]]
-        labels = [lab for ax in axes[0] for lab in ax.get_legend_handles_labels()[1]]
-        fig.legend([*handles, _band_handle()], [*labels, BAND_LABEL], loc="upper center",
-                   bbox_to_anchor=(0.5, 0.0), ncol=len(labels) + 1 if len(groups) > 1 else 2,
-                   frameon=False)
-        fig.tight_layout()
+    fig, axes = plt.subplots(1, len(groups), squeeze=False,
+                             figsize=(TEXT_IN if len(groups) > 1 else COLUMN_IN, 2.4))
+    for ax, labels in zip(axes[0], groups, strict=True):
+        modes = [curves[k][0] for k in labels]
+        for label in labels:
+            mode, x, mean, lo, hi = curves[label]
+            c = MODE_COLORS.get(mode, "0.3")
+            ax.plot(x, mean, color=c, label=label)
+            ax.fill_between(x, lo, hi, color=c, alpha=0.2, lw=0)
+        ax.set_xlabel("training episode")
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+        ax.set_title(" and ".join(modes) + (" masking" if modes != ["penalty"] else
+                                             " (reward penalties)"))
+        ax.grid(alpha=0.3)
+    axes[0][0].set_ylabel("validation return R")
+    handles = [h for ax in axes[0] for h in ax.get_legend_handles_labels()[0]]
+    labels = [lab for ax in axes[0] for lab in ax.get_legend_handles_labels()[1]]
+    fig.legend([*handles, _band_handle()], [*labels, BAND_LABEL], loc="upper center",
+               bbox_to_anchor=(0.5, 0.0), ncol=len(labels) + 1 if len(groups) > 1 else 2,
+               frameon=False)
+    fig.tight_layout()
     return fig
 
 
 def pg_panels_figure(panels: dict[str, tuple], baselines: dict[str, dict[str, np.ndarray]]):
     """P_g(N̂_s) in %, one panel per masking mode: ``panels[mode] = (seeds text, mean,
     lo, hi)`` for the learned policy, ``baselines[mode][name]`` the baselines' curves
-    under the same masks, in greys with their own line styles."""
+    under the same masks, in greys with their own line styles. Drawn for
+    :func:`save_paper_figure`."""
     modes = list(panels)
-    with plt.rc_context(PAPER_RC):
-        fig, axes = plt.subplots(1, len(modes), squeeze=False, sharey=True,
-                                 figsize=(TEXT_IN if len(modes) > 1 else COLUMN_IN, 2.4))
-        for ax, mode in zip(axes[0], modes, strict=True):
-            seeds, mean, lo, hi = panels[mode]
-            x = np.arange(1, len(mean) + 1)
-            c = MODE_COLORS.get(mode, "0.3")
-            ax.plot(x, mean, color=c, marker="o",
-                    label=f"learned, {mode}" + (" masks" if mode != "penalty" else ""))
-            ax.fill_between(x, lo, hi, color=c, alpha=0.2, lw=0)
-            for name, curve in baselines.get(mode, {}).items():
-                ax.plot(x, curve, lw=1, label=f"{name} baseline", **BASELINE_STYLES[name])
-            ax.set_title(f"{mode} masks ({seeds})" if mode != "penalty"
-                         else f"penalty ({seeds})")
-            ax.set_xlabel(r"$\hat{N}_s$ (served steps per window)")
-            ax.set_xticks(x[::max(1, len(x) // 5)])
-            ax.grid(alpha=0.3)
-        axes[0][0].set_ylabel(r"$P_g$ (% satisfied users)")
-        seen: dict[str, object] = {}
-        for ax in axes[0]:
-            for h, lab in zip(*ax.get_legend_handles_labels(), strict=True):
-                seen.setdefault(lab, h)
-        order = sorted(seen, key=lambda lab: not lab.startswith("learned"))  # learned first
-        handles = [seen[lab] for lab in order] + [_band_handle()]
-        fig.legend(handles, [*order, BAND_LABEL], loc="upper center", bbox_to_anchor=(0.5, 0.0),
-                   ncol=min(len(handles), 4 if len(modes) > 1 else 2), frameon=False)
-        fig.tight_layout()
+    fig, axes = plt.subplots(1, len(modes), squeeze=False, sharey=True,
+                             figsize=(TEXT_IN if len(modes) > 1 else COLUMN_IN, 2.4))
+    for ax, mode in zip(axes[0], modes, strict=True):
+        seeds, mean, lo, hi = panels[mode]
+        x = np.arange(1, len(mean) + 1)
+        c = MODE_COLORS.get(mode, "0.3")
+        ax.plot(x, mean, color=c, marker="o",
+                label=f"learned, {mode}" + (" masks" if mode != "penalty" else ""))
+        ax.fill_between(x, lo, hi, color=c, alpha=0.2, lw=0)
+        for name, curve in baselines.get(mode, {}).items():
+            ax.plot(x, curve, lw=1, label=f"{name} baseline", **BASELINE_STYLES[name])
+        ax.set_title(f"{mode} masks ({seeds})" if mode != "penalty"
+                     else f"penalty ({seeds})")
+        ax.set_xlabel(r"$\hat{N}_s$ (served steps per window)")
+        ax.set_xticks(x[::max(1, len(x) // 5)])
+        ax.grid(alpha=0.3)
+    axes[0][0].set_ylabel(r"$P_g$ (% satisfied users)")
+    seen: dict[str, object] = {}
+    for ax in axes[0]:
+        for h, lab in zip(*ax.get_legend_handles_labels(), strict=True):
+            seen.setdefault(lab, h)
+    order = sorted(seen, key=lambda lab: not lab.startswith("learned"))  # learned first
+    handles = [seen[lab] for lab in order] + [_band_handle()]
+    fig.legend(handles, [*order, BAND_LABEL], loc="upper center", bbox_to_anchor=(0.5, 0.0),
+               ncol=min(len(handles), 4 if len(modes) > 1 else 2), frameon=False)
+    fig.tight_layout()
     return fig
 
 

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import json
 import sys
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -32,8 +31,10 @@ from typing import Any
 import numpy as np
 import torch
 
+from uabs_rl.baselines import BASELINES
 from uabs_rl.channel import coverage_bound
 from uabs_rl.config import AlgoConfig, MaskingMode, TrainConfig
+from uabs_rl.runlog import read_metrics
 from uabs_rl.stats import bootstrap_ci
 
 MODES = tuple(m.value for m in MaskingMode)
@@ -74,22 +75,6 @@ class Run:
         return max(self.evals, key=lambda r: r["return"])
 
 
-def read_metrics(path: Path) -> list[dict]:
-    """The records of a metrics.jsonl; a damaged line is an error naming file and line
-    (a run killed mid-write is repaired by resuming it)."""
-    recs = []
-    for i, line in enumerate(path.read_text().splitlines(), 1):
-        if not line.strip():
-            continue
-        try:
-            recs.append(json.loads(line))
-        except json.JSONDecodeError as e:
-            raise SystemExit(f"error: {path}, line {i}, is not a JSON record ({e.msg}): "
-                             f"resume that run (uabs-train resume={path.parent}) to repair "
-                             f"its metrics, or move the folder out of the sweep.") from None
-    return recs
-
-
 def find_runs(root: Path) -> list[Run]:
     """Every run under ``root`` (a folder with metrics.jsonl and checkpoints/last.pt)."""
     runs = []
@@ -112,7 +97,7 @@ def find_runs(root: Path) -> list[Run]:
 # settings that may differ between the runs of one report: what a sweep varies (seed,
 # masking mode) and what does not change results
 SWEPT_OR_NEUTRAL = ("seed", "masking.mode", "resume", "device", "train.progress",
-                    "train.logger", "train.tensorboard", "train.threads", "train.compile",
+                    "train.logger", "train.threads", "train.compile",
                     "train.trajectory_images", "train.checkpoint_buffer", "traces.cache_dir",
                     "traces.workers")
 
@@ -233,16 +218,11 @@ def _seeds(runs: list[Run]) -> str:
 def fig3(by_mode: dict[str, list[Run]], path: Path) -> list[Path]:
     """Validation return against training episode, mean and 95 % CI over seeds
     (:func:`uabs_rl.plots.return_curves_figure`), as PNG and PDF."""
-    import matplotlib.pyplot as plt
+    from uabs_rl.plots import return_curves_figure, save_paper_figure
 
-    from uabs_rl.plots import PAPER_RC, return_curves_figure, save_figure
-
-    with plt.rc_context(PAPER_RC):  # ticks and text are laid out when saved
-        fig = return_curves_figure({f"{mode} ({_seeds(runs)})": (mode, *eval_curves(runs))
-                                    for mode, runs in by_mode.items()})
-        files = save_figure(fig, path)
-    plt.close(fig)
-    return files
+    curves = {f"{mode} ({_seeds(runs)})": (mode, *eval_curves(runs))
+              for mode, runs in by_mode.items()}
+    return save_paper_figure(lambda: return_curves_figure(curves), path)
 
 
 def fig4(by_mode: dict[str, list[Run]], baselines: dict[str, dict[str, dict]], path: Path,
@@ -251,19 +231,13 @@ def fig4(by_mode: dict[str, list[Run]], baselines: dict[str, dict[str, dict]], p
     seeds; on the test traces when ``pg`` holds those curves, else each run's best
     validation evaluation) beside the baselines under the same masks
     (``baselines[mode][name]``; :func:`uabs_rl.plots.pg_panels_figure`), as PNG and PDF."""
-    import matplotlib.pyplot as plt
-
-    from uabs_rl.plots import PAPER_RC, pg_panels_figure, save_figure
+    from uabs_rl.plots import pg_panels_figure, save_paper_figure
 
     panels = {mode: (_seeds(runs), *ci_over_seeds(100 * (pg[mode] if pg else best_pg(runs))))
               for mode, runs in by_mode.items()}
-    with plt.rc_context(PAPER_RC):  # ticks and text are laid out when saved
-        fig = pg_panels_figure(panels, {m: {name: 100 * np.asarray(rec["pg_curve"])
-                                            for name, rec in b.items()}
-                                        for m, b in baselines.items()})
-        files = save_figure(fig, path)
-    plt.close(fig)
-    return files
+    curves = {m: {name: 100 * np.asarray(rec["pg_curve"]) for name, rec in b.items()}
+              for m, b in baselines.items()}
+    return save_paper_figure(lambda: pg_panels_figure(panels, curves), path)
 
 
 # ----------------------------------------------------------------------------- baselines
@@ -279,26 +253,26 @@ def evaluate_on_test(runs: list[Run]) -> dict[Path, dict[str, dict]]:
     return out
 
 
+def baselines_by_mode(by_mode: dict[str, list[Run]],
+                      tests: dict[Path, dict]) -> dict[str, dict[str, dict]]:
+    """``{mode: {baseline: test record}}``, from the lowest seed's run of each mode (the
+    baselines depend on the masks, not on the learner)."""
+    return {mode: {name: tests[min(runs, key=lambda r: r.seed).path][name]
+                   for name in BASELINES}
+            for mode, runs in by_mode.items()}
+
+
 def baselines_on_test(by_mode: dict[str, list[Run]], tests: dict[Path, dict]) -> dict[str, dict]:
-    """The baselines' test records per mode (from the lowest seed's run: the baselines
-    depend on the masks, not on the learner)."""
-    return {f"{name} ({mode} masks)": tests[min(runs, key=lambda r: r.seed).path][name]
-            for mode, runs in by_mode.items() for name in ("random", "greedy", "oracle")}
+    """The same records keyed ``"<baseline> (<mode> masks)"``, for tables."""
+    return {f"{name} ({mode} masks)": rec
+            for mode, per in baselines_by_mode(by_mode, tests).items()
+            for name, rec in per.items()}
 
 
 def learned_pg_on_test(by_mode: dict[str, list[Run]],
                        tests: dict[Path, dict]) -> dict[str, np.ndarray]:
     """[seeds, N] learned P_g(N̂_s) curves on the test traces, per mode."""
     return {mode: np.array([tests[run.path]["learned"]["pg_curve"] for run in runs])
-            for mode, runs in by_mode.items()}
-
-
-def baselines_by_mode(by_mode: dict[str, list[Run]],
-                      tests: dict[Path, dict]) -> dict[str, dict[str, dict]]:
-    """``{mode: {baseline: test record}}`` (the lowest seed's run, as
-    :func:`baselines_on_test`)."""
-    return {mode: {name: tests[min(runs, key=lambda r: r.seed).path][name]
-                   for name in ("random", "greedy", "oracle")}
             for mode, runs in by_mode.items()}
 
 

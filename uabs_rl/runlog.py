@@ -67,6 +67,22 @@ def make_logger(kind: LoggerKind, run_dir: Path):
                       wandb_kwargs={"project": "uabs_rl", "dir": str(run_dir)})
 
 
+def read_metrics(path: Path) -> list[dict]:
+    """The records of a metrics.jsonl; a damaged line is an error naming file and line
+    (a run killed mid-write is repaired by resuming it)."""
+    recs = []
+    for i, line in enumerate(path.read_text().splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            recs.append(json.loads(line))
+        except json.JSONDecodeError as e:
+            raise SystemExit(f"error: {path}, line {i}, is not a JSON record ({e.msg}): "
+                             f"resume that run (uabs-train resume={path.parent}) to repair "
+                             f"its metrics, or move the folder out of the sweep.") from None
+    return recs
+
+
 class RunLog:
     """Writes a run's records and figures under ``run_dir``."""
 

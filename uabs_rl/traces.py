@@ -104,6 +104,12 @@ def scenario_inputs(scenario: ScenarioConfig) -> dict[str, Any]:
     return {"sumocfg": None, "net_file": net_file(sumo.net_file), "route_files": routes}
 
 
+def netgenerate_path() -> str:
+    """SUMO's netgenerate: on the PATH, else beside this Python (the eclipse-sumo wheel
+    installs it into the virtual environment's bin/)."""
+    return shutil.which("netgenerate") or str(Path(sys.executable).parent / "netgenerate")
+
+
 def net_file(value: str) -> Path:
     """The network file ``scenario.sumo.net_file``; a ``<name>.net.xml`` that does not
     exist yet but has its ``<name>.netgcfg`` beside it (a network too big to keep in
@@ -121,7 +127,7 @@ def net_file(value: str) -> Path:
         else:
             raise
     target = source.parent / Path(value).name
-    exe = shutil.which("netgenerate") or str(Path(sys.executable).parent / "netgenerate")
+    exe = netgenerate_path()
     log.info("building %s from %s with netgenerate", target, source.name)
     tmp = target.with_name(f".tmp{os.getpid()}.{target.name}")  # no half-written network
     proc = subprocess.run([exe, "-c", source.name, "--output-file", tmp.name],

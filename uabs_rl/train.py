@@ -20,7 +20,6 @@ overrides typed beside it may change only what does not change results
 
 from __future__ import annotations
 
-import json
 import logging
 import shlex
 import sys
@@ -40,6 +39,7 @@ from uabs_rl.checkpoint import (
 from uabs_rl.cli import hydra_main
 from uabs_rl.config import ConfigError, LoggerKind, RunConfig, to_container
 from uabs_rl.experiment import Experiment
+from uabs_rl.runlog import read_metrics
 
 log = logging.getLogger(__name__)
 
@@ -75,14 +75,14 @@ def resumed_config(saved: RunConfig, overrides: list[str]) -> RunConfig:
     return cfg
 
 
-def run(cfg: RunConfig, run_dir: Path, overrides: list[str] | None = None) -> dict[str, Any]:
-    """Train (or resume) one run; the Hydra entry point's body. With ``resume`` and
-    ``overrides`` (the command line's), the run's own config is used."""
+def prepare(cfg: RunConfig, run_dir: Path, overrides: list[str] | None = None) -> Experiment:
+    """The experiment of one run (new, or resumed). With ``resume`` and ``overrides``
+    (the command line's), the run's own config is used."""
     if not cfg.resume:
         if (Path(run_dir) / "metrics.jsonl").exists():
             raise ConfigError(f"{run_dir} already holds a run (metrics.jsonl): continue it "
                               f"with resume={run_dir}, or choose another hydra.run.dir.")
-        return Experiment(cfg, run_dir).fit()
+        return Experiment(cfg, run_dir)
     run_dir = Path(cfg.resume)
     if run_dir.suffix == ".pt" or run_dir.is_file():
         raise ConfigError(f"resume={cfg.resume} is a file: pass the run folder that holds "
@@ -97,21 +97,20 @@ def run(cfg: RunConfig, run_dir: Path, overrides: list[str] | None = None) -> di
     else:
         exp.load_state_dict(state, run_dir / "checkpoints" / "last.pt")
         log.info("resuming %s at episode %d", run_dir, exp.episode)
-    return exp.fit()
+    return exp
 
 
-def _records(run_dir: Path) -> list[dict[str, Any]]:
-    path = run_dir / "metrics.jsonl"
-    if not path.is_file():
-        return []
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+def run(cfg: RunConfig, run_dir: Path, overrides: list[str] | None = None) -> dict[str, Any]:
+    """Train (or resume) one run to its end; returns the fit's summary."""
+    return prepare(cfg, run_dir, overrides).fit()
 
 
 def summary_text(cfg: RunConfig, summary: dict[str, Any], run_dir: Path) -> str:
     """The end of a run: where it is, a table of its headline figures (from its whole
     ``metrics.jsonl``, so a resumed run counts every episode), and the next commands,
     ready to copy."""
-    recs = _records(run_dir)
+    metrics = run_dir / "metrics.jsonl"
+    recs = read_metrics(metrics) if metrics.is_file() else []
     train = [r for r in recs if r["kind"] == "train"]
     evals = [r for r in recs if r["kind"] == "eval"]
     steps = train[-1]["env_steps"] if train else 0
@@ -167,8 +166,8 @@ def _quote_resume(argv: list[str]) -> list[str]:
 
 
 def _run_and_report(cfg: RunConfig, run_dir: Path, overrides: list[str]) -> None:
-    summary = run(cfg, run_dir, overrides)
-    print(summary_text(cfg, summary, Path(cfg.resume) if cfg.resume else run_dir))
+    exp = prepare(cfg, run_dir, overrides)
+    print(summary_text(exp.cfg, exp.fit(), exp.run_dir))
 
 
 def main() -> None:
