@@ -2,12 +2,15 @@
 
     python benchmarks/train_bench.py                 # 30 episodes, paper defaults, rank
     python benchmarks/train_bench.py --episodes 50 masking=flat algo.loss=torchrl
+    python benchmarks/train_bench.py train.population=3   # 3 seeds in one process
 
 Trains ``--episodes`` episodes with the paper's defaults (overrides as for uabs-train),
 then prints episodes per minute, the projected time of the full protocol (1000 episodes
 of 80 steps, one update per step) and the share of the time spent in the environment
 (step + masking transform), action selection (Q forward + masked selector), replay
 (push + sample) and the update (loss, backward, Adam). Evaluation is excluded.
+With ``train.population=P`` the figures are per member: a member's episodes per minute
+and ms per member env step, so they compare with a solo run's directly.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ import torch
 
 from uabs_rl.config import compose
 from uabs_rl.experiment import Experiment
+from uabs_rl.population import Population
 
 SPENT: dict[str, float] = defaultdict(float)
 
@@ -59,7 +63,8 @@ def main() -> None:
     args = ap.parse_args()
     cfg = compose("config", ["train.progress=false", "train.logger=none",
                                  *args.overrides])
-    tr = Experiment(cfg, tempfile.mkdtemp(prefix="uabs_bench_"))
+    kind = Population if cfg.train.population > 1 else Experiment
+    tr = kind(cfg, tempfile.mkdtemp(prefix="uabs_bench_"))
     wrap(tr.collector.env, "step", "env")
     wrap(tr.collector.env, "reset", "env")
     wrap(tr.qnet, "forward", "action selection", outside_update=True)
@@ -83,11 +88,14 @@ def main() -> None:
           f"vehicles={tr.collector.env.base_env.veh_present.shape[-1]} "
           f"masking={cfg.masking.mode} loss={cfg.algo.loss} n_envs={cfg.train.n_envs} "
           f"threads={torch.get_num_threads()} hidden={list(cfg.algo.hidden)} "
-          f"batch={cfg.algo.batch_size}")
-    print(f"{episodes} episodes, {updates} updates in {wall:.1f} s: "
-          f"{60 / per_ep:.1f} episodes/min, "
+          f"batch={cfg.algo.batch_size} population={cfg.train.population}")
+    each = " per member" if cfg.train.population > 1 else ""
+    print(f"{episodes} episodes{each}, {updates} updates in {wall:.1f} s: "
+          f"{60 / per_ep:.1f} episodes/min{each}, "
           f"{1000 * wall / (episodes * cfg.scenario.episode_steps):.2f} "
-          f"ms per env step (incl. its update)")
+          f"ms per env step{each} (incl. its update); "
+          f"{1000 * wall / (episodes * cfg.scenario.episode_steps * cfg.train.population):.2f}"
+          f" ms per env step of one run")
     print(f"projected full protocol ({cfg.train.episodes} episodes x "
           f"{cfg.scenario.episode_steps} steps, {cfg.train.episodes * cfg.scenario.episode_steps} "
           f"updates): {full / 60:.1f} min (+ {cfg.train.episodes // cfg.train.eval_every} "

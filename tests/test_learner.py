@@ -92,3 +92,34 @@ def test_replay_buffer_ring_and_state():
     other = ReplayBuffer(5, 2, 4)
     other.load_state_dict(buf.state_dict())
     assert torch.equal(other.sample(7)["reward"], buf.sample(7)["reward"])
+
+
+@pytest.mark.parametrize("mode", ["flat", "rank"])  # rank's target mask waits a step
+def test_n_step_transitions_sum_the_next_rewards(trace_cache, tmp_path, mode):
+    """algo.n_step=3 stores r_i + γ r_{i+1} + γ² r_{i+2} with the state 3 steps on (cut
+    at the episode's end, where the transition is terminal), beside the one-step
+    transitions of the same episodes."""
+    from tests.test_train import smoke
+    from uabs_rl.experiment import Experiment
+
+    args = [f"masking={mode}", "algo.learning_starts=100000", "algo.buffer_size=100000",
+            "train.logger=none"]
+    one = Experiment(smoke(trace_cache, *args), tmp_path / "one")
+    three = Experiment(smoke(trace_cache, *args, "algo.n_step=3"), tmp_path / "three")
+    one.collect()
+    three.collect()
+    steps, m, g = one.params.episode_steps, one.params.n_uabs, one.cfg.algo.gamma
+    assert len(one.buffer) == len(three.buffer) == steps * m
+    d1 = {k: v[: steps * m].view(steps, m, *v.shape[1:]) for k, v in one.buffer.data.items()}
+    d3 = {k: v[: steps * m].view(steps, m, *v.shape[1:]) for k, v in three.buffer.data.items()}
+    assert torch.equal(d1["obs"], d3["obs"]) and torch.equal(d1["action"], d3["action"])
+    for i in range(steps):
+        last = min(i + 3, steps) - 1
+        want = sum(g ** k * d1["reward"][i + k] for k in range(last - i + 1))
+        torch.testing.assert_close(d3["reward"][i], want)
+        assert torch.equal(d3["next_obs"][i], d1["next_obs"][last])
+        assert torch.equal(d3["terminated"][i], d1["terminated"][last])
+        if last == i + 2:  # bootstrapped: the target mask of s_{i+3}
+            assert torch.equal(d3["next_mask"][i], d1["next_mask"][i + 2])
+    assert d3["terminated"][-3:].all() and not d3["terminated"][:-3].any()
+    assert three.learner.gamma == pytest.approx(g ** 3)

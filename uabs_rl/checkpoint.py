@@ -20,7 +20,8 @@ from uabs_rl.config import RunConfig
 
 CKPT_FORMAT = 1
 # config sections a checkpoint must agree with to be resumed or evaluated
-COMPAT_KEYS = ("scenario", "channel", "masking", "algo", "traces", "seed", "train.n_envs")
+COMPAT_KEYS = ("scenario", "channel", "masking", "algo", "traces", "seed", "train.n_envs",
+               "train.population")
 
 
 class CheckpointError(RuntimeError):

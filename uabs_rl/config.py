@@ -226,6 +226,9 @@ class AlgoConfig:
     eps_end: float = 0.05  # ... to eps_end ...
     eps_fraction: float = 0.6  # ... over this share of the training env steps
     grad_clip: float | None = None  # max gradient norm; null = no clipping
+    # beyond the paper: n-step returns, target r_t + γ r_{t+1} + ... + γ^{n-1} r_{t+n-1}
+    # + γ^n Q(s_{t+n}) (cut at the episode's end); 1 = the paper's one-step target
+    n_step: int = 1
     loss: LossKind = LossKind.fused  # fused (hand-written, same maths) | torchrl (DQNLoss)
 
 
@@ -239,6 +242,11 @@ class TrainConfig:
     eval_seed: int = 12345  # start positions of every evaluation (the same each time)
     # episodes in parallel; updates per collector step = n_envs / algo.update_every
     n_envs: int = 1
+    # seeds trained together in one process: seed, seed + 1, ..., seed + population - 1,
+    # their episodes side by side in one env and their networks stacked (batched
+    # products); each member writes a solo run's folder, <run>/seed=<s>/ (README,
+    # "Population training", says what differs from training each alone)
+    population: int = 1
     checkpoint_buffer: bool = False  # also store the replay buffer in checkpoints (~20 MB)
     # TorchRL logger: tensorboard (<run>/tb) | csv (<run>/csv) | wandb | mlflow
     # (<run>/mlruns) | none; wandb and mlflow need their package installed
@@ -302,6 +310,15 @@ def validate_run(cfg: RunConfig) -> None:
         (t.eval_every >= 1, "train.eval_every", "must be >= 1", t.eval_every),
         (t.eval_windows >= 1, "train.eval_windows", "must be >= 1", t.eval_windows),
         (t.n_envs >= 1, "train.n_envs", "must be >= 1", t.n_envs),
+        (t.population >= 1, "train.population", "must be >= 1", t.population),
+        (1 <= a.n_step <= cfg.scenario.episode_steps, "algo.n_step",
+         "must be in [1, scenario.episode_steps]", a.n_step),
+        (a.n_step == 1 or cfg.scenario.time_is_terminal, "algo.n_step",
+         "must be 1 when scenario.time_is_terminal=false (a cut return would need its "
+         "own discount)", a.n_step),
+        (t.population == 1 or a.loss == LossKind.fused, "algo.loss",
+         "must be fused when train.population > 1 (torchrl is the solo reference loss)",
+         a.loss),
         (t.episodes % t.n_envs == 0, "train.episodes",
          "must be a multiple of train.n_envs", (t.episodes, t.n_envs)),
     ]

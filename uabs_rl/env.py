@@ -18,7 +18,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Binary, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from uabs_rl import service
+from uabs_rl import rng, service
 from uabs_rl._compile import compiled_or_eager
 from uabs_rl.config import ChannelConfig, ConfigError, ScenarioConfig
 from uabs_rl.geometry import Geometry
@@ -285,8 +285,8 @@ class UABSEnv(EnvBase):
         self.register_buffer("eval_windows", fixed_windows(
             *self.veh_pos.shape[:2], self.params.episode_steps, n_eval_windows, device)
             if mode == "eval" else None)
-        self.rng = torch.Generator(device=device)
-        self.rng.manual_seed(0 if seed is None else seed)
+        # one generator, or one per population member (a list of seeds; see uabs_rl.rng)
+        self.rng = rng.make_generator(seed, device)
         self._build_math(device)
         self.start_spacing: float | None = None  # see require_start_spacing
         self.register_buffer("packing", None)  # [K, 2] start points, see there
@@ -309,9 +309,7 @@ class UABSEnv(EnvBase):
         if self.veh_pos.device != self.math.geometry.device:
             dev = self.veh_pos.device
             self.state = {k: fn(v) for k, v in self.state.items()}
-            seed = int(torch.randint(0, 2**62, (1,), generator=self.rng, device=self.rng.device))
-            self.rng = torch.Generator(device=dev)
-            self.rng.manual_seed(seed)
+            self.rng = rng.reseeded(self.rng, dev)
             self._build_math(dev)
         return out
 
@@ -337,9 +335,9 @@ class UABSEnv(EnvBase):
             w = self.eval_windows[st["cursor"] % self.eval_windows.shape[0]]
             return w[:, 0], w[:, 1]
         s, steps = self.veh_pos.shape[:2]
-        sim = torch.randint(0, s, (self.n_envs,), generator=self.rng, device=self.device)
+        sim = rng.randint(0, s, (self.n_envs,), self.rng, self.device)
         hi = steps - self.params.episode_steps
-        start = torch.randint(0, hi, (self.n_envs,), generator=self.rng, device=self.device)
+        start = rng.randint(0, hi, (self.n_envs,), self.rng, self.device)
         return sim, start
 
     # ------------------------------------------------------------------ reset / step

@@ -17,35 +17,39 @@ from uabs_rl.config import RunConfig
 from uabs_rl.env import DIAG, OBS, POSITION, window_count
 from uabs_rl.make import make_env, make_selector
 from uabs_rl.masking import ACTION_VALUE
+from uabs_rl.rng import make_generator
 from uabs_rl.traces import TraceSet, get_traces
 
 
 def greedy_policy(qnet: nn.Module, env: TransformedEnv, cfg: RunConfig,
-                  compile: bool = False) -> TensorDictSequential:
+                  compile: bool = False, members: int = 1) -> TensorDictSequential:
     """The greedy learned policy: Q-values, then the masking rule's choice with ε = 0.
-    Its generator is seeded with ``train.eval_seed``: no draw decides anything when
-    greedy, but evaluation stays off the global RNG."""
-    gen = torch.Generator(device=env.base_env.device)
-    gen.manual_seed(cfg.train.eval_seed)
+    Its generator (one per population member) is seeded with ``train.eval_seed``: no
+    draw decides anything when greedy, but evaluation stays off the global RNG."""
+    gen = make_generator([cfg.train.eval_seed] * members if members > 1
+                         else cfg.train.eval_seed, env.base_env.device)
     qmod = TensorDictModule(qnet, in_keys=[OBS], out_keys=[ACTION_VALUE])
     return TensorDictSequential(qmod, make_selector(env, cfg.masking, 0.0, gen, compile=compile))
 
 
 def make_eval_env(cfg: RunConfig, traces: TraceSet | None = None,
                   device: str | torch.device = "cpu", windows: int | None = None,
-                  compile: bool | None = None, split: str = "eval") -> TransformedEnv:
+                  compile: bool | None = None, split: str = "eval",
+                  members: int = 1) -> TransformedEnv:
     """The held-out env of ``split`` ("eval": the validation traces that training
     evaluates on; "test": the traces every reported figure comes from) with ``windows``
     fixed windows, one env each (default: ``train.eval_windows`` for validation, every
     window of the test traces for test); compiled as ``train.compile`` unless
-    ``compile`` says otherwise."""
+    ``compile`` says otherwise. With ``members`` > 1, the windows once per member of a
+    population, side by side, each block with its own generator seeded alike."""
     tr = cfg.train
     n = windows if windows is not None else (tr.eval_windows if split == "eval" else None)
     if n is None:  # every non-overlapping window of the split
         traces = traces or get_traces(cfg.scenario, cfg.traces, split)
         n = window_count(traces.n_sims, traces.steps, cfg.scenario.episode_steps)
+    seed = [tr.eval_seed] * members if members > 1 else tr.eval_seed
     return make_env(cfg.scenario, cfg.channel, cfg.masking, traces or cfg.traces, split,
-                    n_envs=n, device=device, n_eval_windows=n, seed=tr.eval_seed,
+                    n_envs=n * members, device=device, n_eval_windows=n, seed=seed,
                     compile=tr.compile if compile is None else compile, spec_mask=False)
 
 
@@ -62,11 +66,21 @@ class Evaluator:
                  env_steps: int = 0) -> tuple[dict[str, Any], TensorDictBase]:
         """The record (R, safety counters, served fraction, P_g and its curve, closest
         approach, coverage) and the rollout of ``policy``."""
+        td = self.rollout(policy)
+        return self.record(td, episode, env_steps), td
+
+    @torch.no_grad()
+    def rollout(self, policy: TensorDictModuleBase) -> TensorDictBase:
+        """One seeded episode of ``policy`` in every env: ``[E, T]``."""
         self.env.set_seed(self.seed)
-        td = self.env.rollout(self.params.episode_steps, policy, break_when_any_done=False)
+        return self.env.rollout(self.params.episode_steps, policy, break_when_any_done=False)
+
+    def record(self, td: TensorDictBase, episode: int = 0, env_steps: int = 0) -> dict[str, Any]:
+        """The evaluation record of the rollout ``td`` (or of a block of its envs: a
+        population member's)."""
         last = td["next", DIAG][:, -1]
         ret = last["ep_return"]
-        record = {
+        return {
             "kind": "eval", "episode": episode, "env_steps": env_steps,
             "return": ret.mean().item(),
             "return_std": ret.std().item() if ret.numel() > 1 else 0.0,
@@ -83,7 +97,6 @@ class Evaluator:
             "closest_approach": td["next", DIAG, "closest_approach"].min().item(),
             "coverage": self.coverage(td["next", POSITION]),
             "windows": int(ret.numel())}
-        return record, td
 
     def coverage(self, pos: torch.Tensor) -> float:
         """Mean share of the area under footprints over the evaluated steps (10 m grid)."""

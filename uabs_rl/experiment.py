@@ -81,6 +81,23 @@ class Progress:
         self.bar.close()
 
 
+def run_rounds(exp, logs: list[RunLog]) -> float:
+    """``exp._rounds()`` with its logs open, a progress bar and Ctrl-C deferred to the
+    end of a round (see :meth:`Experiment.fit`); returns the minutes it took."""
+    for lg in logs:
+        lg.open(resume_episode=exp.episode if exp.episode else None)
+    exp.progress = Progress(exp.cfg.train, exp.episode)
+    t0 = time.perf_counter()
+    try:
+        with exp.interrupt:
+            exp._rounds()
+    finally:
+        exp.progress.close()
+        for lg in logs:
+            lg.close()
+    return (time.perf_counter() - t0) / 60
+
+
 class Experiment:
     """Collect / optimise / evaluate / checkpoint / log, each in its own object."""
 
@@ -110,7 +127,8 @@ class Experiment:
         self.gen.manual_seed(cfg.seed)
         selector = make_selector(env, cfg.masking, cfg.algo.eps_start, self.gen,
                                  compile=tr.compile)
-        self.collector = Collector(env, self.qnet, selector, self.buffer)
+        self.collector = Collector(env, self.qnet, selector, self.buffer,
+                                   n_step=cfg.algo.n_step, gamma=cfg.algo.gamma)
         self.updates = UpdateSchedule(self.learner, self.buffer, cfg.algo)
         self.evaluator = Evaluator(eval_env, tr.eval_seed)
         self.greedy = greedy_policy(self.qnet, eval_env, cfg, compile=tr.compile)
@@ -127,7 +145,8 @@ class Experiment:
         records = episode_records(
             last, served, self.params.episode_steps, self.episode + 1,
             self.collector.env_steps,
-            {"epsilon": eps, "loss": loss, "q_chosen": q, "updates": self.learner.updates})
+            {"epsilon": eps, "loss": loss.item(), "q_chosen": q.item(),
+             "updates": self.learner.updates})
         self.episode += len(records)
         return records
 
@@ -205,19 +224,11 @@ class Experiment:
         """Train to ``train.episodes``, evaluating every ``train.eval_every`` episodes.
         Ctrl-C finishes the current round, saves ``last`` and raises :class:`Interrupted`
         (a second Ctrl-C stops at once, keeping the last checkpoint)."""
-        self.log.open(resume_episode=self.episode if self.episode else None)
-        self.progress = Progress(self.cfg.train, self.episode)
-        t0 = time.perf_counter()
-        try:
-            with self.interrupt:
-                self._rounds()
-        finally:
-            self.progress.close()
-            self.log.close()
+        minutes = run_rounds(self, [self.log])
         self.save("last")
         summary = {"episodes": self.episode, "updates": self.learner.updates,
                    "best_eval_return": self.best_eval, "last_eval_return": self.progress.last_eval,
-                   "minutes": (time.perf_counter() - t0) / 60}
+                   "minutes": minutes}
         log.info("done: %d episodes, %d updates, best validation return %.0f, %.1f min",
                  self.episode, self.learner.updates, self.best_eval, summary["minutes"])
         return summary

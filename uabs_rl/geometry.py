@@ -8,6 +8,7 @@ from functools import lru_cache
 
 import torch
 
+from uabs_rl import rng
 from uabs_rl.params import EnvParams
 
 # the four actions: up (+y), right (+x), down (−y), left (−x)
@@ -57,15 +58,15 @@ class Geometry:
         w, h = ((self.lattice_n - 1).float() * p.step_m).tolist()
         perim = 2.0 * (w + h)
         k = torch.arange(p.n_uabs - 1, device=dev).float()
-        s0 = torch.rand(n_envs, 1, generator=gen, device=dev) * perim
+        s0 = rng.rand((n_envs, 1), gen, dev) * perim
         ring = self.perimeter_point(s0 + k * perim / max(p.n_uabs - 1, 1))  # [E, M-1, 2]
         c = candidates if p.safe_start and p.n_uabs > 1 else 1
         if p.lattice:
-            ix = torch.randint(0, int(self.lattice_n[0]), (n_envs, c), generator=gen, device=dev)
-            iy = torch.randint(0, int(self.lattice_n[1]), (n_envs, c), generator=gen, device=dev)
+            ix = rng.randint(0, int(self.lattice_n[0]), (n_envs, c), gen, dev)
+            iy = rng.randint(0, int(self.lattice_n[1]), (n_envs, c), gen, dev)
             inner = self.lattice_point(ix.float(), iy.float())  # [E, C, 2]
         else:
-            inner = torch.rand(n_envs, c, 2, generator=gen, device=dev) * self.area
+            inner = rng.rand((n_envs, c, 2), gen, dev) * self.area
         if c > 1:
             mind = torch.cdist(inner, ring).amin(-1)  # [E, C]
             ok = mind >= p.d_th
@@ -83,6 +84,9 @@ class Geometry:
                      gen: torch.Generator) -> torch.Tensor:
         """Start positions with every pair at least ``spacing`` apart: ``pos`` where it
         already is, else M random points of ``packing`` (mirrored at random)."""
+        if isinstance(gen, rng.Generators):  # whether to draw is each member's own case
+            return torch.cat([self.spread_start(pos[sl], packing, spacing, g)
+                              for sl, g in gen.blocks(pos.shape[0])])
         e, m = pos.shape[:2]
         ok = self.pair_distances(pos).flatten(1).amin(-1) >= spacing - 1e-6  # [E]
         if bool(ok.all()):  # no draw: the paper's placement stands everywhere

@@ -27,7 +27,7 @@ from torchrl.modules import QValueModule
 from torchrl.objectives import DQNLoss
 
 from uabs_rl.config import AlgoConfig, LossKind
-from uabs_rl.model import DuelingQNet
+from uabs_rl.model import DuelingQNet, StackedQNet
 
 TARGET_WARNING = "No target network updater has been associated"
 
@@ -39,7 +39,7 @@ class DQNLearner:
     def __init__(self, qnet: DuelingQNet, algo: AlgoConfig, n_actions: int):
         self.qnet = qnet
         self.target = copy.deepcopy(qnet).requires_grad_(False)
-        self.gamma = float(algo.gamma)
+        self.gamma = float(algo.gamma) ** algo.n_step  # bootstraps n steps on
         self.target_update = int(algo.target_update)
         self.grad_clip = algo.grad_clip
         self.kind = algo.loss
@@ -55,14 +55,18 @@ class DQNLearner:
 
     # ------------------------------------------------------------------ losses
     def fused_loss(self, b: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
-        """Huber(Q(o, a), r + γ (1 − terminated) Q_target(o', argmax_{a' ∈ mask'} Q(o', a')))."""
-        q_taken = self.qnet(b["obs"]).gather(1, b["action"][:, None]).squeeze(1)
+        """Huber(Q(o, a), r + γ (1 − terminated) Q_target(o', argmax_{a' ∈ mask'} Q(o', a')))
+        (γ^n with n-step returns). Batch fields ``[B, ...]``; for a population
+        ``[P, B, ...]``, with one loss per member ``[P]``."""
+        q_taken = self.qnet(b["obs"]).gather(-1, b["action"][..., None]).squeeze(-1)
         with torch.no_grad():  # o' outside the graph: the backward pass covers o only
             best = self.qnet(b["next_obs"]).masked_fill(~b["next_mask"], -torch.inf).argmax(
-                1, keepdim=True)
-            q_next = self.target(b["next_obs"]).gather(1, best).squeeze(1)
+                -1, keepdim=True)
+            q_next = self.target(b["next_obs"]).gather(-1, best).squeeze(-1)
             y = b["reward"] + self.gamma * (~b["terminated"]).float() * q_next
-        return F.smooth_l1_loss(q_taken, y), q_taken.detach()
+        if q_taken.dim() == 1:
+            return F.smooth_l1_loss(q_taken, y), q_taken.detach()
+        return F.smooth_l1_loss(q_taken, y, reduction="none").mean(-1), q_taken.detach()
 
     def torchrl_loss(self, b: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
         td = batch_to_td(b)
@@ -75,18 +79,22 @@ class DQNLearner:
 
     # ------------------------------------------------------------------ update
     def update(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
-        """One gradient step; returns (loss, mean chosen Q) as 0-d tensors (no sync)."""
+        """One gradient step; returns (loss, mean chosen Q) as 0-d tensors (no sync);
+        ``[P]`` tensors, one per member, for a population."""
         loss, q_taken = (self.fused_loss if self.kind == LossKind.fused
                          else self.torchrl_loss)(batch)
         self.optim.zero_grad(set_to_none=True)
-        loss.backward()
+        (loss if loss.dim() == 0 else loss.sum()).backward()
         if self.grad_clip is not None:
-            torch.nn.utils.clip_grad_norm_(self.qnet.parameters(), self.grad_clip)
+            self.clip_gradients()
         self.optim.step()
         self.updates += 1
         if self.updates % self.target_update == 0:
             self.sync_target()
-        return loss.detach(), q_taken.mean()
+        return loss.detach(), q_taken.mean(-1)
+
+    def clip_gradients(self) -> None:
+        torch.nn.utils.clip_grad_norm_(self.qnet.parameters(), self.grad_clip)
 
     def sync_target(self) -> None:
         self.target.load_state_dict(self.qnet.state_dict())
@@ -112,6 +120,66 @@ class DQNLearner:
         self.updates = int(state["updates"])
         if self.kind == LossKind.torchrl:
             self._sync_torchrl_target()
+
+
+class PopulationLearner(DQNLearner):
+    """:class:`DQNLearner`'s fused update for the P members of a population at once, on
+    a :class:`~uabs_rl.model.StackedQNet` with one fused Adam over the stacked
+    parameters. The loss is the sum of the members' mean Huber losses; members share
+    no parameter, so each slice's gradient is its member's own, and Adam is
+    element-wise, so each slice steps as its member's solo run would (up to the
+    rounding of batched products). ``algo.grad_clip`` clips each member's gradient by
+    its own norm, as ``clip_grad_norm_`` does in a solo run."""
+
+    def __init__(self, qnet: StackedQNet, algo: AlgoConfig):
+        super().__init__(qnet, algo, n_actions=0)  # algo.loss is fused (validate_run)
+
+    def clip_gradients(self) -> None:
+        grads = [p.grad for p in self.qnet.parameters()]
+        norm = torch.stack([g.pow(2).flatten(1).sum(1) for g in grads]).sum(0).sqrt()  # [P]
+        scale = (self.grad_clip / (norm + 1e-6)).clamp(max=1.0)
+        for g in grads:
+            g.mul_(scale.view(-1, *([1] * (g.dim() - 1))))
+
+    # ------------------------------------------------------------------ members
+    def member_state_dict(self, p: int) -> dict:
+        """Member ``p``'s learner state in the solo format (:meth:`DQNLearner.state_dict`),
+        so its checkpoint is a solo run's checkpoint."""
+        params = list(self.qnet.parameters())
+        st = self.optim.state
+        moments = {name: self.qnet.member_tensors([st[q][name] for q in params], p)
+                   for name in ("exp_avg", "exp_avg_sq")} if st else None
+        keys = list(self.qnet.member_state_dict(p))
+        optim = {"state": {}, "param_groups": [dict(self.optim.param_groups[0],
+                                                    params=list(range(len(keys))))]}
+        if moments is not None:
+            step = st[params[0]]["step"].clone()
+            optim["state"] = {i: {"step": step.clone(), "exp_avg": moments["exp_avg"][k],
+                                  "exp_avg_sq": moments["exp_avg_sq"][k]}
+                              for i, k in enumerate(keys)}
+        return {"qnet": self.qnet.member_state_dict(p),
+                "target": self.target.member_state_dict(p),
+                "optim": optim, "updates": self.updates}
+
+    def load_member(self, p: int, state: dict) -> None:
+        """Set member ``p`` from a solo learner state (a member checkpoint)."""
+        self.qnet.load_member(p, state["qnet"])
+        self.target.load_member(p, state["target"])
+        params = list(self.qnet.parameters())
+        keys = list(self.qnet.member_state_dict(p))
+        saved = state["optim"]["state"]
+        if saved:
+            for name in ("exp_avg", "exp_avg_sq"):
+                tensors = [self.optim.state[q].get(name) for q in params]
+                tensors = [torch.zeros_like(q) if t is None else t
+                           for q, t in zip(params, tensors, strict=True)]
+                self.qnet.write_member(tensors, p, {k: saved[i][name]
+                                                    for i, k in enumerate(keys)})
+                for q, t in zip(params, tensors, strict=True):
+                    self.optim.state[q][name] = t
+            for q in params:
+                self.optim.state[q]["step"] = saved[0]["step"].clone()
+        self.updates = int(state["updates"])
 
 
 def value_network(qnet: DuelingQNet) -> TensorDictSequential:

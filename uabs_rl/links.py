@@ -7,6 +7,7 @@ import math
 
 import torch
 
+from uabs_rl import rng
 from uabs_rl.channel import (
     beam_cells,
     beam_grid_side,
@@ -57,7 +58,7 @@ class ServiceRadii:
         if not self.needs_draw:
             return sure
         maybe = d2 <= _squared(self.r_los)
-        los = torch.rand(d2.shape, generator=gen, device=d2.device) < los_probability(
+        los = rng.rand(d2.shape, gen, d2.device) < los_probability(
             d2.sqrt(), self.p.h_ut)
         return sure | (maybe & los)
 
@@ -159,9 +160,9 @@ class LinkModel:
             if p.los_mode == "expected":
                 pl, los = rho * pl_los + (1.0 - rho) * pl_nlos, None
             else:
-                los = torch.rand(d2d.shape, generator=gen, device=d2d.device) < rho
+                los = rng.rand(d2d.shape, gen, d2d.device) < rho
                 pl = torch.where(los, pl_los, pl_nlos)
         if p.shadow:
             sigma = p.sigma_los if los is None else torch.where(los, p.sigma_los, p.sigma_nlos)
-            pl = pl + sigma * torch.randn(d2d.shape, generator=gen, device=d2d.device)
+            pl = pl + sigma * rng.randn(d2d.shape, gen, d2d.device)
         return snr_db(pl, p.tx_dbm, p.tx_gain_db, 0.0, p.noise_dbm)

@@ -77,6 +77,7 @@ from torch import nn
 from torchrl.data import Binary, Categorical, TensorSpec
 from torchrl.envs.transforms import Transform
 
+from uabs_rl import rng
 from uabs_rl._compile import compiled_or_eager
 from uabs_rl.config import MaskingConfig, MaskingMode, RankNextMask, enum_value, validate_masking
 from uabs_rl.env import BACKUP, BEAM_PRIORITY, FALLBACK, MASK, POSITION
@@ -142,7 +143,7 @@ def uniforms(shape: torch.Size | tuple[int, ...], gen: torch.Generator | None,
     """The exploration draws of one decision, ``[*shape, 5]``: four to pick a random
     action, one to decide whether to explore. Drawn up front in one call, so the
     selection itself is a pure (and compilable) function."""
-    return torch.rand(*shape, 5, generator=gen, device=device)
+    return rng.rand((*shape, 5), gen, device)
 
 
 def epsilon_greedy(q: torch.Tensor | None, mask: torch.Tensor, eps: float | torch.Tensor,

@@ -27,3 +27,81 @@ class DuelingQNet(nn.Module):
         z = self.trunk(obs)
         a = self.advantage(z)
         return self.value(z) + a - a.mean(-1, keepdim=True)
+
+
+def linear_layers(net: DuelingQNet) -> list[nn.Linear]:
+    """The affine layers of ``net`` in order: trunk, value head, advantage head."""
+    return [*(m for m in net.trunk if isinstance(m, nn.Linear)), net.value, net.advantage]
+
+
+class StackedQNet(nn.Module):
+    """P dueling Q-networks of one shape, their parameters stacked ``[P, ...]``: the
+    networks of a population (``train.population``), evaluated in one batched matrix
+    product per layer.
+
+    Input ``[P·k, ..., obs_dim]`` (member ``p``'s rows first-dimension block ``p``, as the
+    population's env lays them out) or ``[P, B, obs_dim]`` (a replay batch per member);
+    output the same with ``n_actions`` last. Member ``p`` computes what
+    ``DuelingQNet`` computes with the weights of :meth:`member_state_dict` ``(p)``, up
+    to the rounding of batched matrix products (about 1e-7 relative)."""
+
+    def __init__(self, nets: list[DuelingQNet]):
+        super().__init__()
+        self.members = len(nets)
+        layers = [linear_layers(n) for n in nets]
+        self.n_trunk = len(layers[0]) - 2
+        # value and advantage heads as one product: [P, out, in] with out = 1 + A
+        self.weight = nn.ParameterList()
+        self.bias = nn.ParameterList()
+        for i in range(self.n_trunk):
+            self.weight.append(nn.Parameter(torch.stack([ls[i].weight.detach() for ls in layers])))
+            self.bias.append(nn.Parameter(torch.stack([ls[i].bias.detach() for ls in layers])))
+        self.weight.append(nn.Parameter(torch.stack([
+            torch.cat([ls[-2].weight.detach(), ls[-1].weight.detach()]) for ls in layers])))
+        self.bias.append(nn.Parameter(torch.stack([
+            torch.cat([ls[-2].bias.detach(), ls[-1].bias.detach()]) for ls in layers])))
+        self._keys = [k for k in nets[0].state_dict()]
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        shape = obs.shape
+        z = obs.reshape(self.members, -1, shape[-1])
+        for w, b in zip(self.weight[:-1], self.bias[:-1], strict=True):
+            z = torch.relu(torch.baddbmm(b[:, None], z, w.transpose(1, 2)))
+        h = torch.baddbmm(self.bias[-1][:, None], z, self.weight[-1].transpose(1, 2))
+        v, a = h[..., :1], h[..., 1:]
+        q = v + a - a.mean(-1, keepdim=True)
+        return q.reshape(*shape[:-1], q.shape[-1])
+
+    def member_tensors(self, tensors: list[torch.Tensor], p: int) -> dict[str, torch.Tensor]:
+        """Member ``p``'s slice of per-parameter tensors laid out like this net's
+        parameters (the parameters, their gradients or optimiser moments), keyed as a
+        ``DuelingQNet`` state dict."""
+        n = self.n_trunk
+        ws, bs = tensors[: n + 1], tensors[n + 1:]
+        out = []
+        for w, b in zip(ws[:-1], bs[:-1], strict=True):
+            out += [w[p], b[p]]
+        out += [ws[-1][p, :1], bs[-1][p, :1], ws[-1][p, 1:], bs[-1][p, 1:]]
+        return {k: v.detach().clone() for k, v in zip(self._keys, out, strict=True)}
+
+    def member_state_dict(self, p: int) -> dict[str, torch.Tensor]:
+        """Member ``p`` as a ``DuelingQNet`` state dict (what a solo run's checkpoint holds)."""
+        return self.member_tensors(list(self.parameters()), p)
+
+    @torch.no_grad()
+    def write_member(self, tensors: list[torch.Tensor], p: int,
+                     values: dict[str, torch.Tensor]) -> None:
+        """The inverse of :meth:`member_tensors`: write member ``p``'s ``values`` (keyed
+        as a ``DuelingQNet`` state dict) into ``tensors``."""
+        n = self.n_trunk
+        vals = [values[k] for k in self._keys]
+        ws, bs = tensors[: n + 1], tensors[n + 1:]
+        for i in range(n):
+            ws[i][p].copy_(vals[2 * i])
+            bs[i][p].copy_(vals[2 * i + 1])
+        ws[n][p].copy_(torch.cat([vals[2 * n], vals[2 * n + 2]]))
+        bs[n][p].copy_(torch.cat([vals[2 * n + 1], vals[2 * n + 3]]))
+
+    def load_member(self, p: int, state: dict[str, torch.Tensor]) -> None:
+        """Set member ``p`` from a ``DuelingQNet`` state dict."""
+        self.write_member(list(self.parameters()), p, state)

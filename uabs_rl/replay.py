@@ -73,3 +73,25 @@ class ReplayBuffer:
             self.data[k][:size] = state["data"][k].to(self.data[k].device)
         self.cursor, self.size = int(state["cursor"]), size
         self.generator.set_state(state["generator"])
+
+
+class PopulationReplay:
+    """One :class:`ReplayBuffer` per population member, each seeded as that member's
+    solo run seeds its own. :meth:`push` takes the transitions of the population's env
+    (member ``p``'s rows form block ``p``); :meth:`sample` stacks the members' samples
+    ``[P, B, ...]`` for :class:`~uabs_rl.learner.PopulationLearner`."""
+
+    def __init__(self, buffers: list[ReplayBuffer]):
+        self.buffers = buffers
+
+    def __len__(self) -> int:
+        return min(len(b) for b in self.buffers)
+
+    def push(self, **batch: torch.Tensor) -> None:
+        n = batch["obs"].shape[0] // len(self.buffers)
+        for i, buf in enumerate(self.buffers):
+            buf.push(**{k: v[i * n:(i + 1) * n] for k, v in batch.items()})
+
+    def sample(self, batch_size: int) -> dict[str, torch.Tensor]:
+        samples = [b.sample(batch_size) for b in self.buffers]
+        return {k: torch.stack([s[k] for s in samples]) for k in FIELDS}

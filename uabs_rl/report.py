@@ -97,6 +97,7 @@ def find_runs(root: Path) -> list[Run]:
 # settings that may differ between the runs of one report: what a sweep varies (seed,
 # masking mode) and what does not change results
 SWEPT_OR_NEUTRAL = ("seed", "masking.mode", "resume", "device", "train.progress",
+                    "train.population",
                     "train.logger", "train.threads", "train.compile",
                     "train.trajectory_images", "train.checkpoint_buffer", "traces.cache_dir",
                     "traces.workers")

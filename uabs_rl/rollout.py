@@ -16,7 +16,7 @@ from uabs_rl.config import AlgoConfig
 from uabs_rl.env import ACTION, DIAG, MASK, N_ACTIONS, OBS, REWARD
 from uabs_rl.learner import DQNLearner
 from uabs_rl.masking import ACTION_VALUE, MaskedActionSelector
-from uabs_rl.replay import ReplayBuffer
+from uabs_rl.replay import PopulationReplay, ReplayBuffer
 
 
 def epsilon(algo: AlgoConfig, env_steps: int, total_steps: int) -> float:
@@ -45,14 +45,32 @@ class UpdateSchedule:
 
 
 class Collector:
-    """Runs ``n_envs`` training episodes per round with the ε-greedy masked policy."""
+    """Runs ``n_envs`` training episodes per round with the ε-greedy masked policy.
+    With ``members`` > 1 (a population) the env's rows are ``members`` blocks, one per
+    member, and the updates are due per member's envs (each update is one batched
+    step of every member)."""
 
     def __init__(self, env: TransformedEnv, qnet: nn.Module, selector: MaskedActionSelector,
-                 buffer: ReplayBuffer):
+                 buffer: ReplayBuffer | PopulationReplay, members: int = 1,
+                 n_step: int = 1, gamma: float = 1.0):
         self.env, self.qnet, self.selector, self.buffer = env, qnet, selector, buffer
         self.params = env.base_env.params
         self.n_envs = env.base_env.n_envs
+        self.members = members
+        self.n_step, self.gamma = n_step, gamma  # n-step returns (algo.n_step)
         self.env_steps = 0  # per-env steps so far
+
+    def _transition(self, record: list[dict[str, torch.Tensor]],
+                    i: int) -> dict[str, torch.Tensor]:
+        """Transition ``i`` with an n-step return (``algo.n_step``): the reward
+        r_i + γ r_{i+1} + ... + γ^{n-1} r_{i+n-1} (fewer terms where the episode ends
+        first) and the state n steps on; n = 1 is step i's own transition."""
+        last = min(i + self.n_step, len(record)) - 1
+        tr = dict(record[i])
+        for k in range(1, last - i + 1):
+            tr["reward"] = tr["reward"] + self.gamma ** k * record[i + k]["reward"]
+        tr["next_obs"], tr["terminated"] = record[last]["next_obs"], record[last]["terminated"]
+        return tr
 
     def _push(self, tr: dict[str, torch.Tensor], next_mask: torch.Tensor) -> None:
         n = tr["obs"].shape[0] * tr["obs"].shape[1]
@@ -63,40 +81,46 @@ class Collector:
               optimise: Callable[[int], Iterator[tuple[torch.Tensor, torch.Tensor]]]):
         """One episode per env to its end. ``eps_at(env_steps)`` gives ε; after each step
         ``optimise(n_envs)`` runs the updates due. Returns the last step's diagnostics,
-        the summed served fractions, ε, and the mean loss / chosen Q of the updates."""
+        the summed served fractions, ε, and the mean loss / chosen Q of the updates
+        (tensors: 0-d, or ``[P]`` per member of a population; NaN without updates)."""
         steps, e = self.params.episode_steps, self.n_envs
         # a transition waits for the next step's Q-values when the rule's target mask
         # needs them (rank, greedy target mask)
         defer = self.selector.rule.target_needs_q
+        n = self.n_step
         td = self.env.reset()
         served = torch.zeros(e, device=self.env.device)
-        loss_sum = torch.zeros((), device=self.env.device)
-        q_sum = torch.zeros((), device=self.env.device)
-        n_updates, pending = 0, None
+        loss_sum = q_sum = torch.zeros((), device=self.env.device)
+        n_updates, pushed, record = 0, 0, []  # record[i]: step i's one-step transition
         for t in range(steps):
             eps = eps_at(self.env_steps)
             self.selector.eps.fill_(eps)
             with torch.no_grad():
                 td.set(ACTION_VALUE, self.qnet(td.get(OBS)))
-            if pending is not None:
-                self._push(pending, self.selector.target_mask(td))
+            if defer and t >= n:  # s_t's target mask completes transition t - n
+                self._push(self._transition(record, pushed), self.selector.target_mask(td))
+                pushed += 1
             self.selector(td)
             nxt = self.env.step(td)["next"]
-            pending = {"obs": td.get(OBS), "action": td.get(ACTION), "mask": td.get(MASK),
-                       "reward": nxt.get(REWARD).squeeze(-1), "next_obs": nxt.get(OBS),
-                       "terminated": nxt.get(("agents", "terminated")).squeeze(-1)}
-            if not defer or t == steps - 1:
-                self._push(pending, nxt.get(MASK))  # terminal: the mask is not used
-                pending = None
+            record.append({"obs": td.get(OBS), "action": td.get(ACTION), "mask": td.get(MASK),
+                           "reward": nxt.get(REWARD).squeeze(-1), "next_obs": nxt.get(OBS),
+                           "terminated": nxt.get(("agents", "terminated")).squeeze(-1)})
+            if not defer and t >= n - 1:
+                self._push(self._transition(record, pushed), nxt.get(MASK))
+                pushed += 1
+            while t == steps - 1 and pushed < steps:  # the end: cut at T, no bootstrap
+                self._push(self._transition(record, pushed), nxt.get(MASK))  # mask unused
+                pushed += 1
             served += nxt.get((DIAG, "served_fraction"))
             self.env_steps += 1
-            for loss, q in optimise(e):
-                loss_sum += loss
-                q_sum += q
+            for loss, q in optimise(e // self.members):
+                loss_sum = loss_sum + loss
+                q_sum = q_sum + q
                 n_updates += 1
             td = nxt.exclude(REWARD)
-        loss = (loss_sum / n_updates).item() if n_updates else float("nan")
-        q_mean = (q_sum / n_updates).item() if n_updates else float("nan")
+        nan = torch.full((), float("nan"))
+        loss = loss_sum / n_updates if n_updates else nan
+        q_mean = q_sum / n_updates if n_updates else nan
         return nxt.get(DIAG), served, eps, loss, q_mean
 
 

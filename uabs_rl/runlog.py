@@ -9,6 +9,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import os
+import shutil
 import time
 from pathlib import Path
 from typing import Any
@@ -180,8 +181,8 @@ class RunLog:
         out.mkdir(exist_ok=True)
         for name, fig in figs.items():
             fig.savefig(out / f"last_{name}.png")
-            if is_best:
-                fig.savefig(out / f"best_{name}.png")
+            if is_best:  # the same picture: copied, not drawn again
+                shutil.copyfile(out / f"last_{name}.png", out / f"best_{name}.png")
             if writer is not None:
                 writer.add_figure(f"eval/{name}", fig, record["env_steps"])
             plt.close(fig)

@@ -39,6 +39,7 @@ from uabs_rl.checkpoint import (
 from uabs_rl.cli import hydra_main
 from uabs_rl.config import ConfigError, LoggerKind, RunConfig, to_container
 from uabs_rl.experiment import Experiment
+from uabs_rl.population import Population, member_dir, member_seeds
 from uabs_rl.runlog import read_metrics
 
 log = logging.getLogger(__name__)
@@ -49,7 +50,17 @@ def saved_config(run_dir: Path) -> tuple[RunConfig, dict | None]:
     ckpt = run_dir / "checkpoints" / "last.pt"
     if ckpt.is_file():
         state = load_checkpoint(ckpt)
+        if "population" in state:
+            raise CheckpointError(f"{run_dir} is one member of a population trained "
+                                  f"together: resume the population, "
+                                  f"resume={run_dir.parent}.")
         return config_from_checkpoint(state), state
+    for member in sorted(run_dir.glob("seed=*/checkpoints/last.pt")):  # a population
+        state = load_checkpoint(member)
+        if "population" in state:
+            cfg = config_from_checkpoint(state)
+            cfg.seed = int(state["population"]["seeds"][0])
+            return cfg, None  # the population loads its members' checkpoints itself
     hydra_cfg = run_dir / ".hydra" / "config.yaml"
     if not hydra_cfg.is_file():
         raise CheckpointError(f"resume={run_dir}: no checkpoints/last.pt and no "
@@ -75,13 +86,20 @@ def resumed_config(saved: RunConfig, overrides: list[str]) -> RunConfig:
     return cfg
 
 
-def prepare(cfg: RunConfig, run_dir: Path, overrides: list[str] | None = None) -> Experiment:
-    """The experiment of one run (new, or resumed). With ``resume`` and ``overrides``
-    (the command line's), the run's own config is used."""
+def prepare(cfg: RunConfig, run_dir: Path,
+            overrides: list[str] | None = None) -> Experiment | Population:
+    """The experiment of one run, or of a population (``train.population`` > 1), new or
+    resumed. With ``resume`` and ``overrides`` (the command line's), the run's own
+    config is used."""
     if not cfg.resume:
-        if (Path(run_dir) / "metrics.jsonl").exists():
-            raise ConfigError(f"{run_dir} already holds a run (metrics.jsonl): continue it "
+        held = [d for d in [Path(run_dir), *(member_dir(run_dir, s) for s in
+                                              member_seeds(cfg))]
+                if (d / "metrics.jsonl").exists()]
+        if held:
+            raise ConfigError(f"{held[0]} already holds a run (metrics.jsonl): continue it "
                               f"with resume={run_dir}, or choose another hydra.run.dir.")
+        if cfg.train.population > 1:
+            return Population(cfg, run_dir)
         return Experiment(cfg, run_dir)
     run_dir = Path(cfg.resume)
     if run_dir.suffix == ".pt" or run_dir.is_file():
@@ -90,6 +108,8 @@ def prepare(cfg: RunConfig, run_dir: Path, overrides: list[str] | None = None) -
     saved, state = saved_config(run_dir)
     if overrides is not None:
         cfg = resumed_config(saved, overrides)
+    if cfg.train.population > 1:
+        return _resume_population(cfg, run_dir)
     exp = Experiment(cfg, run_dir)
     if state is None:  # stopped before its first checkpoint: start it again, in place
         log.info("%s has no checkpoint yet: starting it again from episode 0", run_dir)
@@ -98,6 +118,19 @@ def prepare(cfg: RunConfig, run_dir: Path, overrides: list[str] | None = None) -
         exp.load_state_dict(state, run_dir / "checkpoints" / "last.pt")
         log.info("resuming %s at episode %d", run_dir, exp.episode)
     return exp
+
+
+def _resume_population(cfg: RunConfig, run_dir: Path) -> Population:
+    pop = Population(cfg, run_dir)
+    if all((m.run_dir / "checkpoints" / "last.pt").is_file() for m in pop.members):
+        pop.load()
+        log.info("resuming the population %s at episode %d", run_dir, pop.episode)
+    else:  # stopped before every member's first checkpoint: start again, in place
+        log.info("%s has no checkpoint of every member yet: starting it again from "
+                 "episode 0", run_dir)
+        for m in pop.members:
+            m.log.truncate(0)
+    return pop
 
 
 def run(cfg: RunConfig, run_dir: Path, overrides: list[str] | None = None) -> dict[str, Any]:
@@ -151,6 +184,38 @@ def summary_text(cfg: RunConfig, summary: dict[str, Any], run_dir: Path) -> str:
     return "\n".join(lines)
 
 
+def population_summary_text(cfg: RunConfig, summary: dict[str, Any], run_dir: Path) -> str:
+    """The end of a population: one row per member (validation R at its best and last
+    evaluation, served fraction and P_g at its best, training collisions), then the
+    next commands."""
+    nhat = cfg.scenario.nhat_s
+    lines = [f"\npopulation folder: {run_dir}",
+             f"  {len(summary['members'])} members x {summary['episodes']} episodes, "
+             f"{summary['updates']} batched updates; this session {summary['minutes']:.1f} min",
+             f"  {'member':<22} {'best R (ep)':>14} {'last R':>8} {'served':>8} "
+             f"{f'P_g({nhat})':>8} {'train coll.':>11}"]
+    for m in summary["members"]:
+        path = Path(m["run_dir"]) / "metrics.jsonl"
+        recs = read_metrics(path) if path.is_file() else []
+        evals = [r for r in recs if r["kind"] == "eval"]
+        coll = sum(r["collisions"] for r in recs if r["kind"] == "train")
+        if evals:
+            best = max(evals, key=lambda r: r["return"])
+            lines.append(f"  {Path(m['run_dir']).name:<22} "
+                         f"{best['return']:>8.0f} ({best['episode']:>3}) "
+                         f"{evals[-1]['return']:>8.0f} {best['served_fraction']:>8.1%} "
+                         f"{best['pg']:>8.1%} {coll:>11.0f}")
+    q = shlex.quote(str(run_dir))
+    first = shlex.quote(str(summary["members"][0]["run_dir"]))
+    lines += ["next:",
+              f"  uabs-eval {first} --policy all   # a member on the test traces, beside "
+              f"the baselines",
+              f"  uabs-report {q}   # tables and figures over the members"]
+    if LoggerKind(cfg.train.logger) is LoggerKind.tensorboard:
+        lines.append(f"  tensorboard --logdir {q}")
+    return "\n".join(lines)
+
+
 def _quote_resume(argv: list[str]) -> list[str]:
     """``resume=<dir>`` as Hydra would not parse it: a run folder named after overrides
     holds '=' and ','. Quote it, and make the resumed job log into that folder without
@@ -167,7 +232,8 @@ def _quote_resume(argv: list[str]) -> list[str]:
 
 def _run_and_report(cfg: RunConfig, run_dir: Path, overrides: list[str]) -> None:
     exp = prepare(cfg, run_dir, overrides)
-    print(summary_text(exp.cfg, exp.fit(), exp.run_dir))
+    text = population_summary_text if isinstance(exp, Population) else summary_text
+    print(text(exp.cfg, exp.fit(), exp.run_dir))
 
 
 def main() -> None:
