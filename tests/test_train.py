@@ -188,10 +188,18 @@ def test_ctrl_c_finishes_the_round_saves_last_and_stops(trace_cache, tmp_path, m
     ("algo.gamma=1.5", "algo.gamma"),
     ("train.eval_windows=0", "train.eval_windows"),
     ("device=tpu", "device"),
+    ("algo.n_step=0", "algo.n_step"),
+    ("algo.n_step=81", "algo.n_step"),
 ])
 def test_invalid_values_fail_at_start_up_naming_the_key(trace_cache, override, key):
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
         validate_run(smoke(trace_cache, override))
+
+
+def test_n_step_returns_need_a_terminal_episode_end(trace_cache):
+    validate_run(smoke(trace_cache, "algo.n_step=3"))
+    with pytest.raises(ConfigError, match=r"algo\.n_step must be 1 when scenario\.time_is"):
+        validate_run(smoke(trace_cache, "algo.n_step=3", "scenario.time_is_terminal=false"))
 
 
 @pytest.mark.parametrize("mode,recoverable,most", [("flat", "true", 8), ("rank", "true", 8),

@@ -318,7 +318,7 @@ def validate_run(cfg: RunConfig) -> None:
          "own discount)", a.n_step),
         (t.population == 1 or a.loss == LossKind.fused, "algo.loss",
          "must be fused when train.population > 1 (torchrl is the solo reference loss)",
-         a.loss),
+         str(a.loss)),
         (t.episodes % t.n_envs == 0, "train.episodes",
          "must be a multiple of train.n_envs", (t.episodes, t.n_envs)),
     ]
