@@ -300,3 +300,35 @@ def test_lookahead_observation_scores_each_candidate_move(small_traces_cfg):
     assert look.tolist() == [0.0, prio, 0.0, 0.0, 0.0, prio, 0.0, 0.0]
     obs = env.math.observation(st["pos"], st["t"], st["b"], st["look"])
     assert torch.allclose(obs[0, 0, -8:], look / sc.priority_obs_scale)
+
+
+def test_motion_observation_scores_moves_at_extrapolated_positions(small_traces_cfg):
+    """scenario.motion_obs: a vehicle that moved 40 m east in the last step is scored
+    where it will be if it keeps moving (40 m east of the UABS: only the move right
+    reaches it), while the plain lookahead scores it where it is (under the UABS: every
+    move reaches it). At the window's first step there is no last move."""
+    from uabs_rl.traces import TraceSet
+
+    steps = 30
+    pos = torch.zeros(1, steps, 1, 2)
+    pos[..., 1] = 85.0
+    pos[0, :5, 0, 0], pos[0, 5:, 0, 0] = 65.0, 105.0
+    traces = TraceSet(pos, torch.ones(1, steps, 1, dtype=torch.bool), {"split": "x", "dt": 1.0})
+    with pytest.raises(ConfigError, match="motion_obs needs scenario.lookahead_obs"):
+        UABSEnv(scenario(small_traces_cfg, n_uabs=1, motion_obs=True), ChannelConfig(),
+                traces, n_envs=1, seed=0)
+    sc = scenario(small_traces_cfg, n_uabs=1, lookahead_obs=True, motion_obs=True)
+    env = UABSEnv(sc, ChannelConfig(), traces, n_envs=1, seed=0)
+    assert env.params.obs_dim == 3 + 2 + 9 + 8 + 4
+    env.reset()
+    st = env.state
+    st["pos"][:] = torch.tensor([[[105.0, 85.0]]])
+    st["start"][:], st["t"][:] = 0, 5
+    env.math.observe(st, env.veh_pos, env.veh_present, env.rng)
+    p = max(1.0, float(st["priority"][0, 0]))
+    # up, right, down, left (then 2 steps each); then the extrapolated up, right, down, left
+    assert st["look"][0, 0].tolist() == [p, p, p, p, 0.0, 0.0, 0.0, 0.0, 0.0, p, 0.0, 0.0]
+    st["start"][:], st["t"][:] = 5, 0  # the window's first step: no last move
+    env.math.observe(st, env.veh_pos, env.veh_present, env.rng)
+    look = st["look"][0, 0]
+    assert torch.equal(look[8:], look[:4])

@@ -158,6 +158,11 @@ class ScenarioConfig:
     # the vehicles' current positions (what the greedy baseline looks at); false = the
     # paper's observation
     lookahead_obs: bool = False
+    # beyond the paper, with lookahead_obs: 4 more features, the priority each move would
+    # cover at the vehicles' positions extrapolated one step from their last move
+    # (x_t + (x_t - x_{t-1}), past positions only): an estimate of what the oracle
+    # baseline sees; false = none
+    motion_obs: bool = False
     time_is_terminal: bool = True  # t/T is observed: t = T ends the MDP, no bootstrap [decision]
 
 
@@ -446,6 +451,9 @@ def validate_env(scenario: ScenarioConfig, channel: ChannelConfig) -> None:
          "must be null or >= scenario.collision_distance", scenario.safety_distance),
         (scenario.priority_obs_scale > 0, "scenario.priority_obs_scale", "must be > 0",
          scenario.priority_obs_scale),
+        (scenario.lookahead_obs or not scenario.motion_obs, "scenario.motion_obs",
+         "needs scenario.lookahead_obs=true (it extends the lookahead features)",
+         scenario.motion_obs),
         (min(scenario.area.width, scenario.area.height) >= scenario.speed * scenario.dt,
          "scenario.area", "must be at least v·δt wide and high so every UABS can move",
          (scenario.area.width, scenario.area.height)),

@@ -59,7 +59,7 @@ class StepMath:
         self.links = LinkModel(p, device)
         self.moves = self.geometry.moves
         # lookahead observation: the 4 moves, then 2 steps in each direction
-        self.look_offsets = torch.cat([self.moves, 2 * self.moves])[: p.n_lookahead]
+        self.look_offsets = torch.cat([self.moves, 2 * self.moves])[: min(p.n_lookahead, 8)]
 
     def observe(self, st: dict[str, torch.Tensor], veh_pos: torch.Tensor,
                 veh_present: torch.Tensor,
@@ -73,8 +73,14 @@ class StepMath:
         st["b"] = service.beam_sums(inside, beam, st["priority"], self.p.n_beams)
         if self.p.lookahead_obs:
             cand = st["pos"][:, :, None, :] + self.look_offsets  # [E, M, 8, 2]
-            st["look"] = service.move_scores(cand, veh, present, st["priority"], self.p.r_b,
-                                             self.p.n_beams)
+            look = service.move_scores(cand, veh, present, st["priority"], self.p.r_b,
+                                       self.p.n_beams)
+            if self.p.motion_obs:
+                ahead = service.extrapolated(st, veh, present, veh_pos, veh_present)
+                look = torch.cat([look, service.move_scores(
+                    st["pos"][:, :, None, :] + self.moves, ahead, present, st["priority"],
+                    self.p.r_b, self.p.n_beams)], dim=-1)
+            st["look"] = look
         return served, present
 
     # ------------------------------------------------------------------ reward

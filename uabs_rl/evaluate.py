@@ -82,7 +82,8 @@ class Evaluation:
 # what uabs-eval may change: the world the policy is put in, not the policy
 EVAL_GROUPS = ("scenario", "channel", "masking", "traces")
 # the settings that fix the network's input size (EnvParams.obs_dim)
-OBS_KEYS = ("scenario.n_uabs", "channel.n_beams", "scenario.lookahead_obs")
+OBS_KEYS = ("scenario.n_uabs", "channel.n_beams", "scenario.lookahead_obs",
+            "scenario.motion_obs")
 
 
 def _group_file(group: str, option: str, config_dirs: list[Path]) -> Path:

@@ -30,6 +30,7 @@ class EnvParams:
     safe_start: bool
     obs_scale: float
     lookahead_obs: bool
+    motion_obs: bool
     time_is_terminal: bool
     # channel
     fc_ghz: float
@@ -61,6 +62,7 @@ class EnvParams:
             collision_distance=scenario.collision_distance, d_th=float(d_th),
             lattice=scenario.lattice, safe_start=scenario.safe_start,
             obs_scale=scenario.priority_obs_scale, lookahead_obs=scenario.lookahead_obs,
+            motion_obs=scenario.motion_obs,
             time_is_terminal=scenario.time_is_terminal,
             fc_ghz=channel.carrier_ghz, h_ut=channel.ue_height, tx_dbm=channel.tx_power_dbm,
             tx_gain_db=channel.tx_gain_db, noise_dbm=channel.noise_dbm,
@@ -78,5 +80,6 @@ class EnvParams:
 
     @property
     def n_lookahead(self) -> int:
-        """Lookahead features per agent: 4 moves and 4 double moves, or none."""
-        return 8 if self.lookahead_obs else 0
+        """Lookahead features per agent: 4 moves and 4 double moves (and 4 moves at
+        the extrapolated vehicle positions with ``motion_obs``), or none."""
+        return (8 + 4 * self.motion_obs) if self.lookahead_obs else 0

@@ -21,6 +21,17 @@ def vehicles_at(st: dict[str, torch.Tensor], veh_pos: torch.Tensor,
             veh_present.view(s * steps, -1).index_select(0, row))
 
 
+def extrapolated(st: dict[str, torch.Tensor], veh: torch.Tensor, present: torch.Tensor,
+                 veh_pos: torch.Tensor, veh_present: torch.Tensor) -> torch.Tensor:
+    """Vehicle positions [E, 2, V] one step ahead of ``veh`` (those at step ``st["t"]``),
+    extrapolated from their last move: x_t + (x_t − x_{t−1}); a vehicle not present at
+    t − 1 (or at the window's first step) stays where it is. Past positions only."""
+    prev, prev_present = vehicles_at(dict(st, t=(st["t"] - 1).clamp_min(0)), veh_pos,
+                                     veh_present)
+    moving = (present & prev_present)[:, None, :]
+    return torch.where(moving, 2 * veh - prev, veh)
+
+
 def beam_sums(inside: torch.Tensor, beam: torch.Tensor, priority: torch.Tensor,
               n_beams: int) -> torch.Tensor:
     """b: [E, M, B] sum of the priorities of the vehicles under each beam
