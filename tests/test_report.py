@@ -185,3 +185,18 @@ def test_report_refuses_runs_of_different_experiments(sweep, tmp_path):
     with pytest.raises(SystemExit, match=r"not one experiment.*scenario\.name"):
         find_runs(root)
     assert len(find_runs(sweep / "masking=rank,seed=0")) == 1  # a single run folder works
+
+
+@pytest.mark.parametrize("scenario,algo,train,label", [
+    ({}, {}, {}, "paper"),
+    ({"lookahead_obs": True}, {"lr": 3e-4}, {}, "lookahead algo.lr=0.0003"),
+    ({"lookahead_obs": True, "motion_obs": True}, {}, {"n_envs": 4},
+     "lookahead+motion train.n_envs=4"),
+    ({}, {"n_step": 3}, {"population": 5}, "paper algo.n_step=3"),  # population: neutral
+])
+def test_run_labels_name_the_observation_and_learning_settings(scenario, algo, train, label):
+    from uabs_rl.report import Run
+
+    cfg = {"scenario": scenario, "masking": {"recoverable": True}, "algo": algo,
+           "train": train}
+    assert Run(Path("x"), "flat", 0, 1000, [], [], cfg).label == label

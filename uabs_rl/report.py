@@ -52,11 +52,14 @@ class Run:
 
     @property
     def label(self) -> str:
-        """``paper`` or ``lookahead`` (the observation), ``-literal`` for the paper's
+        """``paper``, ``lookahead`` or ``lookahead+motion`` (the observation),
+        ``-literal`` for the paper's
         literal masks (runs written before masks became recoverable are literal), then
         any learning setting (``algo``, ``train.n_envs``, ``train.episodes``) that
         differs from the defaults (``lookahead algo.lr=0.0003``)."""
-        label = "lookahead" if self.config["scenario"].get("lookahead_obs") else "paper"
+        sc = self.config["scenario"]
+        label = ("paper" if not sc.get("lookahead_obs") else
+                 "lookahead+motion" if sc.get("motion_obs") else "lookahead")
         literal = not self.config["masking"].get("recoverable")  # absent: written before
         defaults = asdict(AlgoConfig())
         tuned = [f"algo.{k}={v}" for k, v in self.config.get("algo", {}).items()
