@@ -43,7 +43,7 @@ class StackedQNet(nn.Module):
     population's env lays them out) or ``[P, B, obs_dim]`` (a replay batch per member);
     output the same with ``n_actions`` last. Member ``p`` computes what
     ``DuelingQNet`` computes with the weights of :meth:`member_state_dict` ``(p)``, up
-    to the rounding of batched matrix products (about 1e-7 relative)."""
+    to the rounding of batched matrix products (float32 rounding, 1e-7 to 1e-6 relative)."""
 
     def __init__(self, nets: list[DuelingQNet]):
         super().__init__()

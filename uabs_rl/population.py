@@ -17,7 +17,7 @@ member draws its evaluation pictures only at a new best and at the end.
 What equals a solo run of the same seed, exactly: the initial network, every random
 draw (training windows, start positions, LoS states, exploration, replay samples,
 evaluation episodes). What differs: the batched matrix products round differently from
-the solo ones (about 1e-7 relative per product), and DQN training amplifies such
+the solo ones (float32 rounding, 1e-7 to 1e-6 relative), and DQN training amplifies such
 differences, so a member's curve is another sample of the same experiment, not its
 solo run's curve bit for bit. ``tests/test_population.py`` checks both: without
 updates a member's records equal its solo run's; one population update equals the
