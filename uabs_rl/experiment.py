@@ -81,6 +81,55 @@ class Progress:
         self.bar.close()
 
 
+NO_REPLAY = ("the checkpoint holds no replay buffer (train.checkpoint_buffer=false): "
+             "learning restarts after algo.learning_starts transitions")
+
+
+def run_state(exp, cfg: RunConfig, learner: dict, best_eval: float,
+              selector_gen: torch.Generator, env_gen: torch.Generator,
+              buffer: ReplayBuffer) -> dict:
+    """The checkpoint of a run (or of one member of a population, ``exp`` being the
+    population): its config and learner state, ``exp``'s counters, the global RNG,
+    the selector's and env's generators and, with ``train.checkpoint_buffer``, the
+    replay buffer."""
+    return {
+        "format": CKPT_FORMAT, "config": config_dict(cfg), "learner": learner,
+        "counters": {"episode": exp.episode, "env_steps": exp.collector.env_steps,
+                     "update_credit": exp.updates.credit, "best_eval": best_eval,
+                     "total_steps": exp.total_steps},
+        "rng": {"torch": torch.get_rng_state(), "selector": selector_gen.get_state(),
+                "env": env_gen.get_state()},
+        "replay": buffer.state_dict() if cfg.train.checkpoint_buffer else None,
+    }
+
+
+def restore_counters(exp, state: dict) -> None:
+    """``exp``'s episode, env-step and update counters and the global RNG from a
+    checkpoint written by :func:`run_state`."""
+    c = state["counters"]
+    exp.episode, exp.collector.env_steps = int(c["episode"]), int(c["env_steps"])
+    exp.updates.credit = float(c["update_credit"])
+    # the ε schedule as the run planned it, whatever train.episodes says now
+    planned = int(c.get("total_steps", exp.total_steps))
+    if planned != exp.total_steps:
+        log.info("train.episodes changed on resume: the ε schedule keeps the run's "
+                 "original length (%d env steps)", planned)
+    exp.total_steps = planned
+    torch.set_rng_state(state["rng"]["torch"])
+
+
+def restore_streams(state: dict, selector_gen: torch.Generator, env_gen: torch.Generator,
+                    buffer: ReplayBuffer) -> bool:
+    """The generators and the replay buffer of a checkpoint written by :func:`run_state`;
+    False when it holds no buffer (``train.checkpoint_buffer=false``)."""
+    selector_gen.set_state(state["rng"]["selector"])
+    env_gen.set_state(state["rng"]["env"])
+    if state.get("replay") is None:
+        return False
+    buffer.load_state_dict(state["replay"])
+    return True
+
+
 def run_rounds(exp, logs: list[RunLog]) -> float:
     """``exp._rounds()`` with its logs open, a progress bar and Ctrl-C deferred to the
     end of a round (see :meth:`Experiment.fit`); returns the minutes it took."""
@@ -166,38 +215,17 @@ class Experiment:
 
     # ------------------------------------------------------------------ checkpoint
     def state_dict(self) -> dict:
-        return {
-            "format": CKPT_FORMAT, "config": config_dict(self.cfg),
-            "learner": self.learner.state_dict(),
-            "counters": {"episode": self.episode, "env_steps": self.collector.env_steps,
-                         "update_credit": self.updates.credit, "best_eval": self.best_eval,
-                         "total_steps": self.total_steps},
-            "rng": {"torch": torch.get_rng_state(), "selector": self.gen.get_state(),
-                    "env": self.collector.env.base_env.rng.get_state()},
-            "replay": self.buffer.state_dict() if self.cfg.train.checkpoint_buffer else None,
-        }
+        return run_state(self, self.cfg, self.learner.state_dict(), self.best_eval, self.gen,
+                         self.collector.env.base_env.rng, self.buffer)
 
     def load_state_dict(self, state: dict, source: Path) -> None:
         """Continue from a checkpoint written under compatible settings."""
         check_compatible(state, self.cfg, source)
         self.learner.load_state_dict(state["learner"])
-        c = state["counters"]
-        self.episode, self.collector.env_steps = int(c["episode"]), int(c["env_steps"])
-        self.updates.credit, self.best_eval = float(c["update_credit"]), float(c["best_eval"])
-        # the ε schedule as the run planned it, whatever train.episodes says now
-        planned = int(c.get("total_steps", self.total_steps))
-        if planned != self.total_steps:
-            log.info("train.episodes changed on resume: the ε schedule keeps the run's "
-                     "original length (%d env steps)", planned)
-        self.total_steps = planned
-        torch.set_rng_state(state["rng"]["torch"])
-        self.gen.set_state(state["rng"]["selector"])
-        self.collector.env.base_env.rng.set_state(state["rng"]["env"])
-        if state.get("replay") is not None:
-            self.buffer.load_state_dict(state["replay"])
-        else:
-            log.warning("the checkpoint holds no replay buffer (train.checkpoint_buffer="
-                        "false): learning restarts after algo.learning_starts transitions")
+        self.best_eval = float(state["counters"]["best_eval"])
+        restore_counters(self, state)
+        if not restore_streams(state, self.gen, self.collector.env.base_env.rng, self.buffer):
+            log.warning(NO_REPLAY)
 
     def save(self, name: str) -> Path:
         path = self.run_dir / "checkpoints" / f"{name}.pt"

@@ -146,17 +146,15 @@ class PopulationLearner(DQNLearner):
         """Member ``p``'s learner state in the solo format (:meth:`DQNLearner.state_dict`),
         so its checkpoint is a solo run's checkpoint."""
         params = list(self.qnet.parameters())
-        st = self.optim.state
-        moments = {name: self.qnet.member_tensors([st[q][name] for q in params], p)
-                   for name in ("exp_avg", "exp_avg_sq")} if st else None
-        keys = list(self.qnet.member_state_dict(p))
+        st, keys = self.optim.state, self.qnet.keys
         optim = {"state": {}, "param_groups": [dict(self.optim.param_groups[0],
                                                     params=list(range(len(keys))))]}
-        if moments is not None:
-            step = st[params[0]]["step"].clone()
-            optim["state"] = {i: {"step": step.clone(), "exp_avg": moments["exp_avg"][k],
-                                  "exp_avg_sq": moments["exp_avg_sq"][k]}
-                              for i, k in enumerate(keys)}
+        if st:
+            avg, avg_sq = (self.qnet.member_tensors([st[q][name] for q in params], p)
+                           for name in ("exp_avg", "exp_avg_sq"))
+            step = st[params[0]]["step"]
+            optim["state"] = {i: {"step": step.clone(), "exp_avg": avg[k], "exp_avg_sq":
+                                  avg_sq[k]} for i, k in enumerate(keys)}
         return {"qnet": self.qnet.member_state_dict(p),
                 "target": self.target.member_state_dict(p),
                 "optim": optim, "updates": self.updates}
@@ -165,8 +163,7 @@ class PopulationLearner(DQNLearner):
         """Set member ``p`` from a solo learner state (a member checkpoint)."""
         self.qnet.load_member(p, state["qnet"])
         self.target.load_member(p, state["target"])
-        params = list(self.qnet.parameters())
-        keys = list(self.qnet.member_state_dict(p))
+        params, keys = list(self.qnet.parameters()), self.qnet.keys
         saved = state["optim"]["state"]
         if saved:
             for name in ("exp_avg", "exp_avg_sq"):

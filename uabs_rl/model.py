@@ -60,7 +60,7 @@ class StackedQNet(nn.Module):
             torch.cat([ls[-2].weight.detach(), ls[-1].weight.detach()]) for ls in layers])))
         self.bias.append(nn.Parameter(torch.stack([
             torch.cat([ls[-2].bias.detach(), ls[-1].bias.detach()]) for ls in layers])))
-        self._keys = [k for k in nets[0].state_dict()]
+        self.keys = list(nets[0].state_dict())  # a member's DuelingQNet state-dict keys
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         shape = obs.shape
@@ -82,7 +82,7 @@ class StackedQNet(nn.Module):
         for w, b in zip(ws[:-1], bs[:-1], strict=True):
             out += [w[p], b[p]]
         out += [ws[-1][p, :1], bs[-1][p, :1], ws[-1][p, 1:], bs[-1][p, 1:]]
-        return {k: v.detach().clone() for k, v in zip(self._keys, out, strict=True)}
+        return {k: v.detach().clone() for k, v in zip(self.keys, out, strict=True)}
 
     def member_state_dict(self, p: int) -> dict[str, torch.Tensor]:
         """Member ``p`` as a ``DuelingQNet`` state dict (what a solo run's checkpoint holds)."""
@@ -94,7 +94,7 @@ class StackedQNet(nn.Module):
         """The inverse of :meth:`member_tensors`: write member ``p``'s ``values`` (keyed
         as a ``DuelingQNet`` state dict) into ``tensors``."""
         n = self.n_trunk
-        vals = [values[k] for k in self._keys]
+        vals = [values[k] for k in self.keys]
         ws, bs = tensors[: n + 1], tensors[n + 1:]
         for i in range(n):
             ws[i][p].copy_(vals[2 * i])

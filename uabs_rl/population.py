@@ -35,18 +35,23 @@ from typing import Any
 import torch
 
 from uabs_rl.checkpoint import (
-    CKPT_FORMAT,
     CheckpointError,
     Interrupted,
     check_compatible,
-    config_dict,
     load_checkpoint,
     save_checkpoint,
 )
 from uabs_rl.config import ConfigError, RunConfig, validate_run
 from uabs_rl.env import N_ACTIONS
 from uabs_rl.evaluation import Evaluator, greedy_policy, make_eval_env
-from uabs_rl.experiment import DeferredInterrupt, run_rounds
+from uabs_rl.experiment import (
+    NO_REPLAY,
+    DeferredInterrupt,
+    restore_counters,
+    restore_streams,
+    run_rounds,
+    run_state,
+)
 from uabs_rl.learner import PopulationLearner
 from uabs_rl.make import make_env, make_selector, resolve_device
 from uabs_rl.model import DuelingQNet, StackedQNet
@@ -168,24 +173,21 @@ class Population:
     # ------------------------------------------------------------------ checkpoints
     def member_state_dict(self, i: int) -> dict:
         """Member ``i``'s checkpoint, in a solo run's format plus ``population``."""
-        m, env = self.members[i], self.collector.env.base_env
-        return {
-            "format": CKPT_FORMAT, "config": config_dict(m.cfg),
-            "learner": self.learner.member_state_dict(i),
-            "counters": {"episode": self.episode, "env_steps": self.collector.env_steps,
-                         "update_credit": self.updates.credit, "best_eval": m.best_eval,
-                         "total_steps": self.total_steps},
-            "rng": {"torch": torch.get_rng_state(), "selector": self.gen.gens[i].get_state(),
-                    "env": env.rng.gens[i].get_state()},
-            "replay": (self.buffer.buffers[i].state_dict()
-                       if self.cfg.train.checkpoint_buffer else None),
-            "population": {"seeds": [x.seed for x in self.members], "member": i},
-        }
+        m = self.members[i]
+        state = run_state(self, m.cfg, self.learner.member_state_dict(i), m.best_eval,
+                          self.gen.gens[i], self.collector.env.base_env.rng.gens[i],
+                          self.buffer.buffers[i])
+        state["population"] = {"seeds": [x.seed for x in self.members], "member": i}
+        return state
 
     def save(self, i: int, name: str) -> Path:
         path = self.members[i].run_dir / "checkpoints" / f"{name}.pt"
         save_checkpoint(self.member_state_dict(i), path)
         return path
+
+    def save_all(self, name: str) -> None:
+        for i in range(self.n):
+            self.save(i, name)
 
     def load(self) -> None:
         """Continue every member from its ``last.pt`` (written at the same episode)."""
@@ -196,24 +198,17 @@ class Population:
                 f"the members of {self.run_dir} saved last.pt at different episodes "
                 f"({sorted(episodes)}): the run was killed while saving them, and a "
                 f"member cannot be rewound. Start the population again in a new folder.")
-        env = self.collector.env.base_env
+        env_rng = self.collector.env.base_env.rng
+        buffers = True
         for i, (m, st) in enumerate(zip(self.members, states, strict=True)):
             check_compatible(st, m.cfg, m.run_dir / "checkpoints" / "last.pt")
             self.learner.load_member(i, st["learner"])
             m.best_eval = float(st["counters"]["best_eval"])
-            self.gen.gens[i].set_state(st["rng"]["selector"])
-            env.rng.gens[i].set_state(st["rng"]["env"])
-            if st.get("replay") is not None:
-                self.buffer.buffers[i].load_state_dict(st["replay"])
-        # every learner slice loaded: the target is the loaded one, per member
-        c = states[0]["counters"]
-        self.episode, self.collector.env_steps = int(c["episode"]), int(c["env_steps"])
-        self.updates.credit = float(c["update_credit"])
-        self.total_steps = int(c.get("total_steps", self.total_steps))
-        torch.set_rng_state(states[0]["rng"]["torch"])
-        if states[0].get("replay") is None:
-            log.warning("the checkpoints hold no replay buffer (train.checkpoint_buffer="
-                        "false): learning restarts after algo.learning_starts transitions")
+            buffers &= restore_streams(st, self.gen.gens[i], env_rng.gens[i],
+                                       self.buffer.buffers[i])
+        restore_counters(self, states[0])  # the members' counters are equal
+        if not buffers:
+            log.warning(NO_REPLAY)
 
     # ------------------------------------------------------------------ loop
     def _rounds(self) -> None:
@@ -231,16 +226,14 @@ class Population:
             if self.episode % tr.eval_every == 0 or self.episode >= tr.episodes:
                 self.progress.last_eval = sum(self.evaluate()) / self.n
             if self.interrupt.requested:
-                for i in range(self.n):
-                    self.save(i, "last")
+                self.save_all("last")
                 raise Interrupted(f"interrupted at episode {self.episode}: saved every "
                                   f"member's last.pt; continue with resume={self.run_dir}")
 
     def fit(self) -> dict[str, Any]:
         """Train every member to ``train.episodes`` (see :meth:`Experiment.fit`)."""
         minutes = run_rounds(self, [m.log for m in self.members])
-        for i in range(self.n):
-            self.save(i, "last")
+        self.save_all("last")
         log.info("done: %d members x %d episodes, %d updates, %.1f min", self.n,
                  self.episode, self.learner.updates, minutes)
         return {"episodes": self.episode, "updates": self.learner.updates,
