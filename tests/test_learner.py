@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
 import copy
 
 import pytest
 import torch
 
+from uabs_rl import learner as learner_module
 from uabs_rl.config import AlgoConfig
 from uabs_rl.learner import DQNLearner
 from uabs_rl.model import DuelingQNet
@@ -53,6 +55,36 @@ def test_fused_and_torchrl_losses_agree():
     lt.backward()
     for pf, pt in zip(fused.qnet.parameters(), trl.qnet.parameters(), strict=True):
         assert torch.allclose(pf.grad, pt.grad, atol=1e-6)
+
+
+def test_flushing_denormal_adam_moments_keeps_parameters_bit_identical(monkeypatch):
+    """Dead ReLU units get zero gradients, so their Adam moments decay into denormals;
+    the update flushes those to zero (for speed) and must leave every parameter exactly
+    as the unflushed update does."""
+    torch.manual_seed(0)
+    net = DuelingQNet(18, 4, [32, 32])
+    with torch.no_grad():
+        net.trunk[2].bias[:8] = -1e3  # units 0-7 of the second layer never fire
+    flushed = DQNLearner(copy.deepcopy(net), AlgoConfig(lr=1e-3), 4)
+    plain = DQNLearner(copy.deepcopy(net), AlgoConfig(lr=1e-3), 4)
+    for lrn in (flushed, plain):
+        lrn.update(batch(seed=99))
+        st = lrn.optim.state[lrn.qnet.trunk[2].weight]  # the dead units' rows
+        st["exp_avg"][:8], st["exp_avg_sq"][:8] = 1e-39, 1e-41  # decayed moments
+    tiny = torch.finfo(torch.float32).tiny
+    for i in range(30):
+        b = batch(seed=i)
+        flushed.update(b)
+        with monkeypatch.context() as m:
+            m.setattr(learner_module, "flush_denormals", contextlib.nullcontext)
+            plain.update(b)
+    moments = [lrn.optim.state[lrn.qnet.trunk[2].weight]["exp_avg"][:8]
+               for lrn in (flushed, plain)]
+    assert (moments[0] == 0).all()  # flushed ...
+    assert ((moments[1] != 0) & (moments[1].abs() < tiny)).all()  # ... where plain is denormal
+    for pf, pp in zip(flushed.qnet.parameters(), plain.qnet.parameters(), strict=True):
+        assert torch.equal(pf, pp)
+    assert not torch.equal(flushed.qnet.trunk[2].weight, net.trunk[2].weight)  # it learned
 
 
 def test_target_is_used_and_synced():
