@@ -12,7 +12,7 @@ from uabs_rl import learner as learner_module
 from uabs_rl.config import AlgoConfig
 from uabs_rl.learner import DQNLearner
 from uabs_rl.model import DuelingQNet
-from uabs_rl.replay import ReplayBuffer
+from uabs_rl.replay import PopulationReplay, ReplayBuffer
 
 
 def batch(n=64, d=18, seed=0):
@@ -124,6 +124,40 @@ def test_replay_buffer_ring_and_state():
     other = ReplayBuffer(5, 2, 4)
     other.load_state_dict(buf.state_dict())
     assert torch.equal(other.sample(7)["reward"], buf.sample(7)["reward"])
+
+
+def transitions(n, seed):
+    g = torch.Generator().manual_seed(seed)
+    return {"obs": torch.randn(n, 2, generator=g), "action": torch.randint(0, 4, (n,), generator=g),
+            "mask": torch.rand(n, 4, generator=g) < 0.5, "reward": torch.randn(n, generator=g),
+            "next_obs": torch.randn(n, 2, generator=g),
+            "next_mask": torch.rand(n, 4, generator=g) < 0.5,
+            "terminated": torch.rand(n, generator=g) < 0.2}
+
+
+def test_population_replay_equals_each_members_own_buffer():
+    """Stacked storage, one push and one gather for all members: the same transitions,
+    samples and saved state as each member's solo buffer, through the ring's wrap."""
+    seeds = [4, 5, 6]
+    pop = PopulationReplay(7, 2, 4, "cpu", seeds)
+    solo = [ReplayBuffer(7, 2, 4, seed=s) for s in seeds]
+    for step in range(6):  # 3 transitions per member a step: wraps twice
+        blocks = [transitions(3, 10 * step + p) for p in range(3)]
+        pop.push(**{k: torch.cat([b[k] for b in blocks]) for k in blocks[0]})
+        for buf, b in zip(solo, blocks, strict=True):
+            buf.push(**b)
+        got = pop.sample(5)
+        want = [buf.sample(5) for buf in solo]
+        for k in got:
+            assert torch.equal(got[k], torch.stack([w[k] for w in want])), k
+    for pb, buf in zip(pop.buffers, solo, strict=True):
+        a, b = pb.state_dict(), buf.state_dict()
+        assert (a["cursor"], a["size"]) == (b["cursor"], b["size"]) == (4, 7)
+        assert all(torch.equal(a["data"][k], b["data"][k]) for k in b["data"])
+    fresh = PopulationReplay(7, 2, 4, "cpu", seeds)  # a resumed population's buffers
+    for pb, buf in zip(fresh.buffers, solo, strict=True):
+        pb.load_state_dict(buf.state_dict())
+    assert all(torch.equal(fresh.data[k], pop.data[k]) for k in pop.data)
 
 
 @pytest.mark.parametrize("mode", ["flat", "rank"])  # rank's target mask waits a step

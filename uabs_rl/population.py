@@ -55,7 +55,7 @@ from uabs_rl.experiment import (
 from uabs_rl.learner import PopulationLearner
 from uabs_rl.make import make_env, make_selector, resolve_device
 from uabs_rl.model import DuelingQNet, StackedQNet
-from uabs_rl.replay import PopulationReplay, ReplayBuffer
+from uabs_rl.replay import PopulationReplay
 from uabs_rl.rng import Generators
 from uabs_rl.rollout import Collector, UpdateSchedule, episode_records, epsilon
 from uabs_rl.runlog import RunLog, check_logger
@@ -114,8 +114,7 @@ class Population:
             nets.append(DuelingQNet(p.obs_dim, N_ACTIONS, list(cfg.algo.hidden)))
         self.qnet = StackedQNet(nets).to(dev)
         self.learner = PopulationLearner(self.qnet, cfg.algo)
-        self.buffer = PopulationReplay([ReplayBuffer(cfg.algo.buffer_size, p.obs_dim,
-                                                     N_ACTIONS, dev, seed=s) for s in seeds])
+        self.buffer = PopulationReplay(cfg.algo.buffer_size, p.obs_dim, N_ACTIONS, dev, seeds)
         self.gen = Generators(seeds, dev)
         selector = make_selector(env, cfg.masking, cfg.algo.eps_start, self.gen,
                                  compile=tr.compile)

@@ -17,24 +17,31 @@ import torch
 FIELDS = ("obs", "action", "mask", "reward", "next_obs", "next_mask", "terminated")
 
 
+def storage(lead: tuple[int, ...], capacity: int, obs_dim: int, n_actions: int,
+            device: torch.device) -> dict[str, torch.Tensor]:
+    """Zeroed tensors for every field, shaped ``[*lead, capacity, ...]``."""
+    shapes = {"obs": ((obs_dim,), torch.float32), "action": ((), torch.long),
+              "mask": ((n_actions,), torch.bool), "reward": ((), torch.float32),
+              "next_obs": ((obs_dim,), torch.float32),
+              "next_mask": ((n_actions,), torch.bool), "terminated": ((), torch.bool)}
+    return {k: torch.zeros(*lead, capacity, *shape, dtype=dtype, device=device)
+            for k, (shape, dtype) in shapes.items()}
+
+
 class ReplayBuffer:
     """A fixed-capacity ring of per-agent transitions (fields :data:`FIELDS`) with
     uniform sampling from its own seeded generator; :meth:`state_dict` makes it part of
     a checkpoint."""
 
     def __init__(self, capacity: int, obs_dim: int, n_actions: int,
-                 device: str | torch.device = "cpu", seed: int = 0):
+                 device: str | torch.device = "cpu", seed: int = 0,
+                 data: dict[str, torch.Tensor] | None = None):
+        """``data``: storage to use instead of new tensors (a population's buffers are
+        slices of one stacked storage, see :class:`PopulationReplay`)."""
         dev = torch.device(device)
         self.capacity = capacity
-        self.data = {
-            "obs": torch.zeros(capacity, obs_dim, device=dev),
-            "action": torch.zeros(capacity, dtype=torch.long, device=dev),
-            "mask": torch.zeros(capacity, n_actions, dtype=torch.bool, device=dev),
-            "reward": torch.zeros(capacity, device=dev),
-            "next_obs": torch.zeros(capacity, obs_dim, device=dev),
-            "next_mask": torch.zeros(capacity, n_actions, dtype=torch.bool, device=dev),
-            "terminated": torch.zeros(capacity, dtype=torch.bool, device=dev),
-        }
+        self.data = data if data is not None else storage((), capacity, obs_dim,
+                                                          n_actions, dev)
         self.cursor = 0  # next slot to write
         self.size = 0
         self.generator = torch.Generator(device=dev)
@@ -77,21 +84,43 @@ class ReplayBuffer:
 
 class PopulationReplay:
     """One :class:`ReplayBuffer` per population member, each seeded as that member's
-    solo run seeds its own. :meth:`push` takes the transitions of the population's env
-    (member ``p``'s rows form block ``p``); :meth:`sample` stacks the members' samples
-    ``[P, B, ...]`` for :class:`~uabs_rl.learner.PopulationLearner`."""
+    solo run seeds its own, their storage slices ``[p]`` of one stacked storage
+    ``[P, capacity, ...]``. :meth:`push` takes the transitions of the population's env
+    (member ``p``'s rows form block ``p``) and writes every member's at once;
+    :meth:`sample` draws each member's indices from its own generator, as its solo run
+    does, and gathers ``[P, B, ...]`` for :class:`~uabs_rl.learner.PopulationLearner`
+    in one indexing per field (the same transitions as member-by-member sampling)."""
 
-    def __init__(self, buffers: list[ReplayBuffer]):
-        self.buffers = buffers
+    def __init__(self, capacity: int, obs_dim: int, n_actions: int,
+                 device: str | torch.device, seeds: list[int]):
+        dev = torch.device(device)
+        self.data = storage((len(seeds),), capacity, obs_dim, n_actions, dev)
+        self.buffers = [ReplayBuffer(capacity, obs_dim, n_actions, dev, seed=s,
+                                     data={k: v[p] for k, v in self.data.items()})
+                        for p, s in enumerate(seeds)]
+        self.rows = torch.arange(len(seeds), device=dev)[:, None]
 
     def __len__(self) -> int:
         return min(len(b) for b in self.buffers)
 
     def push(self, **batch: torch.Tensor) -> None:
-        n = batch["obs"].shape[0] // len(self.buffers)
-        for i, buf in enumerate(self.buffers):
-            buf.push(**{k: v[i * n:(i + 1) * n] for k, v in batch.items()})
+        P, first = len(self.buffers), self.buffers[0]
+        n = batch["obs"].shape[0] // P
+        if n > first.capacity:
+            raise ValueError(f"pushing {n} transitions into a buffer of {first.capacity}")
+        # members push alike, so their cursors agree (a resumed population restores them
+        # from its members' checkpoints, written at the same step)
+        if any(b.cursor != first.cursor or b.size != first.size for b in self.buffers):
+            raise RuntimeError("population replay buffers out of step: "
+                               f"cursors {[b.cursor for b in self.buffers]}")
+        idx = (torch.arange(n, device=self.rows.device) + first.cursor) % first.capacity
+        for k, v in self.data.items():
+            v.index_copy_(1, idx, batch[k].reshape(P, n, *v.shape[2:]))
+        for b in self.buffers:
+            b.cursor = (b.cursor + n) % b.capacity
+            b.size = min(b.size + n, b.capacity)
 
     def sample(self, batch_size: int) -> dict[str, torch.Tensor]:
-        samples = [b.sample(batch_size) for b in self.buffers]
-        return {k: torch.stack([s[k] for s in samples]) for k in FIELDS}
+        idx = torch.stack([torch.randint(0, b.size, (batch_size,), generator=b.generator,
+                                         device=self.rows.device) for b in self.buffers])
+        return {k: v[self.rows, idx] for k, v in self.data.items()}
