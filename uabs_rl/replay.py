@@ -19,13 +19,13 @@ FIELDS = ("obs", "action", "mask", "reward", "next_obs", "next_mask", "terminate
 
 def storage(lead: tuple[int, ...], capacity: int, obs_dim: int, n_actions: int,
             device: torch.device) -> dict[str, torch.Tensor]:
-    """Zeroed tensors for every field, shaped ``[*lead, capacity, ...]``."""
+    """Zeroed tensors for every field of :data:`FIELDS`, shaped ``[*lead, capacity, ...]``."""
     shapes = {"obs": ((obs_dim,), torch.float32), "action": ((), torch.long),
               "mask": ((n_actions,), torch.bool), "reward": ((), torch.float32),
               "next_obs": ((obs_dim,), torch.float32),
               "next_mask": ((n_actions,), torch.bool), "terminated": ((), torch.bool)}
-    return {k: torch.zeros(*lead, capacity, *shape, dtype=dtype, device=device)
-            for k, (shape, dtype) in shapes.items()}
+    return {k: torch.zeros(*lead, capacity, *shapes[k][0], dtype=shapes[k][1], device=device)
+            for k in FIELDS}
 
 
 class ReplayBuffer:
@@ -53,17 +53,29 @@ class ReplayBuffer:
     def push(self, **batch: torch.Tensor) -> None:
         """Append ``n`` transitions (every field with leading dim ``n``)."""
         n = batch["obs"].shape[0]
-        if n > self.capacity:
-            raise ValueError(f"pushing {n} transitions into a buffer of {self.capacity}")
-        idx = (torch.arange(n, device=self.data["obs"].device) + self.cursor) % self.capacity
+        idx = self.slots(n)
         for k in FIELDS:
             self.data[k].index_copy_(0, idx, batch[k].reshape(n, *self.data[k].shape[1:]))
+        self.advance(n)
+
+    def slots(self, n: int) -> torch.Tensor:
+        """The ring slots the next ``n`` transitions go to."""
+        if n > self.capacity:
+            raise ValueError(f"pushing {n} transitions into a buffer of {self.capacity}")
+        return (torch.arange(n, device=self.data["obs"].device) + self.cursor) % self.capacity
+
+    def advance(self, n: int) -> None:
+        """Count ``n`` transitions written at :meth:`slots` ``(n)``."""
         self.cursor = (self.cursor + n) % self.capacity
         self.size = min(self.size + n, self.capacity)
 
+    def draw(self, batch_size: int) -> torch.Tensor:
+        """``batch_size`` uniform slot indices from this buffer's generator."""
+        return torch.randint(0, self.size, (batch_size,), generator=self.generator,
+                             device=self.data["obs"].device)
+
     def sample(self, batch_size: int) -> dict[str, torch.Tensor]:
-        idx = torch.randint(0, self.size, (batch_size,), generator=self.generator,
-                            device=self.data["obs"].device)
+        idx = self.draw(batch_size)
         return {k: v.index_select(0, idx) for k, v in self.data.items()}
 
     def state_dict(self) -> dict:
@@ -106,21 +118,18 @@ class PopulationReplay:
     def push(self, **batch: torch.Tensor) -> None:
         P, first = len(self.buffers), self.buffers[0]
         n = batch["obs"].shape[0] // P
-        if n > first.capacity:
-            raise ValueError(f"pushing {n} transitions into a buffer of {first.capacity}")
         # members push alike, so their cursors agree (a resumed population restores them
         # from its members' checkpoints, written at the same step)
         if any(b.cursor != first.cursor or b.size != first.size for b in self.buffers):
-            raise RuntimeError("population replay buffers out of step: "
-                               f"cursors {[b.cursor for b in self.buffers]}")
-        idx = (torch.arange(n, device=self.rows.device) + first.cursor) % first.capacity
+            raise RuntimeError("population replay buffers out of step: cursors "
+                               f"{[b.cursor for b in self.buffers]}, sizes "
+                               f"{[b.size for b in self.buffers]}")
+        idx = first.slots(n)
         for k, v in self.data.items():
             v.index_copy_(1, idx, batch[k].reshape(P, n, *v.shape[2:]))
         for b in self.buffers:
-            b.cursor = (b.cursor + n) % b.capacity
-            b.size = min(b.size + n, b.capacity)
+            b.advance(n)
 
     def sample(self, batch_size: int) -> dict[str, torch.Tensor]:
-        idx = torch.stack([torch.randint(0, b.size, (batch_size,), generator=b.generator,
-                                         device=self.rows.device) for b in self.buffers])
+        idx = torch.stack([b.draw(batch_size) for b in self.buffers])
         return {k: v[self.rows, idx] for k, v in self.data.items()}
