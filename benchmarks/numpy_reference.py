@@ -1,17 +1,21 @@
 """The env step at ``n_envs = 1`` against a plain NumPy implementation of the same step.
 
     python benchmarks/numpy_reference.py                 # verify, then time
-    python benchmarks/numpy_reference.py --compile       # also the compiled step math
+    python benchmarks/numpy_reference.py --no-compile    # only the eager variants
 
 :class:`NumpyStep` is the step of the default configuration (ideal beams, no shadow
 fading, where every link inside a footprint reaches SNR_th, so no random draw decides
 service) for one env, written as directly as NumPy allows: move, vehicles of the step,
 beam cells, priorities and service windows, beam sums, rewards, observation, P_g.
 It is first checked against ``UABSEnv`` over whole episodes (same start state, same
-random legal actions): observations, rewards, served fractions and P_g curves must
-agree to float32 rounding, or the script stops. Then both are timed side by side,
-interleaved, in one process: NumPy, the env's step math on raw tensors (eager, and
-compiled with ``--compile``) and ``env.step`` (TensorDict, TorchRL's checks). Ratios
+random legal actions), through ``env.step`` and through ``env.step_direct``:
+observations, rewards, served fractions and P_g curves must agree to float32 rounding,
+or the script stops. Then all are timed side by side, interleaved, in one process:
+NumPy; the env's step math on raw tensors; ``env.step_direct``, the step the training
+loop takes (the step math, its outputs keyed as the env's TensorDict, no TensorDict);
+and ``env.step`` (TorchRL: TensorDicts, shape and done checks). Each eager and
+compiled as training compiles it (``train.compile=true``: Inductor with its C++
+wrapper), plus the step math compiled with Inductor's default Python wrapper. Ratios
 are NumPy time / other time: at least 1 means at least as fast as NumPy.
 """
 
@@ -113,25 +117,30 @@ class NumpyStep:
                 "served_fraction": served.sum() / max(present.sum(), 1), "pg_curve": pg}
 
 
-def check_equal(env: UABSEnv, ref: NumpyStep, episodes: int, gen: torch.Generator) -> int:
-    """Step both through ``episodes`` episodes of random legal actions; stop on the first
-    mismatch. Returns the steps compared."""
+def check_equal(env: UABSEnv, twin: UABSEnv, ref: NumpyStep, episodes: int,
+                gen: torch.Generator) -> int:
+    """Step ``env`` (``env.step``), ``twin`` (``step_direct``) and ``ref`` through
+    ``episodes`` episodes of random legal actions; stop on the first mismatch. Returns
+    the steps compared."""
     compared = 0
     for _ in range(episodes):
         td = env.reset()
+        twin.reset_direct()
         ref.load(env.state)
         for _ in range(env.params.episode_steps):
             mask = td["agents", "action_mask"][0]
             action = torch.multinomial(mask.float(), 1, generator=gen).squeeze(-1)
             out = ref.step(action.numpy())
             td = env.step(td.set(ACTION, action[None]))["next"]
-            got = {"observation": td[OBS][0], "reward": td["agents", "reward"][0, :, 0],
-                   "served_fraction": td[DIAG, "served_fraction"][0],
-                   "pg_curve": td[DIAG, "pg_curve"][0]}
-            for key, value in got.items():
-                if not np.allclose(value.numpy(), out[key], rtol=1e-5, atol=1e-6):
-                    raise SystemExit(f"mismatch in {key} at step {compared}: env "
-                                     f"{value.numpy()} numpy {out[key]}")
+            direct = twin.step_direct(action[None])
+            for name, got in (("env.step", td), ("env.step_direct", direct)):
+                for key, value in {"observation": got[OBS][0],
+                                   "reward": got["agents", "reward"][0, :, 0],
+                                   "served_fraction": got[DIAG, "served_fraction"][0],
+                                   "pg_curve": got[DIAG, "pg_curve"][0]}.items():
+                    if not np.allclose(value.numpy(), out[key], rtol=1e-5, atol=1e-6):
+                        raise SystemExit(f"mismatch in {key} at step {compared}: {name} "
+                                         f"{value.numpy()} numpy {out[key]}")
             compared += 1
     return compared
 
@@ -140,7 +149,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--episodes", type=int, default=3, help="episodes compared for equality")
     ap.add_argument("--repeats", type=int, default=7, help="timed episodes per variant")
-    ap.add_argument("--compile", action="store_true", help="also the compiled step math")
+    ap.add_argument("--no-compile", dest="compile", action="store_false",
+                    help="skip the compiled variants (about 30 s of compilation)")
     args = ap.parse_args()
     scenario, channel = ScenarioConfig(), ChannelConfig()
     traces = get_traces(scenario, TracesConfig(), "train", verbose=False)
@@ -151,18 +161,15 @@ def main() -> None:
                          "footprint served); run it without channel overrides")
     ref = NumpyStep(p, env.veh_pos.numpy(), env.veh_present.numpy())
     gen = torch.Generator().manual_seed(0)
-    n = check_equal(env, ref, args.episodes, gen)
+    twin = UABSEnv(scenario, channel, traces, n_envs=1, seed=0)
+    n = check_equal(env, twin, ref, args.episodes, gen)
     print(f"equal: {n} steps ({args.episodes} episodes of random legal actions): "
-          f"observation, reward, served fraction and P_g curve agree (rtol 1e-5)")
+          f"observation, reward, served fraction and P_g curve of env.step and "
+          f"env.step_direct agree with numpy (rtol 1e-5)")
 
     steps, m = p.episode_steps, p.n_uabs
     actions = torch.randint(0, 4, (steps, 1, m), generator=gen)
     np_actions = actions[:, 0].numpy()
-    compiled = None
-    if args.compile:
-        from uabs_rl._compile import compiled_or_eager
-
-        compiled = compiled_or_eager(env.math.step, "the env step")
 
     def numpy_episode():
         env.reset()
@@ -191,13 +198,26 @@ def main() -> None:
             return time.perf_counter() - t0
         return run
 
-    variants = {"numpy": numpy_episode, "step math, eager": raw_episode(env.math.step)}
-    if compiled is not None:
-        variants["step math, compiled"] = raw_episode(compiled)
-    variants["env.step (TensorDict)"] = env_episode(env)
-    if compiled is not None:  # what training runs with train.compile=true
-        variants["env.step, compiled math"] = env_episode(
-            UABSEnv(scenario, channel, traces, n_envs=1, seed=0, compile_step=True))
+    def direct_episode(e: UABSEnv):
+        def run():
+            e.reset_direct()
+            t0 = time.perf_counter()
+            for a in actions:
+                e.step_direct(a)
+            return time.perf_counter() - t0
+        return run
+
+    variants = {"numpy": numpy_episode, "step math, eager": raw_episode(env.math.step),
+                "env.step_direct, eager": direct_episode(env),
+                "env.step, eager": env_episode(env)}
+    if args.compile:  # what training runs (train.compile=true)
+        cenv = UABSEnv(scenario, channel, traces, n_envs=1, seed=0, compile_step=True)
+        variants.update({
+            "step math, compiled (Python wrapper)": raw_episode(
+                torch.compile(env.math.step, dynamic=False)),
+            "step math, compiled": raw_episode(cenv._step_math),
+            "env.step_direct, compiled": direct_episode(cenv),
+            "env.step, compiled": env_episode(cenv)})
     best = dict.fromkeys(variants, float("inf"))
     for fn in variants.values():  # warm-up (and compilation)
         fn()
@@ -206,9 +226,11 @@ def main() -> None:
             best[name] = min(best[name], fn())
     print(f"n_envs=1, M={m}, vehicles={traces.max_vehicles}, threads={torch.get_num_threads()}; "
           f"fastest of {args.repeats} episodes of {steps} steps, interleaved")
-    print(f"{'variant':>24} {'agent-steps/s':>14} {'numpy time / this':>18}")
+    print(f"{'variant':>38} {'agent-steps/s':>14} {'us per step':>12} "
+          f"{'numpy time / this':>18}")
     for name, t in best.items():
-        print(f"{name:>24} {steps * m / t:>14.0f} {best['numpy'] / t:>18.2f}")
+        print(f"{name:>38} {steps * m / t:>14.0f} {1e6 * t / steps:>12.1f} "
+              f"{best['numpy'] / t:>18.2f}")
 
 
 if __name__ == "__main__":

@@ -65,8 +65,8 @@ def main() -> None:
                                  *args.overrides])
     kind = Population if cfg.train.population > 1 else Experiment
     tr = kind(cfg, tempfile.mkdtemp(prefix="uabs_bench_"))
-    wrap(tr.collector.env, "step", "env")
-    wrap(tr.collector.env, "reset", "env")
+    wrap(tr.collector.direct, "step", "env")
+    wrap(tr.collector.direct, "reset", "env")
     wrap(tr.qnet, "forward", "action selection", outside_update=True)
     wrap(tr.collector.selector, "forward", "action selection")
     wrap(tr.buffer, "push", "replay")

@@ -20,6 +20,7 @@ from uabs_rl.masking import (
     RANK_ORDER,
     RULES,
     SAFETY_TOLERANCE,
+    DirectEnv,
     apply_fallback,
     epsilon_greedy,
     flat_unsafe,
@@ -319,6 +320,42 @@ def test_compiled_env_and_selector_match_eager(small_traces_cfg, train):
         out[comp] = env.rollout(50, fixed_q_policy(sel, q), break_when_any_done=False)
     assert out[True]["next", DIAG, "ep_return"].abs().sum() > 0
     assert (out[False] == out[True]).all()
+
+
+def assert_same_entries(td, out):
+    """A TensorDict and a DirectEnv output hold the same keys and equal tensors."""
+    keys = set(td.keys(include_nested=True, leaves_only=True))
+    assert keys == set(out.keys())
+    for k in keys:
+        assert td[k].shape == out[k].shape and torch.equal(td[k], out[k]), k
+
+
+@pytest.mark.parametrize("mode,recoverable", [("penalty", True), ("flat", True),
+                                              ("flat", False), ("rank", True),
+                                              ("rank", False)])
+def test_direct_env_equals_the_torchrl_env_entry_for_entry(small_traces_cfg, train, mode,
+                                                           recoverable):
+    """The training loop steps through DirectEnv: every reset and step gives what
+    env.reset() and env.step(td)["next"] give, key for key, through episode ends."""
+    mk = MaskingConfig(mode=mode, recoverable=recoverable)
+    envs = [make_env(scenario(small_traces_cfg), ChannelConfig(), mk, train, n_envs=4,
+                     seed=0, spec_mask=False) for _ in range(2)]
+    sels = [make_selector(env, mk, eps=0.5, generator=torch.Generator().manual_seed(0))
+            for env in envs]
+    direct = DirectEnv(envs[1])
+    qs = torch.randn(2, 20, 4, 3, 4, generator=torch.Generator().manual_seed(1))
+    for episode in range(2):
+        td, out = envs[0].reset(), direct.reset()
+        for t in range(20):
+            assert_same_entries(td, out)
+            sels[0](td.set(ACTION_VALUE, qs[episode, t]))
+            sels[1](out.set(ACTION_VALUE, qs[episode, t]))
+            td, out = envs[0].step(td)["next"], direct.step(out)
+        assert td["done"].all()
+        assert_same_entries(td, out)
+    assert td[DIAG, "ep_return"].abs().sum() > 0
+    with pytest.raises(TypeError, match="spec_mask=False"):
+        DirectEnv(make_env(scenario(small_traces_cfg), ChannelConfig(), mk, train))
 
 
 def fixed_q_policy(sel, q):

@@ -48,6 +48,20 @@ DIAG_KEYS = (  # every one is a float [n_envs]
     "min_pair_distance", "closest_approach",
     "ep_return", "ep_collisions", "ep_proximity", "ep_fallbacks", "pg",
 )
+DIAG_ENTRIES = (*DIAG_KEYS, "pg_curve")  # [E, N]
+DONE_KEYS = ("done", "terminated", "truncated")
+
+
+class Outputs(dict):
+    """The env's outputs as one flat dict keyed as in its TensorDict
+    (``("agents", "observation")``, ``"done"``, ``("diagnostics", "pg")``, ...): what
+    :meth:`UABSEnv.reset_direct` and :meth:`UABSEnv.step_direct` return to the training
+    loop. ``get`` and ``set`` work as on a TensorDict, so the masking rules and the
+    action selector read and write either."""
+
+    def set(self, key, value) -> Outputs:
+        self[key] = value
+        return self
 
 
 class StepMath:
@@ -139,17 +153,21 @@ class StepMath:
 
     def outputs(self, st: dict[str, torch.Tensor], served: torch.Tensor,
                 present: torch.Tensor, diag: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-        """Observation, masks, flags and diagnostics of the current state."""
+        """Observation, masks, flags (``done [E, 1]``, ..., and each agent's copy,
+        ``agent_done [E, M, 1]``, ...) and diagnostics of the current state."""
         p = self.p
+        e, m = st["pos"].shape[:2]
         done = (st["t"] >= p.episode_steps)[:, None]  # [E, 1]
         never = torch.zeros_like(done)
+        flags = dict(done=done, terminated=done if p.time_is_terminal else never,
+                     truncated=never if p.time_is_terminal else done)
         pg_curve = service.pg_curve(st["n_windows"], st["ns_hist"])
         return dict(
-            diag, observation=self.observation(st["pos"], st["t"], st["b"], st["look"]),
+            diag, **flags, **{f"agent_{k}": f[:, None, :].expand(e, m, 1)
+                              for k, f in flags.items()},
+            observation=self.observation(st["pos"], st["t"], st["b"], st["look"]),
             action_mask=self.geometry.boundary_mask(st["pos"]), position=st["pos"],
-            beam_priority=st["b"], backup_action=st["backup"], done=done,
-            terminated=done if p.time_is_terminal else never,
-            truncated=never if p.time_is_terminal else done,
+            beam_priority=st["b"], backup_action=st["backup"],
             served_fraction=served.float().sum(-1) / present.float().sum(-1).clamp_min(1.0),
             ep_return=st["ep_return"], ep_collisions=st["ep_collisions"],
             ep_proximity=st["ep_proximity"], ep_fallbacks=st["ep_fallbacks"],
@@ -305,7 +323,7 @@ class UABSEnv(EnvBase):
         self.math = StepMath(self.params, device)
         # torch.compile fuses the step's many small tensor ops: ~7x faster at n_envs = 1
         # on CPU (benchmarks/env_bench.py); costs ~10 s of compilation at the first step
-        self._step_math = compiled_or_eager(self.math.step, "the env step") \
+        self._step_math = compiled_or_eager(self.math.step, "the env step", device) \
             if self.compile_step else self.math.step
 
     def _apply(self, fn, recurse: bool = True):
@@ -348,10 +366,16 @@ class UABSEnv(EnvBase):
 
     # ------------------------------------------------------------------ reset / step
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
-        st = self.state
+        mask = None
         if tensordict is not None and "_reset" in tensordict.keys():
             mask = tensordict["_reset"].reshape(self.n_envs)
-        else:
+        return self._pack(self._reset_state(mask))
+
+    def _reset_state(self, mask: torch.Tensor | None) -> dict[str, torch.Tensor]:
+        """Start a new episode in the envs of ``mask [n_envs]`` (None: all); returns the
+        step math's flat outputs of the new state."""
+        st = self.state
+        if mask is None:
             mask = torch.ones(self.n_envs, dtype=torch.bool, device=self.device)
         fresh = self._empty_state()
         fresh["sim"], fresh["start"] = self._draw_windows(st)
@@ -370,8 +394,30 @@ class UABSEnv(EnvBase):
         if self.mode == "eval":  # the next reset of env i takes window i + n_envs, ...
             st["cursor"] = st["cursor"] + mask.long() * self.n_envs
         zeros = torch.zeros(self.n_envs, device=self.device)
-        return self._pack(self.math.outputs(st, served, present,
-                                            {k: zeros for k in DIAG_KEYS}))
+        return self.math.outputs(st, served, present, {k: zeros for k in DIAG_KEYS})
+
+    # ------------------------------------------------------------------ direct path
+    def reset_direct(self) -> Outputs:
+        """:meth:`reset` of every env, its outputs as :class:`Outputs` (no TensorDict,
+        none of TorchRL's per-call work): entry for entry what ``reset()`` returns."""
+        return self._entries(self._reset_state(None))
+
+    def step_direct(self, action: torch.Tensor,
+                    fallback: torch.Tensor | None = None) -> Outputs:
+        """One step with ``action [n_envs, M]`` (and the selector's fallback flags), its
+        outputs as :class:`Outputs`: entry for entry what ``step(td)["next"]`` holds."""
+        return self._entries(self._step_math(self.state, action, self.veh_pos,
+                                             self.veh_present, self.rng, fallback))
+
+    def _entries(self, out: dict[str, torch.Tensor]) -> Outputs:
+        """The step math's flat outputs under the env's keys (see :meth:`_pack`)."""
+        entries = Outputs({(AGENTS, k): out[k] for k in AGENT_OUT if k in out})
+        for k in DONE_KEYS:
+            entries[k] = out[k]
+            entries[AGENTS, k] = out[f"agent_{k}"]
+        for k in DIAG_ENTRIES:
+            entries[DIAG, k] = out[k]
+        return entries
 
     # ------------------------------------------------------------------ public views
     def vehicles(self, lookahead: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
@@ -404,13 +450,11 @@ class UABSEnv(EnvBase):
     def _pack(self, out: dict[str, torch.Tensor]) -> TensorDict:
         """The step math's flat outputs as the env's TensorDict (see the specs)."""
         e, m = self.n_envs, self.params.n_uabs
-        flags = lambda f: f[:, None, :].expand(e, m, 1)  # noqa: E731
         agents = {k: out[k] for k in AGENT_OUT if k in out}
-        agents.update(done=flags(out["done"]), terminated=flags(out["terminated"]),
-                      truncated=flags(out["truncated"]))
+        agents.update({k: out[f"agent_{k}"] for k in DONE_KEYS})
         return TensorDict({
             AGENTS: TensorDict(agents, batch_size=(e, m), device=self.device),
-            "done": out["done"], "terminated": out["terminated"], "truncated": out["truncated"],
-            DIAG: TensorDict({k: out[k] for k in (*DIAG_KEYS, "pg_curve")}, batch_size=(e,),
+            **{k: out[k] for k in DONE_KEYS},
+            DIAG: TensorDict({k: out[k] for k in DIAG_ENTRIES}, batch_size=(e,),
                              device=self.device),
         }, batch_size=(e,), device=self.device)

@@ -75,12 +75,13 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torch import nn
 from torchrl.data import Binary, Categorical, TensorSpec
+from torchrl.envs import TransformedEnv
 from torchrl.envs.transforms import Transform
 
 from uabs_rl import rng
 from uabs_rl._compile import compiled_or_eager
 from uabs_rl.config import MaskingConfig, MaskingMode, RankNextMask, enum_value, validate_masking
-from uabs_rl.env import BACKUP, BEAM_PRIORITY, FALLBACK, MASK, POSITION
+from uabs_rl.env import ACTION, BACKUP, BEAM_PRIORITY, FALLBACK, MASK, POSITION, Outputs
 from uabs_rl.geometry import UNIT_MOVES, path_distance
 from uabs_rl.params import EnvParams
 
@@ -253,9 +254,10 @@ class MaskingRule(nn.Module):
         # every episode starts with every pair at least d_th + start_margin apart
         self.start_margin = 0.0
 
-    def write(self, td: TensorDictBase) -> None:
+    def write(self, td: TensorDictBase | Outputs) -> None:
         """Write what the choice needs into the env's outputs ``td`` (after a reset or a
-        step); the default writes nothing beyond the env's boundary mask."""
+        step; a TensorDict, or the training loop's :class:`~uabs_rl.env.Outputs`); the
+        default writes nothing beyond the env's boundary mask."""
 
     def specs(self, e: int, m: int, device: torch.device) -> dict[str, TensorSpec]:
         """Specs of the agent entries :meth:`write` adds, by name under ``"agents"``."""
@@ -309,7 +311,7 @@ class FlatRule(MaskingRule):
         if self.recoverable:  # pairs start d_th + 2 v·δt apart: any first joint move is safe
             self.start_margin = 2 * step_m
 
-    def write(self, td: TensorDictBase) -> None:
+    def write(self, td: TensorDictBase | Outputs) -> None:
         pos, boundary = td.get(POSITION), td.get(MASK)
         if self.recoverable:
             td.set(MASK, flat_recoverable_mask(pos, boundary, td.get(BACKUP), self.moves,
@@ -355,7 +357,7 @@ class RankRule(MaskingRule):
             self.start_margin = 2 * step_m
             self.choice_keys = (*self.choice_keys, BACKUP)
 
-    def write(self, td: TensorDictBase) -> None:
+    def write(self, td: TensorDictBase | Outputs) -> None:
         td.set(RANK_ORDER, rank_order(td.get(BEAM_PRIORITY)))
         td.set(COLLIDERS, potential_colliders(td.get(POSITION), self.collider_radius))
 
@@ -408,6 +410,36 @@ class SafetyTransform(Transform):
         return observation_spec
 
 
+class DirectEnv:
+    """The training env without TensorDicts: ``reset()`` and ``step(td)`` of the
+    ``TransformedEnv(UABSEnv, SafetyTransform)`` that :func:`uabs_rl.make.make_env`
+    builds, returning :class:`~uabs_rl.env.Outputs` (a flat dict keyed as the
+    TensorDict), entry for entry equal to ``env.reset()`` and ``env.step(td)["next"]``
+    (``tests/test_env.py``). It runs the env's step math and the rule's :meth:`write`
+    and skips what TorchRL does on every call (building nested TensorDicts, shape and
+    done checks, the ``"next"`` entry), which was two thirds of ``env.step`` at
+    ``n_envs = 1``. The training loop steps through it; evaluation and everything a
+    user calls keep the TorchRL env."""
+
+    def __init__(self, env: TransformedEnv):
+        if not isinstance(env.transform, SafetyTransform):
+            raise TypeError(f"DirectEnv needs the env of make_env(..., spec_mask=False): a "
+                            f"UABSEnv with one SafetyTransform, got {env.transform!r}")
+        self.env, self.base, self.rule = env, env.base_env, env.transform.rule
+
+    def reset(self) -> Outputs:
+        out = self.base.reset_direct()
+        self.rule.write(out)
+        return out
+
+    def step(self, td: Outputs | TensorDictBase) -> Outputs:
+        """The outputs after the action ``td`` holds (with the selector's fallback
+        flags)."""
+        out = self.base.step_direct(td.get(ACTION), td.get(FALLBACK, None))
+        self.rule.write(out)
+        return out
+
+
 class MaskedActionSelector(TensorDictModuleBase):
     """ε-greedy action choice under a rule's masks: the policy's last module.
 
@@ -423,7 +455,8 @@ class MaskedActionSelector(TensorDictModuleBase):
         self.in_keys = [ACTION_VALUE, MASK, *rule.choice_keys]
         self.out_keys = [("agents", "action"), MASK, FALLBACK]
         self.register_buffer("eps", torch.tensor(float(eps)))
-        self._choose = compiled_or_eager(rule.choose, "the action selection") if compile \
+        self._choose = compiled_or_eager(rule.choose, "the action selection",
+                                          rule.moves.device) if compile \
             else rule.choose
 
     def forward(self, td: TensorDictBase) -> TensorDictBase:

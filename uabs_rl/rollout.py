@@ -8,14 +8,14 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from torch import nn
 from torchrl.envs import TransformedEnv
 
 from uabs_rl.config import AlgoConfig
-from uabs_rl.env import ACTION, DIAG, MASK, N_ACTIONS, OBS, REWARD
+from uabs_rl.env import ACTION, DIAG, DIAG_ENTRIES, MASK, N_ACTIONS, OBS, REWARD
 from uabs_rl.learner import DQNLearner
-from uabs_rl.masking import ACTION_VALUE, MaskedActionSelector
+from uabs_rl.masking import ACTION_VALUE, DirectEnv, MaskedActionSelector
 from uabs_rl.replay import PopulationReplay, ReplayBuffer
 
 
@@ -54,6 +54,7 @@ class Collector:
                  buffer: ReplayBuffer | PopulationReplay, members: int = 1,
                  n_step: int = 1, gamma: float = 1.0):
         self.env, self.qnet, self.selector, self.buffer = env, qnet, selector, buffer
+        self.direct = DirectEnv(env)  # env.reset / env.step without TensorDicts
         self.params = env.base_env.params
         self.n_envs = env.base_env.n_envs
         self.members = members
@@ -88,7 +89,7 @@ class Collector:
         # needs them (rank, greedy target mask)
         defer = self.selector.rule.target_needs_q
         n = self.n_step
-        td = self.env.reset()
+        td = self.direct.reset()
         served = torch.zeros(e, device=self.env.device)
         loss_sum = q_sum = torch.zeros((), device=self.env.device)
         n_updates, pushed, record = 0, 0, []  # record[i]: step i's one-step transition
@@ -101,7 +102,7 @@ class Collector:
                 self._push(self._transition(record, pushed), self.selector.target_mask(td))
                 pushed += 1
             self.selector(td)
-            nxt = self.env.step(td)["next"]
+            nxt = self.direct.step(td)
             record.append({"obs": td.get(OBS), "action": td.get(ACTION), "mask": td.get(MASK),
                            "reward": nxt.get(REWARD).squeeze(-1), "next_obs": nxt.get(OBS),
                            "terminated": nxt.get(("agents", "terminated")).squeeze(-1)})
@@ -111,17 +112,19 @@ class Collector:
             while t == steps - 1 and pushed < steps:  # the end: cut at T, no bootstrap
                 self._push(self._transition(record, pushed), nxt.get(MASK))  # mask unused
                 pushed += 1
-            served += nxt.get((DIAG, "served_fraction"))
+            served += nxt[DIAG, "served_fraction"]
             self.env_steps += 1
             for loss, q in optimise(e // self.members):
                 loss_sum = loss_sum + loss
                 q_sum = q_sum + q
                 n_updates += 1
-            td = nxt.exclude(REWARD)
+            td = nxt
         nan = torch.full((), float("nan"))
         loss = loss_sum / n_updates if n_updates else nan
         q_mean = q_sum / n_updates if n_updates else nan
-        return nxt.get(DIAG), served, eps, loss, q_mean
+        last = TensorDict({k: nxt[DIAG, k] for k in DIAG_ENTRIES},
+                          batch_size=[e], device=self.env.device)
+        return last, served, eps, loss, q_mean
 
 
 def episode_records(last: TensorDictBase, served: torch.Tensor, steps: int, first_episode: int,
