@@ -106,8 +106,10 @@ def trajectory_figure(area: AreaConfig, uabs: torch.Tensor, vehicles: torch.Tens
         ax.plot(*uabs[-1, u], "*", color=c, ms=13, mec="k", zorder=4)
         for t in instants:
             for cx, cy in centres + uabs[t, u]:
-                ax.add_patch(Circle((cx, cy), r_b, fill=False, ec=c, lw=0.7,
-                                    alpha=0.3 + 0.7 * t / max(steps - 1, 1), zorder=2))
+                # add_artist, not add_patch: the limits are set below, and updating them
+                # patch by patch took half of the picture's drawing time
+                ax.add_artist(Circle((cx, cy), r_b, fill=False, ec=c, lw=0.7,
+                                     alpha=0.3 + 0.7 * t / max(steps - 1, 1), zorder=2))
     ax.set_xlim(0, area.width)
     ax.set_ylim(0, area.height)
     ax.set_aspect("equal")
