@@ -7,8 +7,9 @@
 Trains ``--episodes`` episodes with the paper's defaults (overrides as for uabs-train),
 then prints episodes per minute, the projected time of the full protocol (1000 episodes
 of 80 steps, one update per step) and the share of the time spent in the environment
-(step + masking transform), action selection (Q forward + masked selector), replay
-(push + sample) and the update (loss, backward, Adam). Evaluation is excluded.
+(the direct step and the masking rule, see ``DirectEnv``), action selection (Q forward
++ masked selector), replay (push + sample) and the update (loss, backward, Adam).
+Evaluation is excluded.
 With ``train.population=P`` the figures are per member: a member's episodes per minute
 and ms per member env step, so they compare with a solo run's directly.
 """

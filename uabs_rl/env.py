@@ -321,8 +321,8 @@ class UABSEnv(EnvBase):
 
     def _build_math(self, device: torch.device) -> None:
         self.math = StepMath(self.params, device)
-        # torch.compile fuses the step's many small tensor ops: ~7x faster at n_envs = 1
-        # on CPU (benchmarks/env_bench.py); costs ~10 s of compilation at the first step
+        # torch.compile fuses the step's many small tensor ops: ~6x faster at n_envs = 1
+        # on CPU (benchmarks/numpy_reference.py); ~10 s of compilation at the first step
         self._step_math = compiled_or_eager(self.math.step, "the env step", device) \
             if self.compile_step else self.math.step
 
