@@ -270,7 +270,7 @@ class MaskingRule(nn.Module):
         exploration draws of :func:`uniforms` (None: greedy)."""
         return epsilon_greedy(q, mask, eps, u), mask, None
 
-    def target_mask(self, td: TensorDictBase, choose=None) -> torch.Tensor:
+    def target_mask(self, td: TensorDictBase | Outputs, choose=None) -> torch.Tensor:
         """The mask the double-DQN target maximises over at s' (``td`` = the outputs at
         s' with the online Q-values under ``("agents", "action_value")``). ``choose`` is
         :meth:`choose` or a compiled copy of it."""
@@ -371,7 +371,7 @@ class RankRule(MaskingRule):
                                            self.moves, self.d_th, eps, u)
         return rank_select(q, mask, pos, order, colliders, self.moves, self.d_th, eps, u)
 
-    def target_mask(self, td: TensorDictBase, choose=None) -> torch.Tensor:
+    def target_mask(self, td: TensorDictBase | Outputs, choose=None) -> torch.Tensor:
         if not self.target_needs_q:  # boundary
             return td.get(MASK)
         _, applied, _ = (choose or self.choose)(
@@ -415,7 +415,7 @@ class DirectEnv:
     ``TransformedEnv(UABSEnv, SafetyTransform)`` that :func:`uabs_rl.make.make_env`
     builds, returning :class:`~uabs_rl.env.Outputs` (a flat dict keyed as the
     TensorDict), entry for entry equal to ``env.reset()`` and ``env.step(td)["next"]``
-    (``tests/test_env.py``). It runs the env's step math and the rule's :meth:`write`
+    (``tests/test_masking.py``). It runs the env's step math and the rule's :meth:`write`
     and skips what TorchRL does on every call (building nested TensorDicts, shape and
     done checks, the ``"next"`` entry), which was two thirds of ``env.step`` at
     ``n_envs = 1``. The training loop steps through it; evaluation and everything a
@@ -425,7 +425,7 @@ class DirectEnv:
         if not isinstance(env.transform, SafetyTransform):
             raise TypeError(f"DirectEnv needs the env of make_env(..., spec_mask=False): a "
                             f"UABSEnv with one SafetyTransform, got {env.transform!r}")
-        self.env, self.base, self.rule = env, env.base_env, env.transform.rule
+        self.base, self.rule = env.base_env, env.transform.rule
 
     def reset(self) -> Outputs:
         out = self.base.reset_direct()
@@ -459,7 +459,7 @@ class MaskedActionSelector(TensorDictModuleBase):
                                           rule.moves.device) if compile \
             else rule.choose
 
-    def forward(self, td: TensorDictBase) -> TensorDictBase:
+    def forward(self, td: TensorDictBase | Outputs) -> TensorDictBase | Outputs:
         mask = td.get(MASK)
         u = uniforms(mask.shape[:-1], self.generator, mask.device)
         action, mask, fallback = self._choose(
@@ -474,7 +474,7 @@ class MaskedActionSelector(TensorDictModuleBase):
         td.set(FALLBACK, fallback)
         return td
 
-    def target_mask(self, td: TensorDictBase) -> torch.Tensor:
+    def target_mask(self, td: TensorDictBase | Outputs) -> torch.Tensor:
         """The rule's double-DQN target mask at ``td`` (s' with its Q-values), computed
         with this selector's (possibly compiled) choice."""
         return self.rule.target_mask(td, self._choose)
