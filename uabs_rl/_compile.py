@@ -20,7 +20,7 @@ def compiled_or_eager(fn: Callable, name: str,
     with less overhead per call. The env step at ``n_envs = 1`` is a graph of about 120
     small ops whose kernels take a few microseconds; the Python wrapper around them
     (allocating outputs, launching kernels) took about 80 us a step against 58 us with
-    the C++ one (``benchmarks/numpy_reference.py --compile`` prints both)."""
+    the C++ one (``benchmarks/numpy_reference.py`` prints both)."""
     options = {"cpp_wrapper": True} if torch.device(device).type == "cpu" else None
     compiled = torch.compile(fn, dynamic=False, options=options)
     state = {"fn": compiled}
