@@ -1,0 +1,128 @@
+"""The README, the docs/ pages and `uabs-train --help` stay true to the code: every
+relative link and anchor resolves, every setting they name exists, every benchmark
+flag they use exists, and the help lists every config group option with the values
+of the command line it is given."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from dataclasses import fields, is_dataclass
+from pathlib import Path
+
+import pytest
+
+from uabs_rl.config import CONF_DIR, PROJECT_ROOT, RunConfig
+
+# the pages these checks own (docs/results/ and docs/bad_inputs.md are generated or
+# kept elsewhere)
+PAGES = [PROJECT_ROOT / "README.md", *(PROJECT_ROOT / "docs" / f"{n}.md" for n in (
+    "model", "configuration", "running", "evaluation", "safety", "performance", "scaling",
+    "code"))]
+GROUPS = ("scenario", "channel", "masking", "algo", "traces", "experiment")
+SECTIONS = ("scenario", "channel", "masking", "algo", "traces", "train")
+HELP_FILE = CONF_DIR / "hydra" / "help" / "uabs_train.yaml"
+
+
+def slug(heading: str) -> str:
+    """GitHub's anchor of a heading: lower case, punctuation dropped, spaces to '-'."""
+    return re.sub(r"[^\w\- ]", "", heading.strip().lower()).replace(" ", "-")
+
+
+def anchors(page: Path) -> set[str]:
+    text = re.sub(r"```.*?```", "", page.read_text(), flags=re.S)
+    return {slug(h) for h in re.findall(r"^#+ (.+)$", text, flags=re.M)}
+
+
+def links(page: Path) -> list[str]:
+    text = re.sub(r"```.*?```", "", page.read_text(), flags=re.S)
+    return re.findall(r"\]\(([^)\s]+)\)", text)
+
+
+def code_text(page: Path) -> str:
+    """The page's code blocks and inline code, where commands and settings are written."""
+    text = page.read_text()
+    blocks = re.findall(r"```.*?```", text, flags=re.S)
+    inline = re.findall(r"`([^`\n]+)`", re.sub(r"```.*?```", "", text, flags=re.S))
+    return "\n".join(blocks + inline)
+
+
+def setting_exists(key: str) -> bool:
+    """True if the dotted ``key`` is a field of RunConfig (or of its nested sections)."""
+    node: object = RunConfig()
+    for part in key.split("."):
+        if not (is_dataclass(node) and part in {f.name for f in fields(node)}):
+            return False
+        node = getattr(node, part)
+    return True
+
+
+def settings_named(text: str) -> set[str]:
+    sections = "|".join(SECTIONS)
+    keys = re.findall(rf"(?<![\w/.])((?:{sections})(?:\.[a-z_]+)+)", text)
+    return {k for k in keys if not k.endswith((".py", ".md", ".yaml", ".png"))}
+
+
+@pytest.mark.parametrize("page", PAGES, ids=lambda p: p.name)
+def test_relative_links_and_anchors_resolve(page):
+    for target in links(page):
+        if re.match(r"[a-z]+:", target):  # https:, mailto:
+            continue
+        path, _, anchor = target.partition("#")
+        dest = (page.parent / path).resolve() if path else page
+        assert dest.exists(), f"{page.name}: link to missing {target}"
+        if anchor and dest.suffix == ".md":
+            assert anchor in anchors(dest), f"{page.name}: no heading #{anchor} in {path}"
+
+
+@pytest.mark.parametrize("page", [*PAGES, HELP_FILE], ids=lambda p: p.name)
+def test_every_setting_named_exists(page):
+    text = page.read_text() if page.suffix == ".yaml" else code_text(page)
+    named = settings_named(text)
+    missing = sorted(k for k in named if not setting_exists(k))
+    assert not missing, f"{page.name} names settings RunConfig does not have: {missing}"
+
+
+COMMANDS = {"uabs-eval": "uabs_rl/evaluate.py", "uabs-report": "uabs_rl/report.py"}
+
+
+@pytest.mark.parametrize("page", PAGES, ids=lambda p: p.name)
+def test_commands_and_their_flags_exist(page):
+    """``python benchmarks/<x>.py --flag``, ``uabs-eval --flag`` and ``uabs-report
+    --flag`` as the pages write them: the script exists and declares the flag."""
+    text = code_text(page)
+    uses = re.findall(r"python (benchmarks/\w+\.py)([^`\n]*)", text)
+    uses += [(COMMANDS[c], args) for c, args in re.findall(
+        r"(?<![\w-])(uabs-eval|uabs-report)\b([^`\n#]*)", text)]
+    for script, args in uses:
+        source = (PROJECT_ROOT / script).read_text()
+        for flag in set(re.findall(r"(?<!\S)(--[a-z-]+)", args)) - {"--help"}:
+            assert f'"{flag}"' in source, f"{page.name}: {script} has no {flag}"
+
+
+def render_help(*overrides: str) -> str:
+    out = subprocess.run([sys.executable, "-m", "uabs_rl.train", *overrides,
+                          "hydra/help=uabs_train", "--help"], capture_output=True, text=True,
+                         timeout=120, cwd=PROJECT_ROOT)
+    assert out.returncode == 0, out.stderr[-2000:]
+    return out.stdout
+
+
+def test_help_lists_every_group_option_and_shows_the_command_lines_values():
+    text = render_help("masking=flat", "scenario.n_uabs=4", "train.episodes=7")
+    assert "_schema" not in text  # the ConfigStore's schema names are not options
+    assert "${" not in text
+    groups = text.split("== Config groups", 1)[1].split("== Main settings", 1)[0]
+    for group in (*GROUPS, "hydra/launcher"):
+        assert re.search(rf"^  {re.escape(group)} ", groups, flags=re.M), group
+        for option in sorted((CONF_DIR / group).glob("*.yaml")):
+            assert re.search(rf"\b{option.stem}\b", groups), f"{group}={option.stem}"
+    assert "the anti-collision mechanism [flat]" in text
+    assert "M, the agents [4]" in text
+    assert "training episodes [7]" in text
+    listed = re.findall(r"^  ([a-z_]+(?:\.[a-z_]+)*)  ",
+                        text.split("== Main settings", 1)[1].split("== Examples", 1)[0],
+                        flags=re.M)
+    assert len(listed) >= 20
+    assert all(setting_exists(k) for k in listed), [k for k in listed if not setting_exists(k)]
