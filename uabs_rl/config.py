@@ -2,12 +2,15 @@
 
 Every yaml under ``conf/`` is validated against these dataclasses, so a misspelt key
 or a value of the wrong type fails when the config is composed. Value checks that a
-type cannot express (a fleet of 0, an area that does not contain the network, ...)
-live in ``validate_*`` functions and raise :class:`ConfigError` naming the key.
+type cannot express (a fleet of 0, a NaN or infinite number, a replay buffer larger
+than the machine's memory, ...) live in ``validate_*`` functions and raise
+:class:`ConfigError` naming the key, before anything is built or written.
 """
 
 from __future__ import annotations
 
+import math
+import os
 from dataclasses import dataclass, field, fields, is_dataclass
 from enum import StrEnum
 from pathlib import Path
@@ -21,6 +24,15 @@ PROJECT_ROOT = Path(__file__).resolve().parents[1]
 
 class ConfigError(ValueError):
     """A config value is invalid; the message names the key and the fix."""
+
+
+# run seeds (seed, seed + 1, ... of a population, train.eval_seed): the range that
+# torch.Generator.manual_seed accepts, [-2^63, 2^64)
+SEED_MIN, SEED_END = -(2 ** 63), 2 ** 64
+# SUMO seeds (traces.<split>.first_seed + i): SUMO's --seed is a 32-bit signed integer
+# and numpy's default_rng (the fleet's routes) refuses negative seeds
+SUMO_SEED_MAX = 2 ** 31 - 1
+N_MOVES = 4  # the actions: up, right, down, left (uabs_rl.env.N_ACTIONS)
 
 
 # Closed sets. Member names equal their values because OmegaConf converts yaml strings
@@ -205,6 +217,8 @@ class MaskingConfig:
 
 
 def validate_masking(masking: MaskingConfig) -> None:
+    """Value checks for the masking settings, each naming the offending key."""
+    check_finite(masking, "masking.")
     enum_value(MaskingMode, masking.mode, "masking.mode (select it with masking=...)")
     enum_value(RankNextMask, masking.rank_next_mask, "masking.rank_next_mask")
     for key in ("flat_margin", "collider_margin"):
@@ -289,47 +303,76 @@ class TracesAppConfig(RunConfig):
 
 
 def validate_run(cfg: RunConfig) -> None:
-    """Every start-up check of ``uabs-train``, each naming the offending key."""
+    """Every start-up check of ``uabs-train``, each naming the offending key: nothing is
+    built or written before they pass."""
+    check_finite(cfg)
     validate_scenario_traces(cfg.scenario, cfg.traces)
     validate_env(cfg.scenario, cfg.channel)
     validate_masking(cfg.masking)
     enum_value(LossKind, cfg.algo.loss, "algo.loss")
     enum_value(LoggerKind, cfg.train.logger, "train.logger")
-    a, t = cfg.algo, cfg.train
-    checks = [
+    _raise_first(_algo_checks(cfg) + _train_checks(cfg))
+    if not (cfg.device in ("cpu", "cuda", "auto") or cfg.device.startswith("cuda:")):
+        raise ConfigError(f"device must be cpu, cuda, cuda:N or auto, got {cfg.device!r}.")
+    check_memory(cfg)
+
+
+def _algo_checks(cfg: RunConfig) -> list[tuple[bool, str, str, Any]]:
+    a, t, s = cfg.algo, cfg.train, cfg.scenario
+    return [
         (a.lr > 0, "algo.lr", "must be > 0", a.lr),
         (0 <= a.gamma <= 1, "algo.gamma", "must be in [0, 1]", a.gamma),
         (a.batch_size >= 1, "algo.batch_size", "must be >= 1", a.batch_size),
         (a.buffer_size >= a.batch_size, "algo.buffer_size", "must be >= algo.batch_size",
          a.buffer_size),
+        (a.buffer_size >= t.n_envs * s.n_uabs, "algo.buffer_size",
+         f"must be >= train.n_envs x scenario.n_uabs = {t.n_envs * s.n_uabs} (the "
+         "transitions one env step stores)", a.buffer_size),
         (a.learning_starts >= a.batch_size, "algo.learning_starts",
          "must be >= algo.batch_size", a.learning_starts),
+        (a.learning_starts <= a.buffer_size, "algo.learning_starts",
+         "must be <= algo.buffer_size (the buffer never holds more, so no update would "
+         "ever run)", a.learning_starts),
         (a.update_every >= 1, "algo.update_every", "must be >= 1", a.update_every),
         (a.target_update >= 1, "algo.target_update", "must be >= 1", a.target_update),
         (0 <= a.eps_end <= a.eps_start <= 1, "algo.eps_start/eps_end",
          "must satisfy 0 <= eps_end <= eps_start <= 1", (a.eps_start, a.eps_end)),
         (0 < a.eps_fraction <= 1, "algo.eps_fraction", "must be in (0, 1]", a.eps_fraction),
+        (a.grad_clip is None or a.grad_clip > 0, "algo.grad_clip",
+         "must be null (no clipping) or > 0 (a gradient norm)", a.grad_clip),
         (all(h >= 1 for h in a.hidden) and len(a.hidden) >= 1, "algo.hidden",
          "must be a non-empty list of positive widths", a.hidden),
-        (t.episodes >= 1, "train.episodes", "must be >= 1", t.episodes),
-        (t.eval_every >= 1, "train.eval_every", "must be >= 1", t.eval_every),
-        (t.eval_windows >= 1, "train.eval_windows", "must be >= 1", t.eval_windows),
-        (t.n_envs >= 1, "train.n_envs", "must be >= 1", t.n_envs),
-        (t.population >= 1, "train.population", "must be >= 1", t.population),
-        (1 <= a.n_step <= cfg.scenario.episode_steps, "algo.n_step",
+        (1 <= a.n_step <= s.episode_steps, "algo.n_step",
          "must be in [1, scenario.episode_steps]", a.n_step),
-        (a.n_step == 1 or cfg.scenario.time_is_terminal, "algo.n_step",
+        (a.n_step == 1 or s.time_is_terminal, "algo.n_step",
          "must be 1 when scenario.time_is_terminal=false (a cut return would need its "
          "own discount)", a.n_step),
         (t.population == 1 or a.loss == LossKind.fused, "algo.loss",
          "must be fused when train.population > 1 (torchrl is the solo reference loss)",
          str(a.loss)),
-        (t.episodes % t.n_envs == 0, "train.episodes",
-         "must be a multiple of train.n_envs", (t.episodes, t.n_envs)),
     ]
-    _raise_first(checks)
-    if not (cfg.device in ("cpu", "cuda", "auto") or cfg.device.startswith("cuda:")):
-        raise ConfigError(f"device must be cpu, cuda, cuda:N or auto, got {cfg.device!r}.")
+
+
+def _train_checks(cfg: RunConfig) -> list[tuple[bool, str, str, Any]]:
+    t = cfg.train
+    seeds = "in [-2^63, 2^64) (the seeds torch.Generator.manual_seed accepts)"
+    return [
+        (t.episodes >= 1, "train.episodes", "must be >= 1", t.episodes),
+        (t.eval_every >= 1, "train.eval_every", "must be >= 1", t.eval_every),
+        (t.eval_windows >= 1, "train.eval_windows", "must be >= 1", t.eval_windows),
+        (t.n_envs >= 1, "train.n_envs", "must be >= 1", t.n_envs),
+        (t.population >= 1, "train.population", "must be >= 1", t.population),
+        (t.episodes % max(t.n_envs, 1) == 0, "train.episodes",
+         "must be a multiple of train.n_envs", (t.episodes, t.n_envs)),
+        (t.threads is None or t.threads >= 1, "train.threads",
+         "must be null (all cores) or >= 1", t.threads),
+        (SEED_MIN <= t.eval_seed < SEED_END, "train.eval_seed", f"must be {seeds}",
+         t.eval_seed),
+        (SEED_MIN <= cfg.seed < SEED_END, "seed", f"must be {seeds}", cfg.seed),
+        (cfg.seed + t.population - 1 < SEED_END, "seed",
+         f"+ train.population - 1 (the last member's seed) must be {seeds}",
+         cfg.seed + t.population - 1),
+    ]
 
 
 def register_configs() -> None:
@@ -372,6 +415,8 @@ def resolve_path(value: str, key: str) -> Path:
 
 def validate_scenario_traces(scenario: ScenarioConfig, traces: TracesConfig) -> None:
     """Value checks for the trace pipeline, each naming the offending key."""
+    check_finite(scenario, "scenario.")
+    check_finite(traces, "traces.")
     sumo = scenario.sumo
     if scenario.dt <= 0:
         raise ConfigError(f"scenario.dt must be > 0 seconds, got {scenario.dt}.")
@@ -386,28 +431,46 @@ def validate_scenario_traces(scenario: ScenarioConfig, traces: TracesConfig) -> 
             "scenario.sumo.fleet_size is 0 and no scenario.sumo.route_files or "
             "scenario.sumo.sumocfg is given: there would be no vehicle. Set "
             "scenario.sumo.fleet_size >= 1 or give routes.")
+    host = available_memory("cpu")  # traces are built and cached on the host
     for name in TRACE_SPLITS:
-        split = getattr(traces, name)
-        if split.n_sims < 1:
-            raise ConfigError(f"traces.{name}.n_sims must be >= 1, got {split.n_sims}.")
-        if split.duration_s < scenario.dt:
-            raise ConfigError(f"traces.{name}.duration_s must be >= scenario.dt, got "
-                              f"{split.duration_s}.")
-        if split.warmup_s < 0:
-            raise ConfigError(f"traces.{name}.warmup_s must be >= 0, got {split.warmup_s}.")
-    seeds = {n: set(range(getattr(traces, n).first_seed,
-                          getattr(traces, n).first_seed + getattr(traces, n).n_sims))
-             for n in TRACE_SPLITS}
-    for i, a in enumerate(TRACE_SPLITS):
-        for b in TRACE_SPLITS[i + 1:]:
-            if seeds[a] & seeds[b]:
-                raise ConfigError(
-                    f"traces.{b}.first_seed={getattr(traces, b).first_seed} makes the {b} "
-                    f"SUMO seeds overlap the {a} seeds {min(seeds[a])}..{max(seeds[a])}: "
-                    f"training, validation (eval) and test traces must come from disjoint "
-                    f"seeds. Move traces.{b}.first_seed past them.")
+        _validate_split(name, getattr(traces, name), scenario, host)
+    _check_disjoint_seeds(traces)
     if traces.workers < 0:
         raise ConfigError(f"traces.workers must be >= 0, got {traces.workers}.")
+
+
+def _validate_split(name: str, split: SplitConfig, scenario: ScenarioConfig,
+                    host: tuple[int, str] | None) -> None:
+    key = f"traces.{name}"
+    _raise_first([
+        (split.n_sims >= 1, f"{key}.n_sims", "must be >= 1", split.n_sims),
+        (split.duration_s >= scenario.dt, f"{key}.duration_s", "must be >= scenario.dt",
+         split.duration_s),
+        (split.warmup_s >= 0, f"{key}.warmup_s", "must be >= 0", split.warmup_s),
+        (split.first_seed >= 0, f"{key}.first_seed",
+         "must be >= 0 (SUMO and numpy take non-negative seeds)", split.first_seed),
+        (split.first_seed + split.n_sims - 1 <= SUMO_SEED_MAX,
+         f"{key}.first_seed + {key}.n_sims - 1", f"(the last SUMO seed) must be <= "
+         f"{SUMO_SEED_MAX} (SUMO's --seed is a 32-bit integer)",
+         split.first_seed + split.n_sims - 1),
+    ])
+    _check_fits(f"{key}.n_sims x {key}.duration_s", trace_bytes(scenario, split),
+                f"the {name} traces", host, f"lower {key}.n_sims or {key}.duration_s")
+
+
+def _check_disjoint_seeds(traces: TracesConfig) -> None:
+    """Training, validation and test traces come from disjoint SUMO seed ranges."""
+    ranges = {n: (getattr(traces, n).first_seed,
+                  getattr(traces, n).first_seed + getattr(traces, n).n_sims - 1)
+              for n in TRACE_SPLITS}
+    for i, a in enumerate(TRACE_SPLITS):
+        for b in TRACE_SPLITS[i + 1:]:
+            (a0, a1), (b0, b1) = ranges[a], ranges[b]
+            if a0 <= b1 and b0 <= a1:
+                raise ConfigError(
+                    f"traces.{b}.first_seed={b0} makes the {b} SUMO seeds overlap the {a} "
+                    f"seeds {a0}..{a1}: training, validation (eval) and test traces must "
+                    f"come from disjoint seeds. Move traces.{b}.first_seed past them.")
 
 
 def _check_known_keys(obj: Any, node: Any, prefix: str) -> None:
@@ -433,6 +496,8 @@ def to_container(cfg: Any) -> Any:
 
 def validate_env(scenario: ScenarioConfig, channel: ChannelConfig) -> None:
     """Value checks for the environment, each naming the offending key."""
+    check_finite(scenario, "scenario.")
+    check_finite(channel, "channel.")
     checks = [
         (scenario.n_uabs >= 1, "scenario.n_uabs", "must be >= 1", scenario.n_uabs),
         (scenario.altitude > channel.ue_height, "scenario.altitude",
@@ -440,10 +505,15 @@ def validate_env(scenario: ScenarioConfig, channel: ChannelConfig) -> None:
         (scenario.speed > 0, "scenario.speed", "must be > 0", scenario.speed),
         (scenario.episode_steps >= 1, "scenario.episode_steps", "must be >= 1",
          scenario.episode_steps),
-        (scenario.window_steps >= 1, "scenario.window_steps", "must be >= 1",
-         scenario.window_steps),
+        (1 <= scenario.window_steps <= scenario.episode_steps, "scenario.window_steps",
+         "must be in 1..scenario.episode_steps (a longer window never completes in an "
+         "episode, so P_g would be 0)", scenario.window_steps),
         (1 <= scenario.nhat_s <= scenario.window_steps, "scenario.nhat_s",
          "must be in 1..scenario.window_steps", scenario.nhat_s),
+        (scenario.lambda_s >= 0, "scenario.lambda_s", "must be >= 0 (the proximity "
+         "penalty's size)", scenario.lambda_s),
+        (scenario.lambda_c >= 0, "scenario.lambda_c", "must be >= 0 (the collision "
+         "penalty's size)", scenario.lambda_c),
         (scenario.collision_distance > 0, "scenario.collision_distance", "must be > 0",
          scenario.collision_distance),
         (scenario.safety_distance is None or scenario.safety_distance
@@ -458,6 +528,12 @@ def validate_env(scenario: ScenarioConfig, channel: ChannelConfig) -> None:
          "scenario.area", "must be at least v·δt wide and high so every UABS can move",
          (scenario.area.width, scenario.area.height)),
         (channel.carrier_ghz > 0, "channel.carrier_ghz", "must be > 0", channel.carrier_ghz),
+        (channel.ue_height >= 0, "channel.ue_height", "must be >= 0 (m above ground)",
+         channel.ue_height),
+        (channel.shadow_sigma_los_db >= 0, "channel.shadow_sigma_los_db",
+         "must be >= 0 (a standard deviation)", channel.shadow_sigma_los_db),
+        (channel.shadow_sigma_nlos_db >= 0, "channel.shadow_sigma_nlos_db",
+         "must be >= 0 (a standard deviation)", channel.shadow_sigma_nlos_db),
         (0 < channel.fov_deg < 180, "channel.fov_deg", "must be in (0, 180)", channel.fov_deg),
         (channel.n_beams >= 1 and round(channel.n_beams ** 0.5) ** 2 == channel.n_beams,
          "channel.n_beams", "must be a square number (k x k beam grid)", channel.n_beams),
@@ -466,8 +542,144 @@ def validate_env(scenario: ScenarioConfig, channel: ChannelConfig) -> None:
     enum_value(LosMode, channel.los_mode, "channel.los_mode")
 
 
+def check_finite(obj: Any, prefix: str = "") -> None:
+    """Refuse a NaN or infinite float anywhere in the dataclass ``obj`` (nested configs
+    and lists included), naming its key: ``prefix`` + the field's path. A NaN passes
+    every ``<``/``>`` range check and trains (or caches traces) on nonsense."""
+    for f in fields(obj):
+        key, value = f"{prefix}{f.name}", getattr(obj, f.name)
+        if is_dataclass(value):
+            check_finite(value, f"{key}.")
+            continue
+        for v in value if isinstance(value, list | tuple) else [value]:
+            if isinstance(v, float) and not math.isfinite(v):
+                null = " (or null)" if "None" in str(f.type) else ""
+                raise ConfigError(f"{key} must be a finite number{null}, got {value!r}. "
+                                  f"Set {key} to a finite value.")
+
+
 def _raise_first(checks: list[tuple[bool, str, str, Any]]) -> None:
     """Raise a ConfigError for the first failed ``(ok, key, rule, value)`` check."""
     for ok, key, rule, value in checks:
         if not ok:
             raise ConfigError(f"{key} {rule}, got {value!r}.")
+
+
+# ----------------------------------------------------------------------------- memory
+def observation_size(scenario: ScenarioConfig, channel: ChannelConfig) -> int:
+    """Features of one agent's observation (``uabs_rl.params.EnvParams.obs_dim``)."""
+    look = (8 + 4 * scenario.motion_obs) if scenario.lookahead_obs else 0
+    return 3 + 2 * scenario.n_uabs + channel.n_beams + look
+
+
+def transition_bytes(obs_dim: int) -> int:
+    """Bytes of one stored transition (``uabs_rl.replay.storage``): obs and next_obs
+    float32, action int64, mask and next_mask bool per move, reward float32,
+    terminated bool."""
+    return 2 * 4 * obs_dim + 8 + 2 * N_MOVES + 4 + 1
+
+
+def env_bytes(scenario: ScenarioConfig, channel: ChannelConfig) -> int:
+    """A lower bound on one training env's memory: its episode state
+    (``uabs_rl.env.empty_state``) over the fleet's vehicles only, plus one step's two
+    float32 beam-grid coordinates per UABS-vehicle link (``uabs_rl.links``)."""
+    m, v, b = scenario.n_uabs, scenario.sumo.fleet_size, channel.n_beams
+    look = observation_size(scenario, channel) - (3 + 2 * m + b)
+    # priority, served_count, window_full, prev_present, n_windows, ns_hist [N + 1]
+    per_vehicle = 4 + 8 + 1 + 1 + 4 + 4 * (scenario.window_steps + 1)
+    per_uabs = 4 * 2 + 8 + 4 * b + 4 * look  # pos, backup, b, look
+    counters = 4 * 8 + 4 * 4  # t, sim, start, cursor (int64); ep_* (float32)
+    return v * per_vehicle + m * per_uabs + counters + 2 * 4 * m * v
+
+
+def trace_bytes(scenario: ScenarioConfig, split: SplitConfig) -> int:
+    """A lower bound on one split's traces (``uabs_rl.traces.TraceSet``: float32 x, y
+    and a bool per vehicle slot and step), counting the fleet's vehicles only."""
+    steps = int(split.duration_s // scenario.dt)
+    return split.n_sims * steps * scenario.sumo.fleet_size * (2 * 4 + 1)
+
+
+def network_bytes(obs_dim: int, hidden: list[int]) -> int:
+    """One member's Q-network in training: parameters, target copy, gradients and
+    Adam's two moments, float32 (``uabs_rl.model.DuelingQNet``)."""
+    widths = [obs_dim, *hidden]
+    params = sum((i + 1) * o for i, o in zip(widths, widths[1:], strict=False))
+    params += (widths[-1] + 1) * (1 + N_MOVES)  # value and advantage heads
+    return 5 * 4 * params
+
+
+def available_memory(device: str) -> tuple[int, str] | None:
+    """``(bytes, where)``: the memory a run on ``device`` can use (a CUDA device's free
+    memory, else the machine's MemAvailable from /proc/meminfo, else os.sysconf), or
+    None where it cannot be read (then nothing is refused)."""
+    if device != "cpu":
+        import torch
+
+        if torch.cuda.is_available():
+            try:
+                dev = torch.device("cuda" if device == "auto" else device)
+                return torch.cuda.mem_get_info(dev)[0], f"{dev} has"
+            except (RuntimeError, AssertionError, ValueError):
+                return None  # no such device: refused where the device is resolved
+        if device != "auto":
+            return None  # cuda without CUDA: refused where the device is resolved
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024, "this machine has"
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"), "this machine has"
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def _size(n: int) -> str:
+    """``n`` bytes for a reader: 512 bytes, 1.5 GiB, ..."""
+    x, unit = float(n), "bytes"
+    for bigger in ("KiB", "MiB", "GiB", "TiB"):
+        if x < 1024:
+            break
+        x, unit = x / 1024, bigger
+    return f"{n} bytes" if unit == "bytes" else f"{x:.4g} {unit}"
+
+
+def _check_fits(setting: str, need: int, what: str, have: tuple[int, str] | None,
+                fix: str) -> None:
+    """Refuse ``setting`` when ``what`` needs more than ``have`` (``available_memory``)."""
+    if have is not None and need > have[0]:
+        raise ConfigError(f"{setting}: {what} would need at least {_size(need)}, but "
+                          f"{have[1]} {_size(have[0])} available: {fix}.")
+
+
+def check_memory(cfg: RunConfig) -> None:
+    """Refuse a run whose replay buffer, training envs, Q-networks or traces cannot fit
+    in the memory of ``cfg.device``, before any of them is allocated. Every size is a
+    lower bound (the envs and traces count the fleet's vehicles only), so a run that
+    fits is never refused."""
+    a, t, s, P = cfg.algo, cfg.train, cfg.scenario, cfg.train.population
+    obs = observation_size(s, cfg.channel)
+    per_env = env_bytes(s, cfg.channel)
+    have = available_memory(cfg.device)
+    parts = [
+        ("algo.buffer_size", a.buffer_size * transition_bytes(obs) * P,
+         f"the replay buffer ({a.buffer_size} transitions of {transition_bytes(obs)} bytes "
+         f"x train.population={P})", "lower algo.buffer_size or train.population"),
+        ("train.n_envs", per_env * t.n_envs * P,
+         f"{t.n_envs} x train.population={P} training envs ({_size(per_env)} each)",
+         "lower train.n_envs or train.population"),
+        ("algo.hidden", network_bytes(obs, a.hidden) * P,
+         f"the Q-network{f's of {P} members' if P > 1 else ''} (with target copy, "
+         "gradients and Adam's moments)",
+         "narrow algo.hidden or lower train.population"),
+        ("traces.train/eval", sum(trace_bytes(s, getattr(cfg.traces, n))
+                                  for n in ("train", "eval")),
+         "the training and validation traces", "lower their n_sims or duration_s"),
+    ]
+    for key, need, what, fix in parts:
+        _check_fits(key, need, what, have, fix)
+    _check_fits(", ".join(p[0] for p in parts), sum(p[1] for p in parts),
+                "the replay buffer, envs, Q-networks and traces together", have,
+                "lower algo.buffer_size, train.n_envs or train.population")

@@ -1,0 +1,281 @@
+"""Start-up validation of every setting: each wrong value is refused before anything is
+built or written, in one line that names the setting (docs/bad_inputs.md)."""
+
+from __future__ import annotations
+
+import itertools
+import math
+import re
+import subprocess
+import sys
+from dataclasses import replace
+
+import pytest
+import torch
+
+from tests.test_train import smoke
+from uabs_rl import config
+from uabs_rl.config import (
+    CONF_DIR,
+    ChannelConfig,
+    ConfigError,
+    MaskingConfig,
+    ScenarioConfig,
+    SplitConfig,
+    TracesConfig,
+    compose,
+    env_bytes,
+    observation_size,
+    transition_bytes,
+    validate_env,
+    validate_masking,
+    validate_run,
+    validate_scenario_traces,
+)
+from uabs_rl.env import N_ACTIONS, empty_state
+from uabs_rl.params import EnvParams
+from uabs_rl.replay import storage
+
+BAD = [  # (override on the smoke preset, the setting its message must name)
+    ("algo.lr=inf", "algo.lr"),
+    ("algo.lr=nan", "algo.lr"),
+    ("algo.grad_clip=-1", "algo.grad_clip"),
+    ("algo.grad_clip=0", "algo.grad_clip"),
+    ("algo.grad_clip=nan", "algo.grad_clip"),
+    ("algo.eps_start=nan", "algo.eps_start"),
+    ("algo.eps_end=-inf", "algo.eps_end"),
+    ("algo.eps_fraction=nan", "algo.eps_fraction"),
+    ("algo.gamma=nan", "algo.gamma"),
+    ("algo.buffer_size=0", "algo.buffer_size"),
+    ("algo.learning_starts=5000", "algo.learning_starts"),  # more than the buffer holds
+    ("scenario.lambda_s=nan", "scenario.lambda_s"),
+    ("scenario.lambda_s=-1", "scenario.lambda_s"),
+    ("scenario.lambda_c=nan", "scenario.lambda_c"),
+    ("scenario.lambda_c=-1000", "scenario.lambda_c"),
+    ("scenario.area.x_min=nan", "scenario.area.x_min"),
+    ("scenario.area.y_min=inf", "scenario.area.y_min"),
+    ("scenario.window_steps=21", "scenario.window_steps"),  # longer than episode_steps=20
+    ("scenario.dt=nan", "scenario.dt"),
+    ("scenario.dt=inf", "scenario.dt"),
+    ("scenario.altitude=inf", "scenario.altitude"),
+    ("scenario.safety_distance=nan", "scenario.safety_distance"),
+    ("channel.tx_power_dbm=nan", "channel.tx_power_dbm"),
+    ("channel.noise_dbm=-inf", "channel.noise_dbm"),
+    ("channel.snr_threshold_db=nan", "channel.snr_threshold_db"),
+    ("channel.tx_gain_db=inf", "channel.tx_gain_db"),
+    ("channel.ue_height=-1", "channel.ue_height"),
+    ("channel.shadow_sigma_los_db=-4", "channel.shadow_sigma_los_db"),
+    ("channel.shadow_sigma_nlos_db=nan", "channel.shadow_sigma_nlos_db"),
+    ("channel.outside_beam_gain_db=nan", "channel.outside_beam_gain_db"),
+    ("masking.flat_margin=nan", "masking.flat_margin"),
+    ("masking.collider_margin=-1", "masking.collider_margin"),
+    ("train.threads=0", "train.threads"),
+    ("train.threads=-2", "train.threads"),
+    ("seed=18446744073709551616", "seed"),  # 2^64
+    ("seed=-9223372036854775809", "seed"),  # -2^63 - 1
+    ("train.eval_seed=18446744073709551616", "train.eval_seed"),
+    ("traces.train.duration_s=inf", "traces.train.duration_s"),
+    ("traces.eval.duration_s=nan", "traces.eval.duration_s"),
+    ("traces.test.warmup_s=inf", "traces.test.warmup_s"),
+    ("traces.train.warmup_s=nan", "traces.train.warmup_s"),
+    ("traces.train.first_seed=-1", "traces.train.first_seed"),
+    ("traces.test.first_seed=2147483648", "traces.test.first_seed"),
+    ("traces.train.n_sims=1000000000000", "traces.train.n_sims"),  # no 10^12 seed set built
+]
+
+
+@pytest.mark.parametrize("override,key", BAD)
+def test_bad_values_are_refused_naming_the_setting(trace_cache, override, key):
+    with pytest.raises(ConfigError, match=re.escape(key)) as e:
+        validate_run(smoke(trace_cache, override))
+    assert "\n" not in str(e.value)
+
+
+def test_the_last_population_seed_must_be_a_generator_seed(trace_cache):
+    top = 2 ** 64 - 1
+    validate_run(smoke(trace_cache, f"seed={top}"))  # the largest seed torch takes
+    validate_run(smoke(trace_cache, f"seed={-2 ** 63}"))  # and the smallest
+    with pytest.raises(ConfigError, match=r"seed \+ train\.population - 1 .* got "
+                                          rf"{top + 1}\."):
+        validate_run(smoke(trace_cache, f"seed={top}", "train.population=2"))
+
+
+def test_a_nan_step_length_is_blamed_on_the_step_length(trace_cache):
+    """A NaN fails every comparison, so the area check used to take the blame."""
+    with pytest.raises(ConfigError) as e:
+        validate_run(smoke(trace_cache, "scenario.dt=nan"))
+    assert str(e.value) == ("scenario.dt must be a finite number, got nan. Set scenario.dt "
+                            "to a finite value.")
+
+
+def test_the_buffer_must_hold_one_env_step_and_learning_starts(trace_cache):
+    with pytest.raises(ConfigError, match=r"algo\.buffer_size must be >= train\.n_envs x "
+                                          r"scenario\.n_uabs = 48 .*got 40\."):
+        validate_run(smoke(trace_cache, "train.n_envs=16", "train.episodes=16",
+                           "algo.batch_size=8", "algo.learning_starts=8",
+                           "algo.buffer_size=40"))
+    validate_run(smoke(trace_cache, "algo.learning_starts=2000"))  # = algo.buffer_size
+
+
+@pytest.mark.parametrize("check,args,key", [
+    (validate_scenario_traces, (ScenarioConfig(dt=math.nan), TracesConfig()), "scenario.dt"),
+    (validate_scenario_traces,
+     (ScenarioConfig(), TracesConfig(eval=SplitConfig(first_seed=10_000, warmup_s=math.inf))),
+     "traces.eval.warmup_s"),
+    (validate_env, (ScenarioConfig(lambda_c=math.nan), ChannelConfig()), "scenario.lambda_c"),
+    (validate_env, (ScenarioConfig(), ChannelConfig(noise_dbm=math.inf)), "channel.noise_dbm"),
+    (validate_masking, (MaskingConfig(collider_margin=math.nan),), "masking.collider_margin"),
+    (EnvParams.from_config, (ScenarioConfig(), ChannelConfig(tx_power_dbm=math.nan)),
+     "channel.tx_power_dbm"),
+])
+def test_uabs_traces_and_uabs_eval_checks_refuse_non_finite_numbers(check, args, key):
+    """uabs-traces calls validate_scenario_traces; uabs-eval calls it with
+    validate_masking and builds EnvParams (validate_env)."""
+    with pytest.raises(ConfigError, match=rf"^{re.escape(key)} must be a finite number"):
+        check(*args)
+
+
+def test_every_default_and_preset_validates():
+    """Every experiment x scenario x masking preset (and the defaults) passes validate_run;
+    every experiment x scenario pair passes the uabs-traces checks."""
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+
+    names = lambda group: [p.stem for p in (CONF_DIR / group).glob("*.yaml")]  # noqa: E731
+    experiments = [[]] + [[f"experiment={e}"] for e in names("experiment")]
+    combos = list(itertools.product(experiments, names("scenario"), names("masking")))
+    assert len(combos) == 4 * 2 * 3
+    config.register_configs()
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        validate_run(config.to_container(hydra_compose("config")))
+        for experiment, scenario, masking in combos:
+            overrides = [*experiment, f"scenario={scenario}"]
+            validate_run(config.to_container(hydra_compose(
+                "config", [*overrides, f"masking={masking}"])))
+            if masking == "rank":
+                t = config.to_container(hydra_compose("build_traces", overrides))
+                validate_scenario_traces(t.scenario, t.traces)
+
+
+# ----------------------------------------------------------------------------- memory
+@pytest.mark.parametrize("lookahead,motion", [(False, False), (True, False), (True, True)])
+@pytest.mark.parametrize("n_uabs,n_beams", [(3, 9), (25, 16)])
+def test_memory_sizes_equal_the_allocated_tensors(lookahead, motion, n_uabs, n_beams):
+    """The byte counts of the memory check are those of the replay storage and the env
+    state as allocated (on the meta device: shapes and dtypes, no memory)."""
+    sc = ScenarioConfig(n_uabs=n_uabs, lookahead_obs=lookahead, motion_obs=motion)
+    ch = ChannelConfig(n_beams=n_beams)
+    p = EnvParams.from_config(sc, ch)
+    assert observation_size(sc, ch) == p.obs_dim
+    nbytes = lambda ts: sum(t.numel() * t.element_size() for t in ts.values())  # noqa: E731
+    meta = torch.device("meta")
+    assert transition_bytes(p.obs_dim) * 7 == nbytes(storage((), 7, p.obs_dim, N_ACTIONS,
+                                                              meta))
+    assert transition_bytes(18) == 165  # the paper's observation: 3 + 2·3 + 9 features
+    v = sc.sumo.fleet_size
+    links = 2 * 4 * n_uabs * v  # one step's beam-grid x and y, float32 [M, V]
+    assert env_bytes(sc, ch) * 5 == nbytes(empty_state(p, 5, v, meta)) + 5 * links
+
+
+@pytest.fixture
+def one_mib(monkeypatch):
+    """A machine with 1 MiB available; the smoke preset needs about 0.4 MiB."""
+    monkeypatch.setattr(config, "available_memory", lambda device: (2 ** 20,
+                                                                    "this machine has"))
+
+
+@pytest.mark.parametrize("overrides,message", [
+    (["algo.buffer_size=10000"], "algo.buffer_size: the replay buffer (10000 transitions "
+     "of 165 bytes x train.population=1) would need at least 1.574 MiB, but this machine "
+     "has 1 MiB available: lower algo.buffer_size or train.population."),
+    (["train.population=4"], "algo.buffer_size: the replay buffer (2000 transitions of 165 "
+     "bytes x train.population=4) would need at least 1.259 MiB, but this machine has "
+     "1 MiB available: lower algo.buffer_size or train.population."),
+    (["train.n_envs=1000", "train.episodes=1000", "algo.buffer_size=3000"],
+     "train.n_envs: 1000 x train.population=1 training envs (1.879 KiB each) would need at "
+     "least 1.835 MiB, but this machine has 1 MiB available: lower train.n_envs or "
+     "train.population."),
+    (["algo.hidden=[512,512]"], "algo.hidden: the Q-network (with target copy, gradients "
+     "and Adam's moments) would need at least 5.244 MiB, but this machine has 1 MiB "
+     "available: narrow algo.hidden or lower train.population."),
+    (["traces.train.duration_s=10000"], "traces.train.n_sims x traces.train.duration_s: the "
+     "train traces would need at least 1.717 MiB, but this machine has 1 MiB available: "
+     "lower traces.train.n_sims or traces.train.duration_s."),
+    (["algo.buffer_size=6000"], "algo.buffer_size, train.n_envs, algo.hidden, "
+     "traces.train/eval: the replay buffer, envs, Q-networks and traces together would need "
+     "at least 1.05 MiB, but this machine has 1 MiB available: lower algo.buffer_size, "
+     "train.n_envs or train.population."),
+])
+def test_what_cannot_fit_in_memory_is_refused_before_allocating(trace_cache, one_mib,
+                                                                 overrides, message):
+    """Replay: 10000 x 165 B = 1.574 MiB. Envs: 20 vehicles x (18 + 4·11) B + 3 UABS x
+    (16 + 4·9) B + 48 B + 8·3·20 B = 1924 B each. Network 19-512-512-(1+4): 274949
+    parameters x 4 B x 5 copies. Traces: 10000 steps x 20 vehicles x 9 B. Together:
+    990000 + 1924 + 36580 (the 32-32 network) + 54000 + 18000 B (the traces)."""
+    validate_run(smoke(trace_cache))
+    with pytest.raises(ConfigError) as e:
+        validate_run(smoke(trace_cache, *overrides))
+    assert str(e.value) == message
+
+
+def test_available_memory_reads_meminfo_then_sysconf(monkeypatch):
+    meminfo = open("/proc/meminfo").read()  # noqa: SIM115
+    kib = int(re.search(r"^MemAvailable:\s+(\d+) kB", meminfo, re.M).group(1))
+    have, where = config.available_memory("cpu")
+    assert abs(have - kib * 1024) < 2 ** 30 and where == "this machine has"
+
+    def no_file(*args, **kwargs):
+        raise OSError("no /proc here")
+
+    monkeypatch.setattr(config, "open", no_file, raising=False)
+    monkeypatch.setattr(config.os, "sysconf", lambda name: {"SC_AVPHYS_PAGES": 3,
+                                                            "SC_PAGE_SIZE": 4096}[name])
+    assert config.available_memory("cpu") == (3 * 4096, "this machine has")
+
+    def unknown(name):
+        raise ValueError(name)
+
+    monkeypatch.setattr(config.os, "sysconf", unknown)
+    assert config.available_memory("cpu") is None
+    cfg = replace(compose("config"), algo=replace(compose("config").algo,
+                                                  buffer_size=10 ** 15))
+    validate_run(cfg)  # nothing to compare with: nothing refused
+
+
+def test_a_cuda_device_is_checked_against_its_free_memory(monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "mem_get_info", lambda dev: (5 * 2 ** 30, 8 * 2 ** 30))
+    assert config.available_memory("cuda:0") == (5 * 2 ** 30, "cuda:0 has")
+    assert config.available_memory("auto") == (5 * 2 ** 30, "cuda has")
+    cfg = compose("config", ["device=cuda", "algo.buffer_size=50000000"])
+    with pytest.raises(ConfigError, match=r"^algo\.buffer_size: .* 7\.683 GiB, but cuda has "
+                                          r"5 GiB available"):
+        validate_run(cfg)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert config.available_memory("cuda") is None  # refused by make.resolve_device
+    assert config.available_memory("auto")[1] == "this machine has"
+
+
+# ----------------------------------------------------------------------------- commands
+def test_uabs_train_refuses_an_infinite_learning_rate_in_one_line(tmp_path):
+    proc = subprocess.run(
+        [sys.executable, "-m", "uabs_rl.train", "experiment=smoke", "algo.lr=inf",
+         "train.threads=1", f"traces.cache_dir={tmp_path / 'cache'}",
+         f"hydra.run.dir={tmp_path / 'run'}"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert lines == ["error: algo.lr must be a finite number, got inf. Set algo.lr to a "
+                     "finite value."]
+    assert list(tmp_path.iterdir()) == []  # no run folder, no trace cache, nothing
+
+
+def test_uabs_traces_blames_a_nan_step_length_on_it(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "uabs_rl.traces", "scenario.dt=nan",
+                           f"traces.cache_dir={tmp_path / 'cache'}"],
+                          cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2
+    assert proc.stderr.strip().splitlines() == [
+        "error: scenario.dt must be a finite number, got nan. Set scenario.dt to a finite "
+        "value."]
+    assert list(tmp_path.iterdir()) == []
