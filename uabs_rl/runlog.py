@@ -2,7 +2,12 @@
 training episode and per evaluation: the record every figure is computed from), the
 same numbers through a TorchRL logger (``train.logger``: TensorBoard by default, CSV,
 wandb or MLflow; env steps on the x-axis, hyper-parameters, env steps per second), and
-the evaluation pictures under ``eval/``."""
+the evaluation pictures under ``eval/``.
+
+A resumed run continues its logs as an uninterrupted one would have written them: what
+was logged after the checkpoint is dropped from ``metrics.jsonl``, from TensorBoard's
+event files (rewritten into one, each scalar once per env step, equal to
+``metrics.jsonl``) and from the CSV logger's files."""
 
 from __future__ import annotations
 
@@ -11,6 +16,7 @@ import json
 import os
 import shutil
 import time
+from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +31,9 @@ from uabs_rl.evaluation import Evaluator
 COUNTERS = frozenset({"kind", "episode", "env_steps", "updates", "windows"})
 # the package each optional logger needs
 LOGGER_PACKAGES = {LoggerKind.wandb: "wandb", LoggerKind.mlflow: "mlflow"}
+# the figures TensorBoard's HPARAMS tab shows beside each run's hyper-parameters (their
+# last value in the run's own curves)
+HPARAM_METRICS = ("eval/return", "eval/served_fraction", "eval/pg", "eval/collisions")
 
 
 def check_logger(kind: LoggerKind) -> None:
@@ -69,6 +78,74 @@ def make_logger(kind: LoggerKind, run_dir: Path):
                       wandb_kwargs={"project": "uabs_rl", "dir": str(run_dir)})
 
 
+def curves(record: dict[str, Any]) -> list[tuple[str, float]]:
+    """``(tag, value)`` of each measured number of a record (``train/return``, ...): its
+    counters and non-numbers are not curves."""
+    return [(f"{record['kind']}/{k}", v) for k, v in record.items()
+            if isinstance(v, int | float) and not isinstance(v, bool) and k not in COUNTERS]
+
+
+def write_hparams(writer, hparams: dict[str, Any]) -> None:
+    """The hyper-parameters into ``writer``'s own event file (SummaryWriter.add_hparams
+    would write them to a timestamped sub-run, which TensorBoard lists as a second run)."""
+    from torch.utils.tensorboard.summary import hparams as hparams_summaries
+
+    for summary in hparams_summaries(hparams, dict.fromkeys(HPARAM_METRICS, 0.0)):
+        writer.file_writer.add_summary(summary)
+
+
+def read_events(files: list[Path]) -> list:
+    """The events of TensorBoard event files, in order, without their file-version
+    headers, each once (a rewrite killed before it removed the old files leaves copies);
+    a record cut by a kill ends its file."""
+    from tensorboard.backend.event_processing.event_file_loader import LegacyEventFileLoader
+
+    seen, events = set(), []
+    for f in files:
+        for ev in LegacyEventFileLoader(str(f)).Load():
+            key = ev.SerializeToString()
+            if not ev.HasField("file_version") and key not in seen:
+                seen.add(key)
+                events.append(ev)
+    return events
+
+
+def events_up_to(events: list, cutoff: int, records: list[dict[str, Any]]) -> list:
+    """``events`` up to env step ``cutoff``, in step order, with the curves of
+    ``metrics.jsonl`` (``records``) exactly: a curve's values at a step are kept when
+    the events hold as many as the records, else rebuilt from the records (events never
+    flushed before a kill; two copies of a step after a resume without this rewrite)."""
+    from tensorboard.compat.proto.event_pb2 import Event
+    from tensorboard.compat.proto.summary_pb2 import Summary
+
+    want: dict[tuple[str, int], list[float]] = defaultdict(list)
+    for r in records:
+        for tag, v in curves(r):
+            want[tag, r["env_steps"]].append(v)
+    have: dict[tuple[str, int], list[int]] = defaultdict(list)
+    kept = sorted((ev for ev in events if ev.step <= cutoff), key=lambda ev: ev.step)
+    for i, ev in enumerate(kept):
+        vals = ev.summary.value if ev.HasField("summary") else []
+        if len(vals) == 1 and vals[0].HasField("simple_value") and \
+                vals[0].tag.startswith(("train/", "eval/")):
+            have[vals[0].tag, ev.step].append(i)
+    drop = {i for key, idx in have.items() if len(idx) != len(want.get(key, ())) for i in idx}
+    out = [ev for i, ev in enumerate(kept) if i not in drop]
+    missing = [(step, tag, v) for (tag, step), vals in want.items()
+               if len(have.get((tag, step), ())) != len(vals) for v in vals]
+    for step, tag, v in missing:
+        out.append(Event(step=step, summary=Summary(value=[Summary.Value(tag=tag,
+                                                                         simple_value=v)])))
+    out.sort(key=lambda ev: ev.step)
+    last = time.time()
+    for ev in reversed(out):  # the rebuilt ones take the time of the event after them
+        if ev.wall_time:
+            last = ev.wall_time
+        else:
+            ev.wall_time = last
+    return out
+
+
 def read_metrics(path: Path) -> list[dict]:
     """The records of a metrics.jsonl; a damaged line is an error naming file and line
     (a run killed mid-write is repaired by resuming it)."""
@@ -100,13 +177,48 @@ class RunLog:
         self.run_dir.mkdir(parents=True, exist_ok=True)
         for tmp in (self.run_dir / "checkpoints").glob(".*.tmp"):  # a write killed midway
             tmp.unlink()
-        if resume_episode is not None:
-            self.truncate(resume_episode)
-        self.logger = make_logger(self.cfg.train.logger, self.run_dir)
-        if self.logger is not None and resume_episode is None:
-            from uabs_rl.checkpoint import config_dict
+        kind = LoggerKind(self.cfg.train.logger)
+        tb = self.run_dir / "tb"
+        old = sorted(tb.glob("events.out.tfevents.*")) if kind is LoggerKind.tensorboard else []
+        records = self.truncate(resume_episode) if resume_episode is not None else []
+        # env steps of the checkpoint: those of the last record kept (records are written
+        # before the checkpoint that follows them); a fresh start keeps no old event
+        cutoff = max((r["env_steps"] for r in records), default=-1)
+        self.logger = make_logger(kind, self.run_dir)
+        if self.logger is None:
+            return
+        from uabs_rl.checkpoint import config_dict
 
-            self.logger.log_hparams(flat_hparams(config_dict(self.cfg)))
+        hparams = flat_hparams(config_dict(self.cfg))
+        if kind is LoggerKind.tensorboard:
+            self._continue_tensorboard(tb, old, cutoff, records, hparams)
+            return
+        if kind is LoggerKind.csv:
+            truncate_csv(self.run_dir / "csv" / "scalars", cutoff)
+        if resume_episode is None:
+            self.logger.log_hparams(hparams)
+
+    def _continue_tensorboard(self, tb: Path, old: list[Path], cutoff: int,
+                              records: list[dict[str, Any]], hparams: dict[str, Any]) -> None:
+        """Rewrite the events of the ``old`` event files up to env step ``cutoff`` into
+        the new writer's file (so each step appears once), then remove them; write the
+        hyper-parameters unless kept, taking in those of a timestamped sub-run."""
+        writer = self.logger.experiment
+        subruns = [d for d in tb.iterdir() if d.is_dir() and _is_timestamp(d.name)]
+        events = events_up_to(read_events(old), cutoff, records)
+        if cutoff >= 0:
+            events += [ev for ev in read_events(
+                [f for d in subruns for f in sorted(d.glob("events.out.tfevents.*"))])
+                if _tag(ev).startswith("_hparams_/")]
+        for ev in events:
+            writer.file_writer.add_event(ev, walltime=ev.wall_time)
+        if not any(_tag(ev) == "_hparams_/experiment" for ev in events):
+            write_hparams(writer, hparams)
+        writer.flush()
+        for f in old:
+            f.unlink()
+        for d in subruns:
+            shutil.rmtree(d)
 
     def close(self) -> None:
         if self.logger is not None:
@@ -117,11 +229,12 @@ class RunLog:
                     break
             self.logger = None
 
-    def truncate(self, episode: int) -> None:
-        """Keep the records of episodes up to ``episode`` (and no half-written line)."""
+    def truncate(self, episode: int) -> list[dict[str, Any]]:
+        """Keep the records of episodes up to ``episode`` (and no half-written line);
+        returns them."""
         if not self.metrics_path.exists():
-            return
-        keep = []
+            return []
+        keep, recs = [], []
         for line in self.metrics_path.read_text().splitlines():
             try:
                 rec = json.loads(line)
@@ -129,9 +242,11 @@ class RunLog:
                 continue  # a line cut by a crash
             if rec.get("episode", 0) <= episode:
                 keep.append(line + "\n")
+                recs.append(rec)
         tmp = self.metrics_path.with_suffix(".jsonl.tmp")
         tmp.write_text("".join(keep))
         os.replace(tmp, self.metrics_path)
+        return recs
 
     def record(self, record: dict[str, Any]) -> None:
         """One line of ``metrics.jsonl``; its measured numbers also go to the logger,
@@ -141,11 +256,10 @@ class RunLog:
             f.write(json.dumps(record) + "\n")
         if self.logger is None:
             return
-        step, kind = record["env_steps"], record["kind"]
-        for k, v in record.items():
-            if isinstance(v, int | float) and not isinstance(v, bool) and k not in COUNTERS:
-                self.logger.log_scalar(f"{kind}/{k}", v, step=step)
-        if kind == "train":
+        step = record["env_steps"]
+        for tag, v in curves(record):
+            self.logger.log_scalar(tag, v, step=step)
+        if record["kind"] == "train":
             now = time.perf_counter()
             if self._rate is not None and step > self._rate[1]:
                 self.logger.log_scalar("speed/env_steps_per_s",
@@ -192,3 +306,40 @@ class RunLog:
                 writer.add_image(f"eval/{name}", rgba[..., :3], record["env_steps"],
                                  dataformats="HWC")
             plt.close(fig)
+        if writer is not None:
+            # on disk before the checkpoint that follows an evaluation, so a resume after
+            # a kill finds every event up to its checkpoint
+            writer.flush()
+
+
+def _tag(event) -> str:
+    """The tag of an event's first summary value ("" if it has none)."""
+    vals = event.summary.value if event.HasField("summary") else []
+    return vals[0].tag if vals else ""
+
+
+def _is_timestamp(name: str) -> bool:
+    """A sub-run folder of SummaryWriter.add_hparams (named ``str(time.time())``)."""
+    try:
+        float(name)
+    except ValueError:
+        return False
+    return True
+
+
+def truncate_csv(scalars: Path, cutoff: int) -> None:
+    """Keep the rows of the CSV logger's ``step,value`` files up to env step ``cutoff``
+    (a fresh start, ``cutoff`` -1, keeps none), and no half-written row."""
+    for f in scalars.rglob("*.csv"):
+        keep = []
+        for line in f.read_text().splitlines():
+            step, _, value = line.partition(",")
+            try:
+                float(value)
+                if int(step) <= cutoff:
+                    keep.append(line + "\n")
+            except ValueError:
+                continue
+        tmp = f.with_name(f.name + ".tmp")
+        tmp.write_text("".join(keep))
+        os.replace(tmp, f)
