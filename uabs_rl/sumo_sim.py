@@ -16,8 +16,14 @@ Vehicles come from two sources that can be combined:
 
 from __future__ import annotations
 
+import ctypes
+import json
+import os
 import pickle
+import signal
 import sys
+import tempfile
+import threading
 import time
 from dataclasses import dataclass
 
@@ -28,7 +34,13 @@ _INVALID = 1e9  # libsumo returns -2**30 for a vehicle that is teleporting
 
 
 class SumoRunError(RuntimeError):
-    """SUMO failed; the message names the seed and the inputs."""
+    """SUMO failed; the message names the seed and the inputs. ``said`` holds SUMO's own
+    words (one line; empty when SUMO said nothing), ``key`` the config key at fault when
+    it is known here."""
+
+    def __init__(self, message: str, said: str = "", key: str = ""):
+        super().__init__(message)
+        self.said, self.key = said, key
 
 
 @dataclass
@@ -75,7 +87,8 @@ class _Fleet:
         self.edges = [e for e in ls.edge.getIDList()
                       if not e.startswith(":") and ls.edge.getLaneNumber(e) > 0]
         if len(self.edges) < 2:
-            raise SumoRunError("the network has fewer than 2 drivable edges: no route possible")
+            raise SumoRunError("the network has fewer than 2 drivable edges: no route possible",
+                               key="scenario.sumo.net_file")
         self.route_len: dict[str, int] = {}
         for i in range(size):
             vid = f"{FLEET_PREFIX}{i}"
@@ -92,7 +105,7 @@ class _Fleet:
             if route.edges:
                 return list(route.edges)
         raise SumoRunError("found no connected pair of edges in 100 tries: is the network "
-                           "connected?")
+                           "connected?", key="scenario.sumo.net_file")
 
     def retarget(self, vid: str, route_index: int) -> None:
         if route_index < self.route_len[vid] - 1:
@@ -135,22 +148,64 @@ class _Slots:
         self.cooling = [self.slot.pop(v) for v in gone if v in self.slot]
 
 
+class _SumoMessages:
+    """Collects what SUMO prints on the process's stderr (file descriptor 2) while
+    active: libsumo's exceptions often say only "Process Error" or "Could not parse
+    commandline options" and leave the reason on stderr. On a normal exit the text is
+    passed on to stderr unchanged."""
+
+    def __enter__(self) -> _SumoMessages:
+        sys.stderr.flush()
+        self.file = tempfile.TemporaryFile()
+        self.saved = os.dup(2)
+        os.dup2(self.file.fileno(), 2)
+        self.consumed = False
+        return self
+
+    def said(self, exc: BaseException) -> str:
+        """SUMO's messages and the exception's text, one line, without repeats."""
+        self.consumed = True
+        self.file.seek(0)
+        lines = self.file.read().decode(errors="replace").splitlines() + str(exc).splitlines()
+        parts: list[str] = []
+        for line in lines:
+            line = line.strip().removeprefix("Error:").strip()
+            if line and line not in parts and not line.startswith("Quitting"):
+                parts.append(line)
+        return " ".join(parts)
+
+    def __exit__(self, *exc) -> None:
+        os.dup2(self.saved, 2)
+        os.close(self.saved)
+        if not self.consumed:
+            self.file.seek(0)
+            text = self.file.read()
+            if text:
+                os.write(2, text)
+        self.file.close()
+
+
 def run_simulation(req: SimRequest) -> SimResult:
     """Simulate ``warmup_steps + steps`` steps and record the last ``steps``."""
     import libsumo as ls  # imported here: a worker process holds one simulation
 
+    sumo_errors = (ls.TraCIException, ls.FatalTraCIError)
     start = time.perf_counter()
-    try:
-        ls.start(_sumo_command(req))
-    except ls.TraCIException as e:
-        raise SumoRunError(f"SUMO did not start (seed {req.seed}, command "
-                           f"{' '.join(_sumo_command(req))}): {e}") from e
-    try:
-        return _record(ls, req, start)
-    except ls.TraCIException as e:
-        raise SumoRunError(f"SUMO failed during the simulation (seed {req.seed}): {e}") from e
-    finally:
-        ls.close()
+    with _SumoMessages() as messages:
+        try:
+            ls.start(_sumo_command(req))
+        except sumo_errors as e:
+            said = messages.said(e)
+            raise SumoRunError(f"SUMO did not start (seed {req.seed}, command "
+                               f"{' '.join(_sumo_command(req))}): {said}", said) from None
+        try:
+            return _record(ls, req, start)
+        except sumo_errors as e:
+            said = messages.said(e)
+            raise SumoRunError(f"SUMO failed during the simulation (seed {req.seed}): {said}",
+                               said) from None
+        finally:
+            ls.close()
 
 
 def _record(ls, req: SimRequest, start: float) -> SimResult:
@@ -197,20 +252,57 @@ def _record(ls, req: SimRequest, start: float) -> SimResult:
     return SimResult(req.seed, positions, present, teleports, time.perf_counter() - start)
 
 
+def error_path(out_path: str) -> str:
+    """Where a worker writes its :class:`SumoRunError` (JSON) when SUMO fails."""
+    return out_path + ".error.json"
+
+
+def _watch_parent(parent: int) -> None:
+    while True:
+        time.sleep(1.0)
+        if os.getppid() != parent:
+            os._exit(1)
+
+
+def _die_with_parent(parent: int) -> None:
+    """End this worker when the process that started it ends, even by ``kill -9``: on
+    Linux the kernel sends SIGKILL (PR_SET_PDEATHSIG); everywhere a thread checks once a
+    second that the parent is still the same process."""
+    if sys.platform.startswith("linux"):
+        try:
+            ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL), 0, 0, 0)
+        except (OSError, AttributeError):
+            pass
+    if os.getppid() != parent:  # the parent ended before the line above
+        os._exit(1)
+    threading.Thread(target=_watch_parent, args=(parent,), daemon=True).start()
+
+
 def _worker_main(argv: list[str]) -> int:
-    """``python -m uabs_rl.sumo_sim REQUEST.pkl RESULT.npz``: one simulation in its own
-    process (libsumo holds one simulation per process)."""
-    req_path, out_path = argv
+    """``python -m uabs_rl.sumo_sim REQUEST.pkl RESULT.npz PARENT_PID``: one simulation
+    in its own process (libsumo holds one simulation per process). Ctrl-C is left to the
+    parent, which stops its workers itself."""
+    req_path, out_path, parent = argv
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _die_with_parent(int(parent))
     with open(req_path, "rb") as f:
         req = pickle.load(f)
     try:
         res = run_simulation(req)
     except SumoRunError as e:
-        print(f"SumoRunError: {e}", file=sys.stderr)
+        with open(error_path(out_path), "w") as f:
+            json.dump({"message": str(e), "said": e.said, "key": e.key}, f)
         return 2
     np.savez(out_path, positions=res.positions, present=res.present,
              teleports=res.teleports, seconds=res.seconds)
     return 0
+
+
+def load_error(path: str) -> SumoRunError:
+    """The :class:`SumoRunError` a worker wrote with :func:`error_path`."""
+    with open(path) as f:
+        d = json.load(f)
+    return SumoRunError(d["message"], d["said"], d["key"])
 
 
 def load_result(seed: int, path: str) -> SimResult:
