@@ -13,7 +13,7 @@ from torch import nn
 from torchrl.envs import TransformedEnv
 
 from uabs_rl.channel import coverage_fraction
-from uabs_rl.config import RunConfig
+from uabs_rl.config import ConfigError, RunConfig
 from uabs_rl.env import DIAG, OBS, POSITION, window_count
 from uabs_rl.make import make_env, make_selector
 from uabs_rl.masking import ACTION_VALUE
@@ -35,22 +35,50 @@ def greedy_policy(qnet: nn.Module, env: TransformedEnv, cfg: RunConfig,
 def make_eval_env(cfg: RunConfig, traces: TraceSet | None = None,
                   device: str | torch.device = "cpu", windows: int | None = None,
                   compile: bool | None = None, split: str = "eval",
-                  members: int = 1) -> TransformedEnv:
+                  members: int = 1, windows_name: str = "windows") -> TransformedEnv:
     """The held-out env of ``split`` ("eval": the validation traces that training
     evaluates on; "test": the traces every reported figure comes from) with ``windows``
     fixed windows, one env each (default: ``train.eval_windows`` for validation, every
     window of the test traces for test); compiled as ``train.compile`` unless
     ``compile`` says otherwise. With ``members`` > 1, the windows once per member of a
-    population, side by side, each block with its own generator seeded alike."""
+    population, side by side, each block with its own generator seeded alike.
+    ``windows_name`` is how the caller's user gave ``windows`` (``--windows``)."""
     tr = cfg.train
-    n = windows if windows is not None else (tr.eval_windows if split == "eval" else None)
-    if n is None:  # every non-overlapping window of the split
-        traces = traces or get_traces(cfg.scenario, cfg.traces, split)
-        n = window_count(traces.n_sims, traces.steps, cfg.scenario.episode_steps)
+    traces = get_traces(cfg.scenario, cfg.traces, split) if traces is None else traces
+    n = eval_window_count(cfg, traces, split, windows, windows_name)
     seed = [tr.eval_seed] * members if members > 1 else tr.eval_seed
-    return make_env(cfg.scenario, cfg.channel, cfg.masking, traces or cfg.traces, split,
+    return make_env(cfg.scenario, cfg.channel, cfg.masking, traces, split,
                     n_envs=n * members, device=device, n_eval_windows=n, seed=seed,
                     compile=tr.compile if compile is None else compile, spec_mask=False)
+
+
+def eval_window_count(cfg: RunConfig, traces: TraceSet, split: str,
+                      windows: int | None = None, windows_name: str = "windows") -> int:
+    """How many fixed windows ``make_eval_env`` evaluates: ``windows``, else
+    ``train.eval_windows`` on "eval", else every window of ``traces``. Refuses
+    (naming the setting to change) traces too short for one episode and more windows
+    than they hold."""
+    t, key = cfg.scenario.episode_steps, f"traces.{split}"
+    most = window_count(traces.n_sims, traces.steps, t)
+    if most == 0:
+        raise ConfigError(
+            f"scenario.episode_steps={t} needs windows of {t + 1} steps but the {split} "
+            f"traces hold {traces.steps} steps ({key}.duration_s="
+            f"{getattr(cfg.traces, split).duration_s:g} s at scenario.dt={cfg.scenario.dt:g} s): "
+            f"lower scenario.episode_steps or raise {key}.duration_s.")
+    if windows is not None:
+        n, setting = windows, windows_name
+    elif split == "eval":
+        n, setting = cfg.train.eval_windows, "train.eval_windows"
+    else:
+        return most
+    if not 1 <= n <= most:
+        given = f"{setting} {n}" if setting.startswith("--") else f"{setting}={n}"
+        raise ConfigError(
+            f"{given} but the {split} traces hold {most} non-overlapping windows of {t + 1} "
+            f"steps ({traces.n_sims} x {traces.steps} steps): lower {setting} or "
+            f"raise {key}.n_sims / {key}.duration_s.")
+    return n
 
 
 class Evaluator:
