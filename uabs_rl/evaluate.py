@@ -8,13 +8,15 @@
 
 Evaluates on the test traces by default (``traces.test``: SUMO seeds that neither
 training nor checkpoint selection ever read; every window of them), ``--split eval`` on
-the validation traces that training evaluated on. Prints a table and writes
-``eval.json``: the split, per policy R, collisions, proximity events, fallbacks, served
-fraction, P_g at N̂_s, the whole P_g(N̂_s) curve and the per-window values, and with
-baselines the paired differences learned − baseline (same windows, same masks) with
-bootstrap 95 % confidence intervals. Also a trajectory picture per policy and, with
-``--gif``, an animation of one episode of the learned policy, into
-``<run dir>/evaluation/`` (or ``--out``).
+the validation traces that training evaluated on. Prints a table (returns as whole
+numbers, fractions as percentages, their differences in percentage points) and writes
+``eval.json`` (fractions as fractions): the split, per policy R, collisions, proximity
+events, fallbacks, served fraction, P_g at N̂_s, the whole P_g(N̂_s) curve and the
+per-window values, and with baselines the paired differences learned − baseline
+(same windows, same masks) with bootstrap 95 % confidence intervals. Also a
+trajectory picture per policy and, with ``--gif``, an animation of one episode of the
+learned policy, into ``<run dir>/evaluation/`` (or ``--out``, checked before anything
+is evaluated).
 
 Overrides after the path evaluate the checkpoint under other settings: the run's own
 config with ``scenario``, ``channel``, ``masking`` and ``traces`` changed as on the
@@ -33,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -45,15 +48,17 @@ from tensordict.nn import TensorDictModuleBase
 from uabs_rl.baselines import BASELINES, baseline_policy
 from uabs_rl.checkpoint import (
     CheckpointError,
-    checkpoint_path,
+    check_finite,
     config_from_checkpoint,
     load_checkpoint,
+    load_into,
 )
 from uabs_rl.config import (
     CONF_DIR,
     ConfigError,
     RunConfig,
     to_container,
+    validate_env,
     validate_masking,
     validate_scenario_traces,
 )
@@ -135,9 +140,16 @@ def with_overrides(cfg: RunConfig, overrides: list[str],
         raise ConfigError(f"override: {str(e).splitlines()[0]} (check the key's spelling "
                           f"and type in uabs_rl/config.py)") from None
     new = to_container(conf)
-    validate_scenario_traces(new.scenario, new.traces)
-    validate_masking(new.masking)
+    validate_eval_config(new)
     return new
+
+
+def validate_eval_config(cfg: RunConfig) -> None:
+    """The start-up checks of the settings evaluation uses (the world, not the
+    training), each naming the key."""
+    validate_scenario_traces(cfg.scenario, cfg.traces)
+    validate_env(cfg.scenario, cfg.channel)
+    validate_masking(cfg.masking)
 
 
 def _obs_values(cfg: RunConfig) -> dict[str, Any]:
@@ -158,25 +170,69 @@ def check_network_fits(trained: RunConfig, cfg: RunConfig) -> None:
             f"evaluation: keep them as trained (or train a run with them).")
 
 
+def find_checkpoint(path: Path, which: str = "best") -> Path:
+    """The checkpoint ``uabs-eval PATH --checkpoint which`` means: ``path`` itself, or
+    ``<run>/checkpoints/<which>.pt`` of a run folder. A folder that holds none says
+    what was looked for, and what to pass instead."""
+    if path.is_file():
+        return path
+    if not path.exists():
+        raise CheckpointError(f"no checkpoint at {path}: no such file or folder. Pass a run "
+                              f"folder (it holds checkpoints/best.pt and last.pt) or a .pt "
+                              f"file written by uabs-train.")
+    ckpt = path / "checkpoints" / f"{which}.pt"
+    if ckpt.is_file():
+        return ckpt
+    held = sorted(p.name for p in (path / "checkpoints").glob("*.pt"))
+    members = sorted({p.parent.parent.name for p in path.glob("seed=*/checkpoints/*.pt")},
+                     key=lambda name: (len(name), name))
+    if not held and members:
+        raise CheckpointError(f"{path} is a population: evaluate one member, e.g. uabs-eval "
+                              f"{path / members[0]}, or report all with uabs-report {path}.")
+    if held:
+        other = "last" if which == "best" else "best"
+        hint = (f"evaluate it with --checkpoint {other}" if f"{other}.pt" in held else
+                f"pass one of them as the path, e.g. uabs-eval {path / 'checkpoints' / held[0]}")
+        raise CheckpointError(f"no checkpoint at {ckpt}: {path / 'checkpoints'} holds only "
+                              f"{', '.join(held)}; {hint}.")
+    if path.name == "checkpoints" and (path / f"{which}.pt").is_file():
+        raise CheckpointError(f"{path} is a run's checkpoints folder: pass the run folder, "
+                              f"uabs-eval {path.parent}, or the file {path / f'{which}.pt'}.")
+    if (path / "checkpoints").is_dir() or (path / "metrics.jsonl").is_file():
+        raise CheckpointError(f"no checkpoint at {ckpt}: the run in {path} stopped before its "
+                              f"first evaluation (train.eval_every) wrote one; continue it "
+                              f"with uabs-train resume={path}.")
+    raise CheckpointError(f"no checkpoint at {ckpt}: {path} is not a uabs-train run folder "
+                          f"(it has no checkpoints/); pass a run folder or a .pt file written "
+                          f"by uabs-train.")
+
+
 def load_evaluation(path: Path, which: str = "best", windows: int | None = None,
                     split: str = "test", overrides: list[str] | None = None,
-                    config_dirs: list[Path] | None = None) -> Evaluation:
+                    config_dirs: list[Path] | None = None,
+                    windows_name: str = "windows") -> Evaluation:
     """The learned policy of a run directory or checkpoint on the fixed windows of
     ``split`` ("test" or "eval", the validation traces), under the run's own config
-    or that config with ``overrides`` (:func:`with_overrides`)."""
-    state = load_checkpoint(checkpoint_path(path, which))
-    cfg = config_from_checkpoint(state)
+    or that config with ``overrides`` (:func:`with_overrides`). A network with NaN or
+    infinite weights is refused."""
+    ckpt = find_checkpoint(path, which)
+    state = load_checkpoint(ckpt)
+    check_finite(state["learner"]["qnet"], ckpt, "learner.qnet")
+    cfg = config_from_checkpoint(state, ckpt)
     device = "cpu"  # where the run trained does not matter here, unless device= is given
     if overrides:
         trained, cfg = cfg, with_overrides(cfg, overrides, config_dirs)
         check_network_fits(trained, cfg)
         if trained.device != cfg.device:
             device = resolve_device(cfg.device)
+    else:
+        validate_eval_config(cfg)
     # a few rollouts: compiling would cost more than it saves
-    env = make_eval_env(cfg, windows=windows, compile=False, split=split, device=device)
+    env = make_eval_env(cfg, windows=windows, compile=False, split=split, device=device,
+                        windows_name=windows_name)
     p = env.base_env.params
     qnet = DuelingQNet(p.obs_dim, N_ACTIONS, list(cfg.algo.hidden))
-    qnet.load_state_dict(state["learner"]["qnet"])
+    load_into(qnet, state["learner"]["qnet"], ckpt, "learner.qnet")
     qnet.to(env.base_env.device)
     c = state["counters"]
     return Evaluation(cfg, Evaluator(env, cfg.train.eval_seed), greedy_policy(qnet, env, cfg),
@@ -184,9 +240,38 @@ def load_evaluation(path: Path, which: str = "best", windows: int | None = None,
 
 
 def default_out_dir(path: Path, overrides: list[str] | None = None) -> Path:
-    """``<run>/evaluation``, or ``<run>/evaluation/<overrides>`` under overrides."""
-    out = (path if path.is_dir() else path.parent.parent) / "evaluation"
+    """``<run>/evaluation``, or ``<run>/evaluation/<overrides>`` under overrides; beside
+    a checkpoint file that is not in a run's ``checkpoints/``."""
+    if path.is_dir():
+        run = path
+    else:
+        run = path.parent.parent if path.parent.name == "checkpoints" else path.parent
+    out = run / "evaluation"
     return out / ",".join(o.replace("/", "_") for o in overrides) if overrides else out
+
+
+def check_out_dir(out: Path, given: bool) -> None:
+    """Refuse an output folder that cannot be made or written before anything is
+    evaluated: ``out`` or its nearest existing parent must be a writable folder."""
+    name = f"--out {out}" if given else f"the output folder {out}"
+    fix = "pass a folder you can write with --out"
+    p = out
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    if p.exists() and not p.is_dir():
+        what = "is a file" if p == out else f"cannot be made: {p} is a file"
+        raise ConfigError(f"{name} {what}, not a folder: {fix}.")
+    if not os.access(p, os.W_OK | os.X_OK):
+        raise ConfigError(f"{name} cannot be written: {p} is not writable here; {fix}.")
+
+
+def make_out_dir(out: Path, given: bool) -> None:
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        name = f"--out {out}" if given else f"the output folder {out}"
+        raise ConfigError(f"{name} cannot be made ({e.strerror or type(e).__name__}): pass "
+                          f"a folder you can write with --out.") from None
 
 
 def evaluate_policies(ev: Evaluation, policies: tuple[str, ...],
@@ -218,23 +303,53 @@ def differences(results: dict[str, tuple[dict, Any]]) -> dict[str, dict[str, dic
             for name, (rec, _) in results.items() if name != "learned"}
 
 
+def percent(x: float) -> str:
+    """A fraction as a percentage, one decimal: ``12.3 %``."""
+    return f"{round(100 * x, 1) + 0.0:.1f} %"  # + 0.0: never "-0.0"
+
+
+def points(d: dict[str, float]) -> str:
+    """A paired difference of fractions in percentage points with its CI:
+    ``+1.2 pt [-0.3, +2.7]``."""
+    lo, mid, hi = (round(100 * d[k], 1) + 0.0 for k in ("ci_low", "diff", "ci_high"))
+    return f"{mid:+.1f} pt [{lo:+.1f}, {hi:+.1f}]"
+
+
+def whole(x: float, sign: bool = False) -> str:
+    """A return (or count) as an integer, ``+`` signed with ``sign``."""
+    return f"{int(round(x)):{'+' if sign else ''}d}"
+
+
+def return_difference(d: dict[str, float]) -> str:
+    """A paired difference of returns with its CI, as integers: ``+46 [+7, +82]``."""
+    return (f"{whole(d['diff'], True)} [{whole(d['ci_low'], True)}, "
+            f"{whole(d['ci_high'], True)}]")
+
+
+DIFF_FORMATS = {"return": ("R", return_difference), "served_fraction": ("served", points),
+                "pg": ("P_g", points)}
+
+
 def _print_differences(diffs: dict[str, dict[str, dict]]) -> None:
     if not diffs:
         return
-    print("\nlearned − baseline, per window (mean [95 % bootstrap CI]):")
+    print("\nlearned − baseline, per window (mean [95 % bootstrap CI]; fractions in "
+          "percentage points):")
     for name, per in diffs.items():
-        print(f"{name:>8} " + "   ".join(
-            f"{m}: {d['diff']:+.4g} [{d['ci_low']:+.4g}, {d['ci_high']:+.4g}]"
-            for m, d in per.items()))
+        print(f"{name:>8}  " + "   ".join(
+            f"{DIFF_FORMATS[m][0]}: {DIFF_FORMATS[m][1](d):<24}" for m, d in per.items())
+            .rstrip())
 
 
 def _print_table(results: dict[str, tuple[dict, Any]], nhat: int) -> None:
-    cols = ("return", "return_std", "collisions", "proximity", "fallbacks",
-            "served_fraction", "pg")
-    pg_col = f"P_g(N̂s={nhat})"
-    print(f"{'policy':>8} " + " ".join(f"{c:>15}" for c in cols[:-1]) + f" {pg_col:>15}")
+    heads = ("R", "R std", "collisions", "proximity", "fallbacks", "served",
+             f"P_g(N̂s={nhat})")
+    print(f"{'policy':>8} " + " ".join(f"{h:>12}" for h in heads))
     for name, (rec, _) in results.items():
-        print(f"{name:>8} " + " ".join(f"{rec[c]:>15.3f}" for c in cols))
+        cells = (whole(rec["return"]), whole(rec["return_std"]), whole(rec["collisions"]),
+                 whole(rec["proximity"]), whole(rec["fallbacks"]),
+                 percent(rec["served_fraction"]), percent(rec["pg"]))
+        print(f"{name:>8} " + " ".join(f"{c:>12}" for c in cells))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -262,19 +377,18 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_intermixed_args(argv)
     if args.windows is not None and args.windows < 1:
         ap.error(f"--windows must be >= 1, got {args.windows}")
-    try:
-        ev = load_evaluation(args.path, args.checkpoint, args.windows, args.split,
-                             args.overrides, args.config_dir)
-    except (CheckpointError, ConfigError) as e:
-        msg = str(e)
-        if args.windows is not None:  # the env names its own argument: name the flag
-            msg = msg.replace(f"n_eval_windows={args.windows}", f"--windows {args.windows}")
-        print(f"error: {msg}", file=sys.stderr)
-        return 2
     out = args.out or default_out_dir(args.path, args.overrides)
+    try:  # the output folder is checked before anything is evaluated
+        find_checkpoint(args.path, args.checkpoint)
+        check_out_dir(out, args.out is not None)
+        ev = load_evaluation(args.path, args.checkpoint, args.windows, args.split,
+                             args.overrides, args.config_dir, windows_name="--windows")
+        make_out_dir(out, args.out is not None)
+    except (CheckpointError, ConfigError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     policies = POLICIES if args.policy == "all" else (args.policy,)
     results = evaluate_policies(ev, policies)
-    out.mkdir(parents=True, exist_ok=True)
     n = ev.evaluator.env.base_env.n_envs
     tc = getattr(ev.cfg.traces, args.split)
     print(f"split: {args.split} (traces.{args.split}: SUMO seeds {tc.first_seed}.."
