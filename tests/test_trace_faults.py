@@ -367,14 +367,14 @@ def wait_gone(pids: set[int], seconds: float) -> set[int]:
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
-def test_an_interrupted_build_stops_its_workers_and_caches_nothing(long_build, sig):
+@pytest.mark.parametrize("sig,status", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_an_interrupted_build_stops_its_workers_and_caches_nothing(long_build, sig, status):
     proc, workers, cache, tmp = long_build()
     t0 = time.monotonic()
     proc.send_signal(sig)
     _, err = proc.communicate(timeout=60)
     assert time.monotonic() - t0 < 10
-    assert proc.returncode == 130
+    assert proc.returncode == status
     assert err.rstrip().splitlines()[-1].split("\r")[-1] == INTERRUPTED
     assert "checkpoint" not in err and "Traceback" not in err
     assert not wait_gone(workers, 5)
@@ -408,6 +408,7 @@ def test_an_interrupted_in_process_build_names_the_traces(tmp_path, monkeypatch)
     with pytest.raises(TracesInterrupted) as e:
         get_traces(cfg.scenario, cfg.traces, "train")
     assert str(e.value) == INTERRUPTED and isinstance(e.value, KeyboardInterrupt)
+    assert e.value.exit_code == 130
     assert list(tmp_path.iterdir()) == []
 
 

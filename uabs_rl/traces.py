@@ -79,7 +79,16 @@ class TraceCacheError(RuntimeError):
 
 class TracesInterrupted(KeyboardInterrupt):
     """A trace build stopped on Ctrl-C or SIGTERM; its workers are stopped and nothing
-    was cached. ``str()`` is the message for the user."""
+    was cached. ``str()`` is the message for the user, ``exit_code`` the status to exit
+    with (130 after SIGINT, 143 after SIGTERM)."""
+
+    def __init__(self, message: str, exit_code: int = 130):
+        super().__init__(message)
+        self.exit_code = exit_code
+
+
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread to stop a build as Ctrl-C does."""
 
 
 @dataclass
@@ -614,7 +623,7 @@ def _sigterm_interrupts() -> Iterator[None]:
         return
 
     def interrupt(signum, frame) -> None:
-        raise KeyboardInterrupt
+        raise _Terminated
 
     previous = signal.signal(signal.SIGTERM, interrupt)
     try:
@@ -644,9 +653,10 @@ def get_traces(scenario: ScenarioConfig, traces_cfg: TracesConfig, split: str,
             save_traceset(ts, path)
     except TracesInterrupted:
         raise
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as e:
         raise TracesInterrupted(f"interrupted while building the {split} traces: nothing "
-                                f"was cached; run the command again to build them") from None
+                                f"was cached; run the command again to build them",
+                                143 if isinstance(e, _Terminated) else 130) from None
     if verbose:
         log.info("traces %s built in %.2f s -> %s\n  %s", split, ts.meta["build_seconds"], path,
                  ts.summary())
@@ -656,7 +666,7 @@ def get_traces(scenario: ScenarioConfig, traces_cfg: TracesConfig, split: str,
 # ----------------------------------------------------------------------------- CLI
 def build(cfg: TracesAppConfig, _output_dir: Path | None = None) -> None:
     """Body of ``uabs-traces``: build or load the requested splits and say which. An
-    interrupted build is one line on stderr and exit status 130."""
+    interrupted build is one line on stderr and exit status 130 (143 after SIGTERM)."""
     splits = SPLITS if cfg.split == "all" else (cfg.split,)
     for split in splits:
         t0 = time.perf_counter()
@@ -664,7 +674,7 @@ def build(cfg: TracesAppConfig, _output_dir: Path | None = None) -> None:
             ts = get_traces(cfg.scenario, cfg.traces, split, verbose=False)
         except TracesInterrupted as e:
             print(str(e), file=sys.stderr)
-            sys.exit(130)
+            sys.exit(e.exit_code)
         how = "built with SUMO" if ts.source == "built" else "loaded from cache"
         print(f"{how} in {time.perf_counter() - t0:.2f} s: {ts.summary()}\n  "
               f"{cache_path(cfg.scenario, cfg.traces, split)}")
