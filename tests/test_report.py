@@ -11,8 +11,11 @@ import pytest
 
 from tests.test_train import records, smoke
 from uabs_rl.evaluate import main as eval_main
-from uabs_rl.report import build_report
+from uabs_rl.report import build_report, find_runs, group_runs
+from uabs_rl.report import main as report_main
 from uabs_rl.train import run
+
+QUIET = ("train.logger=none", "train.trajectory_images=false", "scenario.n_uabs=4")
 
 
 @pytest.fixture(scope="module")
@@ -64,40 +67,48 @@ def test_figures_exist_as_png_and_pdf(report):
         assert pdf[:5] == b"%PDF-" and len(pdf) > 5_000
 
 
-def test_figures_have_panels_and_no_figure_numbers(sweep, report, tmp_path):
+def keep_figures(monkeypatch) -> list:
+    """The figures the report's functions draw, kept open (instead of closed) to look at."""
+    import matplotlib
+
+    figs: list = []
+    monkeypatch.setattr(matplotlib.pyplot, "close", figs.append)
+    return figs
+
+
+def test_figures_have_panels_and_no_figure_numbers(sweep, report, tmp_path, monkeypatch):
     """Penalty gets its own panel in Fig. 3; Fig. 4 has a panel per mode, its baselines
-    in greys and dashes; no title says 'Fig.'; the legend lies outside the axes."""
+    in greys and dashes; no title says 'Fig.'; the legend lies outside the axes; two
+    evaluations are drawn with markers; the band of 2 seeds is called their range."""
     import matplotlib
 
     from uabs_rl.plots import MODE_COLORS
-    from uabs_rl.report import best_pg, fig3, fig4, find_runs
+    from uabs_rl.report import best_pg, fig3, fig4
 
-    runs = find_runs(sweep)
-    by_mode = {m: [r for r in runs if r.mode == m] for m in ("penalty", "rank")}
-    figs = []
-    real_close = matplotlib.pyplot.close
-    matplotlib.pyplot.close = figs.append  # keep the figures to look at them
-    try:
-        fig3(by_mode, tmp_path / "f3")
-        base = {"rank": {"greedy": {"pg_curve": list(best_pg(by_mode["rank"]).mean(0))}}}
-        fig4(by_mode, base, tmp_path / "f4")
-    finally:
-        matplotlib.pyplot.close = real_close
+    grouping = group_runs(find_runs(sweep))
+    assert list(grouping.groups) == ["penalty", "rank"] and grouping.by_mode_only
+    figs = keep_figures(monkeypatch)
+    fig3(grouping, tmp_path / "f3")
+    base = {"rank": {"greedy": {"pg_curve": list(best_pg(grouping.groups["rank"]).mean(0))}}}
+    fig4(grouping, base, tmp_path / "f4")
     f3, f4 = figs
     assert [ax.get_title() for ax in f3.axes] == ["rank masking", "penalty (reward penalties)"]
-    assert len(f4.axes) == 2
+    assert [ax.get_title() for ax in f4.axes] == ["penalty (2 seeds)", "rank masks (2 seeds)"]
     for fig in (f3, f4):
         assert not any("Fig" in ax.get_title() for ax in fig.axes)
         assert len(fig.legends) == 1 and all(ax.get_legend() is None for ax in fig.axes)
         legend_box = fig.legends[0].get_window_extent(fig.canvas.get_renderer())
         for ax in fig.axes:
             assert not legend_box.overlaps(ax.get_window_extent())
+        texts = [t.get_text() for t in fig.legends[0].get_texts()]
+        assert "shaded: min-max range of the 2 seeds" in texts
+        assert not any("CI" in t for t in texts)
+    (line,) = f3.axes[0].get_lines()
+    assert len(line.get_xdata()) == 2 and line.get_marker() == "o"
     rank_ax = f4.axes[1]
     learned, greedy = rank_ax.get_lines()[:2]
     assert matplotlib.colors.same_color(learned.get_color(), MODE_COLORS["rank"])
     assert greedy.get_linestyle() == "--" and greedy.get_color() != learned.get_color()
-    for fig in figs:
-        real_close(fig)
 
 
 def test_report_warns_on_short_runs(report, capsys):
@@ -158,22 +169,27 @@ def test_learned_vs_baselines_on_test_traces(sweep, report):
                              "diff", "ci_low", "ci_high", "n_seeds"]
     # 2 modes x 3 metrics x 3 baselines, 2 seeds each, smoke runs: recoverable, paper obs
     assert len(rows) == 18 and {r["n_seeds"] for r in rows} == {"2"}
-    # the smoke preset's network and learning settings differ from the defaults: named
+    # every setting of the smoke preset that differs from the defaults is named, and the
+    # run is not called "paper" (its scenario and traces are not the paper's)
     (config,) = {r["config"] for r in rows}
-    assert config.startswith("paper ") and "algo.hidden=[32, 32]" in config
+    assert "paper" not in config and "scenario.episode_steps=20" in config
+    assert "algo.{hidden=[32, 32], batch_size=32," in config and "train.{episodes=6," in config
+    md = (out / "learned_vs_baselines.md").read_text()
+    assert md.count("algo.{hidden=[32, 32]") == 1  # named once (common settings), not per row
+    assert "\n## penalty (M = 4, 2 seeds)\n" in md and "\n## rank (M = 4, 2 seeds)\n" in md
+    assert "| served fraction | greedy |" in md and " pt [" in md
     for r, full in zip(rows, res["learned_vs_baselines"], strict=True):
         assert float(r["diff"]) == pytest.approx(full["learned"] - full["baseline_value"],
                                                  abs=1e-6)
         assert float(r["ci_low"]) <= float(r["diff"]) <= float(r["ci_high"])
 
 
-def test_report_refuses_runs_of_different_experiments(sweep, tmp_path):
-    """Seeds of another scenario or preset must not be averaged with the sweep's."""
+def test_runs_of_other_settings_are_grouped_not_refused(sweep, tmp_path):
+    """Seeds of another scenario are not averaged with the sweep's: they form a group of
+    their own, named by the setting that differs."""
     import shutil
 
     import torch
-
-    from uabs_rl.report import find_runs
 
     root = tmp_path / "mixed"
     for name in ("masking=rank,seed=0", "masking=rank,seed=1"):
@@ -181,9 +197,12 @@ def test_report_refuses_runs_of_different_experiments(sweep, tmp_path):
     ckpt = root / "masking=rank,seed=1" / "checkpoints" / "last.pt"
     state = torch.load(ckpt, weights_only=True)
     state["config"]["scenario"]["name"] = "elsewhere"
+    state["config"]["device"] = "cuda"  # a setting that does not change results: ignored
     torch.save(state, ckpt)
-    with pytest.raises(SystemExit, match=r"not one experiment.*scenario\.name"):
-        find_runs(root)
+    grouping = group_runs(find_runs(root))
+    assert grouping.varied == ["scenario.name"]
+    assert {k: [r.seed for r in v] for k, v in grouping.groups.items()} == {
+        "rank, scenario.name=elsewhere": [1], "rank, scenario.name=manhattan": [0]}
     assert len(find_runs(sweep / "masking=rank,seed=0")) == 1  # a single run folder works
 
 
@@ -193,10 +212,225 @@ def test_report_refuses_runs_of_different_experiments(sweep, tmp_path):
     ({"lookahead_obs": True, "motion_obs": True}, {}, {"n_envs": 4},
      "lookahead+motion train.n_envs=4"),
     ({}, {"n_step": 3}, {"population": 5}, "paper algo.n_step=3"),  # population: neutral
+    ({"episode_steps": 20}, {"loss": "torchrl"}, {"episodes": 6, "n_envs": 2},
+     "scenario.episode_steps=20 train.n_envs=2 train.episodes=6"),  # not the paper's scenario
+    ({"lookahead_obs": True}, {"hidden": [32, 32], "batch_size": 32, "target_update": 50},
+     {}, "lookahead algo.{hidden=[32, 32], batch_size=32, target_update=50}"),
 ])
 def test_run_labels_name_the_observation_and_learning_settings(scenario, algo, train, label):
     from uabs_rl.report import Run
 
-    cfg = {"scenario": scenario, "masking": {"recoverable": True}, "algo": algo,
-           "train": train}
+    cfg = {"scenario": scenario, "channel": {}, "masking": {"recoverable": True}, "algo": algo,
+           "train": train, "traces": {}, "seed": 0}
     assert Run(Path("x"), "flat", 0, 1000, [], [], cfg).label == label
+
+
+def test_runs_written_before_recoverable_masks_are_literal():
+    from uabs_rl.report import Run
+
+    cfg = {"scenario": {}, "channel": {}, "masking": {"mode": "rank"}, "algo": {}, "train": {},
+           "traces": {}, "seed": 0}
+    old = Run(Path("x"), "rank", 0, 1000, [], [], cfg)
+    assert old.label == "paper-literal" and old.settings["masking.recoverable"] is False
+
+
+# ----------------------------------------------------------------------------- settings
+@pytest.fixture(scope="module")
+def lr_sweep(trace_cache, tmp_path_factory, sweep) -> Path:
+    """``algo.lr=1e-4,1e-3 seed=0,1`` under rank masks: the sweep's rank runs (the
+    default learning rate) beside two runs of a ten times larger one."""
+    import shutil
+
+    root = tmp_path_factory.mktemp("lr_sweep")
+    for seed in (0, 1):
+        shutil.copytree(sweep / f"masking=rank,seed={seed}", root / f"algo.lr=1e-4,seed={seed}")
+        run(smoke(trace_cache, "algo.lr=1e-3", f"seed={seed}", *QUIET),
+            root / f"algo.lr=1e-3,seed={seed}")
+    return root
+
+
+def test_a_sweep_of_a_learning_rate_is_compared_group_by_group(lr_sweep, tmp_path,
+                                                               monkeypatch):
+    """Two learning rates x 2 seeds: two groups named by the rate, one Table 2 column,
+    one comparison row and one Fig. 3 line each, the rest of the settings said once."""
+    out = tmp_path / "report"
+    figs = keep_figures(monkeypatch)
+    res = build_report(lr_sweep, out, with_baselines=False, command="uabs-report lr")
+    labels = ["rank, algo.lr=0.0001", "rank, algo.lr=0.001"]
+    assert list(res["grouping"].groups) == labels and res["grouping"].varied == ["algo.lr"]
+    assert [[r.seed for r in g] for g in res["grouping"].groups.values()] == [[0, 1], [0, 1]]
+    with open(out / "table2.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [(r["group"], r["mode"], r["seeds"]) for r in rows] == [
+        (labels[0], "rank", "2"), (labels[1], "rank", "2")]
+    assert "| | rank, algo.lr=0.0001 (2 seeds) | rank, algo.lr=0.001 (2 seeds) |" in (
+        out / "table2.md").read_text()
+    with open(out / "comparison.csv") as f:
+        comp = list(csv.DictReader(f))
+    assert [(r["group"], float(r["algo.lr"])) for r in comp] == [(labels[0], 1e-4),
+                                                                (labels[1], 1e-3)]
+    for r, lr in zip(comp, ("1e-4", "1e-3"), strict=True):  # the mean of the seeds' values
+        best = [max(e["return"] for e in records(lr_sweep / f"algo.lr={lr},seed={s}")
+                    if e["kind"] == "eval") for s in (0, 1)]
+        assert float(r["return_best"]) == pytest.approx(np.mean(best))
+        assert (float(r["return_best_low"]), float(r["return_best_high"])) == (min(best),
+                                                                               max(best))
+    text = (out / "summary.md").read_text()
+    assert "Runs: rank, algo.lr=0.0001: 2 seeds; rank, algo.lr=0.001: 2 seeds" in text
+    assert "compared: algo.lr." in text and text.count("scenario.episode_steps=20") == 1
+    assert "## Settings compared" in text and f"| {labels[1]} | 2 | 6 |" in text
+    assert "Not judged for algo.lr=0.0001 (rank only); algo.lr=0.001 (rank only)" in text
+    assert (out / "fig3_eval_return.png").stat().st_size > 15_000
+    f3 = figs[0]
+    assert [line.get_label() for line in f3.axes[0].get_lines()] == [
+        f"{lab} (2 seeds)" for lab in labels]
+    assert len({line.get_color() for line in f3.axes[0].get_lines()}) == 2
+
+
+def test_curves_of_runs_of_different_settings_overlay_in_one_figure(lr_sweep, tmp_path,
+                                                                    monkeypatch, capsys):
+    """uabs-report RUN RUN ... --curves: one figure, one line per run in each panel
+    (training and validation return), named by group and seed."""
+    figs = keep_figures(monkeypatch)
+    runs = sorted(lr_sweep.iterdir())
+    assert report_main([*map(str, runs), "--curves", "--out", str(tmp_path)]) == 0
+    assert (tmp_path / "curves.png").stat().st_size > 15_000 and (tmp_path / "curves.pdf").is_file()
+    (fig,) = figs
+    train_ax, eval_ax = fig.axes
+    names = ["rank, algo.lr=0.0001, seed 0", "rank, algo.lr=0.0001, seed 1",
+             "rank, algo.lr=0.001, seed 0", "rank, algo.lr=0.001, seed 1"]
+    for ax in (train_ax, eval_ax):
+        assert [line.get_label() for line in ax.get_lines()] == names
+    first = records(lr_sweep / "algo.lr=1e-4,seed=0")
+    assert list(eval_ax.get_lines()[0].get_ydata()) == [r["return"] for r in first
+                                                        if r["kind"] == "eval"]
+    assert eval_ax.get_lines()[0].get_marker() == "o"  # 2 points: each one marked
+    assert "curves.png" in capsys.readouterr().out
+
+
+def test_symlinked_run_folders_are_found_once(sweep, tmp_path):
+    root = tmp_path / "links"
+    root.mkdir()
+    (root / "a").symlink_to(sweep / "masking=rank,seed=0", target_is_directory=True)
+    (root / "b").symlink_to(sweep / "masking=penalty,seed=1", target_is_directory=True)
+    (root / "again").symlink_to(sweep / "masking=rank,seed=0", target_is_directory=True)
+    (root / "loop").symlink_to(root, target_is_directory=True)  # a cycle ends
+    runs = find_runs(root)
+    assert sorted((r.mode, r.seed) for r in runs) == [("penalty", 1), ("rank", 0)]
+    assert len(find_runs(root, sweep / "masking=rank,seed=0")) == 2  # each run once
+
+
+def test_a_run_with_no_evaluation_is_left_out_with_one_line(sweep, tmp_path, capsys):
+    run_dir = tmp_path / "early"
+    import shutil
+
+    shutil.copytree(sweep / "masking=rank,seed=0", run_dir / "run")
+    metrics = run_dir / "run" / "metrics.jsonl"
+    metrics.write_text("".join(line + "\n" for line in metrics.read_text().splitlines()
+                               if '"kind": "eval"' not in line))
+    assert report_main([str(run_dir)]) == 2
+    err = capsys.readouterr().err
+    assert err.splitlines() == [
+        f"error: nothing to report under {run_dir}: {run_dir / 'run'} has no evaluation yet "
+        f"(one every train.eval_every = 3 episodes). Report once a run has evaluated, or "
+        f"pass other folders."]
+    # beside a run that has evaluated: a warning, and the report of the other
+    assert report_main([str(run_dir), str(sweep / "masking=rank,seed=1"), "--curves",
+                        "--out", str(tmp_path / "out")]) == 0
+    assert capsys.readouterr().err.splitlines() == [
+        f"warning: {run_dir / 'run'} has no evaluation yet (one every train.eval_every = 3 "
+        f"episodes): left out"]
+
+
+def test_report_errors_are_one_line_and_status_2(sweep, tmp_path, capsys):
+    import shutil
+
+    assert report_main([str(tmp_path / "nowhere")]) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        f"error: {tmp_path / 'nowhere'} is not a folder: pass a run folder or a folder of "
+        f"runs (such as outputs/multirun/<date_time>)."]
+    (tmp_path / "empty").mkdir()
+    assert report_main([str(tmp_path / "empty")]) == 2
+    assert capsys.readouterr().err.startswith(f"error: no run under {tmp_path / 'empty'}: ")
+    shutil.copytree(sweep / "masking=rank,seed=0", tmp_path / "bad")
+    with open(tmp_path / "bad" / "metrics.jsonl", "a") as f:
+        f.write('{"kind": "tr\n')
+    assert report_main([str(tmp_path / "bad"), "--curves"]) == 2
+    (line,) = capsys.readouterr().err.splitlines()
+    assert line.startswith("error: ") and "metrics.jsonl, line " in line
+
+
+# ----------------------------------------------------------------------------- figures
+def test_bands_are_drawn_and_named_only_where_there_are_seeds():
+    """1 seed: no band and no CI words; 2 seeds: the min-max range, said so; 3 or more:
+    a 95 % bootstrap CI."""
+    import matplotlib.pyplot as plt
+    from matplotlib.collections import PolyCollection
+
+    from uabs_rl.plots import SeedCurve, band_label, return_curves_figure
+    from uabs_rl.stats import bootstrap_ci, spread_over_seeds
+
+    vals = np.array([[1.0, 4.0], [3.0, 0.0], [2.0, 2.0]])
+    m, lo, hi = spread_over_seeds(vals[:1])
+    assert list(m) == list(lo) == list(hi) == [1.0, 4.0]
+    m, lo, hi = spread_over_seeds(vals[:2])
+    assert list(m) == [2.0, 2.0] and list(lo) == [1.0, 0.0] and list(hi) == [3.0, 4.0]
+    m, lo, hi = spread_over_seeds(vals)
+    assert (m[0], lo[0], hi[0]) == pytest.approx(bootstrap_ci(vals[:, 0], n_boot=2000))
+
+    def curve(seeds):
+        return SeedCurve(f"rank ({seeds})", np.arange(30), np.zeros(30), -np.ones(30),
+                         np.ones(30), seeds, "C0", "rank")
+
+    assert band_label([curve(1)]) is None
+    assert band_label([curve(2)]) == "shaded: min-max range of the 2 seeds"
+    assert band_label([curve(5)]) == "shaded: 95 % bootstrap CI over seeds"
+    assert band_label([curve(5), curve(2)]).endswith("(min-max range where 2 seeds)")
+    fig = return_curves_figure([curve(1)])
+    (ax,) = fig.axes
+    assert not [c for c in ax.collections if isinstance(c, PolyCollection)]
+    assert [t.get_text() for t in fig.legends[0].get_texts()] == ["rank (1)"]
+    assert ax.get_lines()[0].get_marker() in (None, "None", "")  # 30 points: no markers
+    plt.close(fig)
+
+
+def test_trajectory_picture_is_cropped_to_the_area_and_tracks_are_not_lanes():
+    """The axes fill the figure's height (no empty band above or below the map), at the
+    area's aspect; vehicle positions are dots (one per present vehicle and step), the
+    lanes the only lines."""
+    import matplotlib.pyplot as plt
+    import torch
+    from matplotlib.collections import LineCollection, PathCollection
+
+    from uabs_rl.config import AreaConfig
+    from uabs_rl.plots import trajectory_figure
+
+    area = AreaConfig(width=350.0, height=170.0)
+    gen = torch.Generator().manual_seed(0)
+    steps, m, v = 21, 3, 12
+    uabs = torch.rand(steps, m, 2, generator=gen) * torch.tensor([350.0, 170.0])
+    vehicles = torch.rand(steps, 2, v, generator=gen) * torch.tensor([[350.0], [170.0]])
+    present = torch.rand(steps, v, generator=gen) > 0.3
+    lanes = np.array([[[0.0, 85.0], [350.0, 85.0]], [[175.0, 0.0], [175.0, 170.0]]])
+    fig = trajectory_figure(area, uabs, vehicles, present, 11.6, 9, lanes)
+    ax = fig.axes[0]
+    fig.canvas.draw()
+    box = ax.get_window_extent()
+    assert box.height / fig.bbox.height > 0.75  # the map fills the height
+    assert box.width / box.height == pytest.approx(350 / 170, rel=0.01)
+    assert ax.get_xlim() == (0, 350) and ax.get_ylim() == (0, 170)
+    (lane_lines,) = [c for c in ax.collections if isinstance(c, LineCollection)]
+    assert len(lane_lines.get_segments()) == 2
+    dots = [c for c in ax.collections if isinstance(c, PathCollection)]
+    assert [len(c.get_offsets()) for c in dots] == [int(present.sum()), int(present[-1].sum())]
+    labels = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert "vehicle positions, every step" in labels and "lanes" in labels
+    plt.close(fig)
+
+
+def test_several_folders_report_into_their_common_folder(tmp_path):
+    from uabs_rl.report import default_out
+
+    assert default_out([tmp_path / "a"]) == tmp_path / "a" / "report"
+    assert default_out([tmp_path / "runs" / "a", tmp_path / "runs" / "b"]) == (
+        tmp_path / "runs" / "report")

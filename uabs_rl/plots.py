@@ -3,6 +3,7 @@ style every report figure shares (sizes for a paper's columns, PNG and PDF)."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 
@@ -79,25 +80,45 @@ def scenario_lanes(scenario: ScenarioConfig) -> np.ndarray | None:
     return lane_segments(str(net), a.x_min, a.y_min) if net else None
 
 
+def _map_axes(area: AreaConfig, legend_in: float = 2.5, map_in: float = 6.0):
+    """A figure whose axes hold exactly the area at equal scale (``map_in`` inches along
+    its longer side), with a column for the legend at the right: no empty band above or
+    below the map, whether the figure is saved cropped or rendered as it is."""
+    aspect = area.height / area.width
+    ax_w, ax_h = (map_in, map_in * aspect) if aspect <= 1 else (map_in / aspect, map_in)
+    left, bottom, top, gap = 0.75, 0.5, 0.35, 0.15
+    fig_w = left + ax_w + gap + legend_in
+    fig_h = max(bottom + ax_h + top, 2.8)  # the legend's height, for a very flat area
+    fig = plt.figure(figsize=(fig_w, fig_h), dpi=100)
+    ax = fig.add_axes((left / fig_w, (fig_h - top - ax_h) / fig_h, ax_w / fig_w, ax_h / fig_h))
+    ax.set_xlim(0, area.width)
+    ax.set_ylim(0, area.height)
+    ax.set_aspect("equal")
+    return fig, ax
+
+
 def trajectory_figure(area: AreaConfig, uabs: torch.Tensor, vehicles: torch.Tensor,
                       present: torch.Tensor, r_b: float, n_beams: int,
                       lanes: np.ndarray | None = None, title: str = "",
                       instants: tuple[int, ...] | None = None):
-    """One episode: ``uabs [T+1, M, 2]`` paths, ``vehicles [T+1, 2, V]`` (planar) with
-    ``present [T+1, V]`` (drawn at the last instant, with their tracks faint), and beam
-    footprints of every UABS at a few instants."""
+    """One episode over the street map, cropped to the area: ``uabs [T+1, M, 2]`` paths
+    (a circle at the start, a star at the end) with the beam footprints of every UABS at
+    a few instants; ``vehicles [T+1, 2, V]`` with ``present [T+1, V]``: the position of
+    every vehicle at every step as a small grey dot (dotted tracks, never lines, so they
+    do not read as lanes) and at the last step as a black dot; lanes as thin light-grey
+    lines."""
     uabs, vehicles, present = uabs.cpu().numpy(), vehicles.cpu().numpy(), present.cpu().numpy()
     steps = uabs.shape[0]
     instants = instants or (0, steps // 2, steps - 1)
-    fig, ax = plt.subplots(figsize=(8, 8 * area.height / area.width + 0.8), dpi=100)
+    fig, ax = _map_axes(area)
     if lanes is not None and len(lanes):
-        ax.add_collection(LineCollection(lanes, colors="0.8", linewidths=1.0, zorder=0))
-    tracks = [vehicles[present[:, v], :, v] for v in range(vehicles.shape[2])]
-    ax.add_collection(LineCollection([t for t in tracks if len(t)], colors="0.6",
-                                     linewidths=0.4, zorder=1))  # one artist: fast to draw
+        ax.add_collection(LineCollection(lanes, colors="0.82", linewidths=0.6, zorder=0),
+                          autolim=False)
+    t_on, v_on = np.nonzero(present)
+    ax.scatter(vehicles[t_on, 0, v_on], vehicles[t_on, 1, v_on], s=2.5, color="0.3",
+               alpha=0.6, lw=0, zorder=1)  # one artist: fast to draw
     last = present[-1]
-    ax.scatter(vehicles[-1, 0, last], vehicles[-1, 1, last], s=9, color="k", zorder=2,
-               label="vehicles (last step)")
+    ax.scatter(vehicles[-1, 0, last], vehicles[-1, 1, last], s=9, color="k", zorder=2)
     centres = beam_centres(r_b, n_beams).numpy()
     for u in range(uabs.shape[1]):
         c = COLORS[u % len(COLORS)]
@@ -106,13 +127,10 @@ def trajectory_figure(area: AreaConfig, uabs: torch.Tensor, vehicles: torch.Tens
         ax.plot(*uabs[-1, u], "*", color=c, ms=13, mec="k", zorder=4)
         for t in instants:
             for cx, cy in centres + uabs[t, u]:
-                # add_artist, not add_patch: the limits are set below, and updating them
+                # add_artist, not add_patch: the limits are fixed, and updating them
                 # patch by patch took half of the picture's drawing time
                 ax.add_artist(Circle((cx, cy), r_b, fill=False, ec=c, lw=0.7,
                                      alpha=0.3 + 0.7 * t / max(steps - 1, 1), zorder=2))
-    ax.set_xlim(0, area.width)
-    ax.set_ylim(0, area.height)
-    ax.set_aspect("equal")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.set_title(title or "UABS trajectories", fontsize=10)
@@ -122,13 +140,14 @@ def trajectory_figure(area: AreaConfig, uabs: torch.Tensor, vehicles: torch.Tens
         Line2D([], [], color="0.4", marker="*", ls="", ms=12, mec="k",
                label=f"end (t = {steps - 1})"),
         Line2D([], [], color="0.4", marker="o", ls="", ms=9, mfc="none",
-               label=f"beam footprints at t = {', '.join(map(str, instants))} "
+               label=f"beam footprints at t = {', '.join(map(str, instants))}\n"
                      f"(fainter = earlier)"),
-        Line2D([], [], color="0.6", lw=0.6, label="vehicle tracks"),
-    ] + ([Line2D([], [], color="0.8", lw=1.5, label="lanes")] if lanes is not None else [])
-    ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8,
-              frameon=False)
-    fig.tight_layout()
+        Line2D([], [], color="k", marker="o", ls="", ms=3, label=f"vehicles at t = {steps - 1}"),
+        Line2D([], [], color="0.3", marker="o", ls="", ms=2,
+               label="vehicle positions, every step"),
+    ] + ([Line2D([], [], color="0.82", lw=1.0, label="lanes")] if lanes is not None else [])
+    ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8,
+              frameon=False, borderaxespad=0)
     return fig
 
 
@@ -148,7 +167,47 @@ def pg_curve_figure(curves: dict[str, np.ndarray], title: str = "Satisfied users
     return fig
 
 
-BAND_LABEL = "shaded: 95 % bootstrap CI over seeds"
+BAND_ALPHA = 0.2
+# below this many points per line, each point gets a marker (two evaluations drawn as a
+# bare straight line read as a measured trend)
+FEW_POINTS = 15
+
+
+@dataclass
+class SeedCurve:
+    """One line of a report figure: the mean over ``seeds`` seeds at ``x`` and its spread
+    (``lo``/``hi``: a 95 % CI, the min-max range with 2 seeds, nothing with 1; see
+    :func:`uabs_rl.stats.spread_over_seeds`)."""
+
+    label: str
+    x: np.ndarray
+    mean: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+    seeds: int
+    color: str
+    mode: str = ""
+
+
+def _draw_curve(ax, c: SeedCurve, **kw) -> None:
+    """The mean with markers where there are few points, and its band where there is one
+    (more than one seed)."""
+    few = len(c.x) < FEW_POINTS
+    ax.plot(c.x, c.mean, color=c.color, label=c.label,
+            **{"marker": "o" if few else None, **kw})
+    if c.seeds > 1:
+        ax.fill_between(c.x, c.lo, c.hi, color=c.color, alpha=BAND_ALPHA, lw=0)
+
+
+def band_label(curves: list[SeedCurve]) -> str | None:
+    """The legend's words for the shaded bands of ``curves``; None where none is drawn."""
+    seeds = {c.seeds for c in curves if c.seeds > 1}
+    if not seeds:
+        return None
+    if seeds == {2}:
+        return "shaded: min-max range of the 2 seeds"
+    return "shaded: 95 % bootstrap CI over seeds" + (
+        " (min-max range where 2 seeds)" if 2 in seeds else "")
 
 
 def _band_handle():
@@ -157,71 +216,115 @@ def _band_handle():
     return Patch(facecolor="0.5", alpha=0.25, lw=0)
 
 
-def return_curves_figure(curves: dict[str, tuple]):
-    """Evaluation return against training episode: ``curves[label] = (mode, x, mean,
-    lo, hi)``, one line with its band each, in the mode's colour. Penalty, whose
-    collisions cost λ_c each, gets a panel (and scale) of its own so it does not
-    flatten the masking modes into one line. Drawn for :func:`save_paper_figure`."""
+def _figure_legend(fig, axes, curves: list[SeedCurve], ncol: int, first: str = "") -> None:
+    """One legend below the panels: each label once (those starting with ``first``
+    first), then the band's meaning where a band is drawn."""
+    seen: dict[str, object] = {}
+    for ax in axes:
+        for h, lab in zip(*ax.get_legend_handles_labels(), strict=True):
+            seen.setdefault(lab, h)
+    order = sorted(seen, key=lambda lab: not lab.startswith(first)) if first else list(seen)
+    handles, labels = [seen[lab] for lab in order], order
+    band = band_label(curves)
+    if band:
+        handles, labels = [*handles, _band_handle()], [*labels, band]
+    fig.legend(handles, labels, loc="upper center", bbox_to_anchor=(0.5, 0.0),
+               ncol=max(1, min(len(labels), ncol)), frameon=False)
+
+
+def return_curves_figure(curves: list[SeedCurve]):
+    """Evaluation return against training episode, one line (with its band) per curve.
+    Penalty (``mode``), whose collisions cost λ_c each, gets a panel (and scale) of its
+    own so it does not flatten the masking modes into one line. Drawn for
+    :func:`save_paper_figure`."""
     from matplotlib.ticker import MaxNLocator
 
-    groups = [[k for k, c in curves.items() if c[0] != "penalty"],
-              [k for k, c in curves.items() if c[0] == "penalty"]]
+    groups = [[c for c in curves if c.mode != "penalty"],
+              [c for c in curves if c.mode == "penalty"]]
     groups = [g for g in groups if g]
     fig, axes = plt.subplots(1, len(groups), squeeze=False,
                              figsize=(TEXT_IN if len(groups) > 1 else COLUMN_IN, 2.4))
-    for ax, labels in zip(axes[0], groups, strict=True):
-        modes = [curves[k][0] for k in labels]
-        for label in labels:
-            mode, x, mean, lo, hi = curves[label]
-            c = MODE_COLORS.get(mode, "0.3")
-            ax.plot(x, mean, color=c, label=label)
-            ax.fill_between(x, lo, hi, color=c, alpha=0.2, lw=0)
+    for ax, group in zip(axes[0], groups, strict=True):
+        modes = list(dict.fromkeys(c.mode for c in group))
+        for c in group:
+            _draw_curve(ax, c)
         ax.set_xlabel("training episode")
         ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         ax.set_title(" and ".join(modes) + (" masking" if modes != ["penalty"] else
                                              " (reward penalties)"))
         ax.grid(alpha=0.3)
     axes[0][0].set_ylabel("validation return R")
-    handles = [h for ax in axes[0] for h in ax.get_legend_handles_labels()[0]]
-    labels = [lab for ax in axes[0] for lab in ax.get_legend_handles_labels()[1]]
-    fig.legend([*handles, _band_handle()], [*labels, BAND_LABEL], loc="upper center",
-               bbox_to_anchor=(0.5, 0.0), ncol=len(labels) + 1 if len(groups) > 1 else 2,
-               frameon=False)
+    few = len(curves) <= 3 and all(len(c.label) < 30 for c in curves)
+    _figure_legend(fig, axes[0], curves, ncol=len(curves) + 1 if few else 2)
     fig.tight_layout()
     return fig
 
 
-def pg_panels_figure(panels: dict[str, tuple], baselines: dict[str, dict[str, np.ndarray]]):
-    """P_g(N̂_s) in %, one panel per masking mode: ``panels[mode] = (seeds text, mean,
-    lo, hi)`` for the learned policy, ``baselines[mode][name]`` the baselines' curves
-    under the same masks, in greys with their own line styles. Drawn for
-    :func:`save_paper_figure`."""
-    modes = list(panels)
-    fig, axes = plt.subplots(1, len(modes), squeeze=False, sharey=True,
-                             figsize=(TEXT_IN if len(modes) > 1 else COLUMN_IN, 2.4))
-    for ax, mode in zip(axes[0], modes, strict=True):
-        seeds, mean, lo, hi = panels[mode]
-        x = np.arange(1, len(mean) + 1)
-        c = MODE_COLORS.get(mode, "0.3")
-        ax.plot(x, mean, color=c, marker="o",
-                label=f"learned, {mode}" + (" masks" if mode != "penalty" else ""))
-        ax.fill_between(x, lo, hi, color=c, alpha=0.2, lw=0)
-        for name, curve in baselines.get(mode, {}).items():
+def pg_panels_figure(panels: dict[str, list[SeedCurve]],
+                     baselines: dict[str, dict[str, np.ndarray]],
+                     titles: dict[str, str] | None = None):
+    """P_g(N̂_s) in %, one panel per key of ``panels`` (a masking mode, or a mode with the
+    scenario settings its baselines were run under): the learned curves of that panel,
+    and ``baselines[key][name]``, the baselines' curves under the same masks, in greys
+    with their own line styles. ``titles[key]`` heads each panel (default: the key).
+    Drawn for :func:`save_paper_figure`."""
+    keys = list(panels)
+    fig, axes = plt.subplots(1, len(keys), squeeze=False, sharey=True,
+                             figsize=(TEXT_IN if len(keys) > 1 else COLUMN_IN, 2.4))
+    for ax, key in zip(axes[0], keys, strict=True):
+        x = np.arange(1, len(panels[key][0].mean) + 1)
+        for c in panels[key]:
+            _draw_curve(ax, c, marker="o")
+        for name, curve in baselines.get(key, {}).items():
             ax.plot(x, curve, lw=1, label=f"{name} baseline", **BASELINE_STYLES[name])
-        ax.set_title(f"{mode} masks ({seeds})" if mode != "penalty"
-                     else f"penalty ({seeds})")
+        ax.set_title((titles or {}).get(key, key))
         ax.set_xlabel(r"$\hat{N}_s$ (served steps per window)")
         ax.set_xticks(x[::max(1, len(x) // 5)])
         ax.grid(alpha=0.3)
     axes[0][0].set_ylabel(r"$P_g$ (% satisfied users)")
-    seen: dict[str, object] = {}
-    for ax in axes[0]:
-        for h, lab in zip(*ax.get_legend_handles_labels(), strict=True):
-            seen.setdefault(lab, h)
-    order = sorted(seen, key=lambda lab: not lab.startswith("learned"))  # learned first
-    handles = [seen[lab] for lab in order] + [_band_handle()]
-    fig.legend(handles, [*order, BAND_LABEL], loc="upper center", bbox_to_anchor=(0.5, 0.0),
-               ncol=min(len(handles), 4 if len(modes) > 1 else 2), frameon=False)
+    curves = [c for cs in panels.values() for c in cs]
+    long = any(len(c.label) > 30 for c in curves)
+    _figure_legend(fig, axes[0], curves, ncol=4 if len(keys) > 1 and not long else 2,
+                   first="learned")
+    fig.tight_layout()
+    return fig
+
+
+def run_curves_figure(runs: list[tuple[str, str, np.ndarray, np.ndarray, np.ndarray,
+                                       np.ndarray]]):
+    """Training and validation return of several runs overlaid, one line per run:
+    ``runs[i] = (label, colour, training episodes, training returns, evaluation
+    episodes, validation returns)``. Training returns are a moving mean over a 50th of
+    the episodes (raw when fewer than 100), so curves of 1000 episodes stay readable.
+    Drawn for :func:`save_paper_figure`."""
+    from matplotlib.ticker import MaxNLocator
+
+    styles = ["-", "--", ":", "-."]
+    fig, (tr, ev) = plt.subplots(1, 2, figsize=(TEXT_IN, 2.6))
+    seen: dict[str, int] = {}
+    for label, color, ep, ret, eval_ep, eval_ret in runs:
+        ls = styles[seen.setdefault(color, 0) % len(styles)]  # seeds of a group: styles
+        seen[color] += 1
+        w = max(1, len(ep) // 50)
+        smooth = np.convolve(ret, np.ones(w) / w, mode="valid") if len(ret) >= w else ret
+        tr.plot(np.asarray(ep)[w - 1:][:len(smooth)], smooth, color=color, ls=ls, lw=1,
+                marker="o" if len(smooth) < FEW_POINTS else None, label=label)
+        ev.plot(eval_ep, eval_ret, color=color, ls=ls,
+                marker="o" if len(eval_ep) < FEW_POINTS else None, label=label)
+    longest = max((len(r[2]) for r in runs), default=0)
+    window = max(1, longest // 50)
+    tr.set_title("training return" + (f" (moving mean over {window} episodes)"
+                                      if window > 1 else ""))
+    ev.set_title("validation return")
+    for ax in (tr, ev):
+        ax.set_xlabel("training episode")
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+        ax.grid(alpha=0.3)
+    tr.set_ylabel("return R")
+    handles, labels = ev.get_legend_handles_labels()
+    fig.legend(handles, labels, loc="upper center", bbox_to_anchor=(0.5, 0.0),
+               ncol=2 if len(runs) > 3 or any(len(lab) > 30 for lab in labels) else 3,
+               frameon=False)
     fig.tight_layout()
     return fig
 

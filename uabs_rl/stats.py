@@ -39,3 +39,23 @@ def iqm(x: np.ndarray | list[float]) -> float:
         return float("nan")
     lo, hi = int(np.floor(0.25 * n)), int(np.ceil(0.75 * n))
     return float(x[lo:hi].mean()) if hi > lo else float(x.mean())
+
+
+def spread_over_seeds(values: np.ndarray | list[list[float]], n_boot: int = 2000
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per column of ``values [seeds, columns]``: the mean over seeds and its spread, a
+    95 % bootstrap CI with 3 seeds or more, the min-max range with 2 (what a bootstrap
+    of 2 values gives too), nothing (low = high = mean) with 1. See :func:`spread_name`."""
+    values = np.asarray(values, dtype=float)
+    if values.ndim != 2 or values.shape[1] == 0:  # no common column (nothing evaluated)
+        return np.zeros(0), np.zeros(0), np.zeros(0)
+    if values.shape[0] < 3:
+        return values.mean(0), values.min(0), values.max(0)
+    cols = [bootstrap_ci(values[:, j], n_boot=n_boot) for j in range(values.shape[1])]
+    return tuple(np.array(c) for c in zip(*cols, strict=True))
+
+
+def spread_name(seeds: int) -> str:
+    """What :func:`spread_over_seeds` gives for ``seeds`` seeds, in words ("" for 1)."""
+    return ("95 % bootstrap CI over seeds" if seeds >= 3 else
+            "min-max range of the 2 seeds" if seeds == 2 else "")
