@@ -434,3 +434,34 @@ def test_several_folders_report_into_their_common_folder(tmp_path):
     assert default_out([tmp_path / "a"]) == tmp_path / "a" / "report"
     assert default_out([tmp_path / "runs" / "a", tmp_path / "runs" / "b"]) == (
         tmp_path / "runs" / "report")
+
+
+def test_copies_and_runs_without_a_checkpoint_are_left_out_with_a_warning(sweep, tmp_path,
+                                                                          capsys):
+    """A second run of the same settings and seed would count twice; a run stopped before
+    its first checkpoint has no config to group it by: each is one warning line."""
+    import shutil
+
+    root = tmp_path / "runs"
+    shutil.copytree(sweep / "masking=rank,seed=0", root / "a")
+    shutil.copytree(sweep / "masking=rank,seed=0", root / "b")
+    shutil.copytree(sweep / "masking=rank,seed=1", root / "c")
+    shutil.rmtree(root / "c" / "checkpoints")
+    grouping = group_runs(find_runs(root))
+    assert [r.path.name for r in grouping.groups["rank"]] == ["a"]
+    assert capsys.readouterr().err.splitlines() == [
+        f"warning: {root / 'c'} has no checkpoints/last.pt yet (stopped before its first "
+        f"checkpoint?): left out",
+        f"warning: {root / 'b'} has the settings and seed of {root / 'a'}: left out (one run "
+        f"per seed)"]
+
+
+def test_a_damaged_checkpoint_is_one_line_naming_it(sweep, tmp_path, capsys):
+    import shutil
+
+    shutil.copytree(sweep / "masking=rank,seed=0", tmp_path / "run")
+    ckpt = tmp_path / "run" / "checkpoints" / "last.pt"
+    ckpt.write_bytes(ckpt.read_bytes()[:200])
+    assert report_main([str(tmp_path / "run"), "--curves"]) == 2
+    (line,) = capsys.readouterr().err.splitlines()
+    assert line.startswith("error: ") and str(ckpt) in line
