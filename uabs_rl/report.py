@@ -643,7 +643,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="output folder (default: FOLDER/report; with several folders, "
                          "report/ in the folder that holds them all)")
     ap.add_argument("--no-baselines", dest="baselines", action="store_false",
-                    help="skip the test-trace evaluation: Fig. 4 from the validation runs")
+                    help="skip the test-trace evaluation: Fig. 4 from each run's best "
+                         "validation evaluation, no baselines")
     ap.add_argument("--curves", action="store_true",
                     help="only overlay the runs' training and validation curves "
                          "(curves.png/.pdf), in seconds")
