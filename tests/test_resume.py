@@ -1,5 +1,6 @@
-"""Interrupted runs resume exactly: kill -9 at random moments, resume by the folder's
-name typed as printed, and end with the metrics and parameters of an uninterrupted run."""
+"""Interrupted runs resume exactly: kill -9 at random moments, resume by re-typing the
+original command with ``resume=<folder>`` appended (the folder's name as printed), and
+end with the metrics and parameters of an uninterrupted run."""
 
 from __future__ import annotations
 
@@ -36,8 +37,9 @@ def test_kill_9_and_resume_gives_the_uninterrupted_run(trace_cache, tmp_path):
     # a folder named like a sweep's: '=' and ',' in it, passed to resume= unquoted
     run_dir = tmp_path / "masking=rank,seed=0"
     rng = random.Random(7)
-    proc = subprocess.Popen(train_cmd(*RUN, cache, f"hydra.run.dir='{run_dir}'"),
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, cwd=tmp_path)
+    original = train_cmd(*RUN, cache, f"hydra.run.dir='{run_dir}'")
+    proc = subprocess.Popen(original, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            cwd=tmp_path)
     kills = 0
     deadline = time.monotonic() + 120
     while not (run_dir / ".hydra" / "config.yaml").exists() and time.monotonic() < deadline:
@@ -48,8 +50,9 @@ def test_kill_9_and_resume_gives_the_uninterrupted_run(trace_cache, tmp_path):
             proc.send_signal(signal.SIGKILL)
             kills += 1
         proc.wait()
-        proc = subprocess.Popen(train_cmd(f"resume={run_dir}", cache),
-                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, cwd=tmp_path)
+        # what users type: the original command again, with resume= appended
+        proc = subprocess.Popen([*original, f"resume={run_dir}"], stdout=subprocess.DEVNULL,
+                                stderr=subprocess.PIPE, cwd=tmp_path)
     _, err = proc.communicate(timeout=300)
     assert proc.returncode == 0, err.decode()[-2000:]
     assert kills >= 2  # the run really was killed midway, more than once

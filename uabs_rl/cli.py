@@ -9,8 +9,11 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from omegaconf import OmegaConf
+
 from uabs_rl.checkpoint import CheckpointError, Interrupted
 from uabs_rl.config import CONF_DIR, ConfigError, register_configs, to_container
+from uabs_rl.runfolder import RunLock
 
 _STARTED = time.time()
 
@@ -24,8 +27,12 @@ def _remove_if_empty(run_dir: Path) -> None:
     if hydra_dir.stat().st_mtime < _STARTED - 1.0:  # an earlier run's folder (a resume)
         return
     names = {p.name for p in run_dir.iterdir()}
-    if names <= {".hydra"} | {p.name for p in run_dir.glob("*.log")}:
+    if not names <= {".hydra", ".lock"} | {p.name for p in run_dir.glob("*.log")}:
+        return
+    lock = RunLock(run_dir)
+    if lock.acquire():  # never a folder another process is writing
         shutil.rmtree(run_dir, ignore_errors=True)
+        lock.release()
 
 
 def hydra_main(config_name: str, body: Callable[..., Any],
@@ -33,7 +40,9 @@ def hydra_main(config_name: str, body: Callable[..., Any],
     """Run ``body(cfg, output_dir[, overrides])`` under ``@hydra.main`` with
     ``conf/<config_name>``: the config arrives as checked dataclasses; a config or
     checkpoint error is one line on stderr and exit status 2, Ctrl-C one line and
-    status 130, never a traceback."""
+    status 130 (143 after SIGTERM), never a traceback."""
+    interrupted = ("interrupted: the last checkpoint is kept" if pass_overrides
+                   else "interrupted")
     import hydra
     from hydra.core.hydra_config import HydraConfig
 
@@ -48,10 +57,13 @@ def hydra_main(config_name: str, body: Callable[..., Any],
             sys.exit(2)
         except Interrupted as e:
             print(str(e), file=sys.stderr)
-            sys.exit(130)
-        except KeyboardInterrupt:
-            print("interrupted: the last checkpoint is kept", file=sys.stderr)
-            sys.exit(130)
+            sys.exit(getattr(e, "exit_code", 130))
+        except KeyboardInterrupt as e:  # a second Ctrl-C, or one outside training
+            print(str(e) or interrupted, file=sys.stderr)
+            sys.exit(getattr(e, "exit_code", 130))
 
     register_configs()
+    # ${prefixed:_,<text>}: "_<text>", or nothing when <text> is empty (run folder names)
+    OmegaConf.register_new_resolver("prefixed", lambda sep, text: f"{sep}{text}" if text
+                                    else "", replace=True)
     hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name=config_name)(app)()

@@ -1,10 +1,12 @@
-"""One training run (SPEC §7, §8): wires the env, the Q-network, the learner, the replay
+"""One training run (docs/model.md §7, §8): wires the env, the Q-network, the learner, the replay
 buffer, collection, evaluation, checkpoints and the run log, and runs the fit loop."""
 
 from __future__ import annotations
 
+import errno
 import logging
 import math
+import shutil
 import signal
 import sys
 import threading
@@ -30,37 +32,66 @@ from uabs_rl.make import make_env, make_selector, resolve_device
 from uabs_rl.model import DuelingQNet
 from uabs_rl.replay import ReplayBuffer
 from uabs_rl.rollout import Collector, UpdateSchedule, episode_records, epsilon
+from uabs_rl.runfolder import RunFolderError
 from uabs_rl.runlog import RunLog, check_logger
 from uabs_rl.traces import TraceSet
 
 log = logging.getLogger(__name__)
 
 
+class Stopped(Interrupted):
+    """Training stopped on a signal after saving ``last``; the process exits with
+    ``exit_code`` (130 for Ctrl-C, 143 for SIGTERM, as a shell reports them)."""
+
+    def __init__(self, message: str, signum: int):
+        super().__init__(message)
+        self.exit_code = 128 + signum
+
+
 class DeferredInterrupt:
-    """While active, the first SIGINT only sets :attr:`requested` (the loop stops at the
-    end of the round); a second one raises KeyboardInterrupt at once. Outside the main
-    thread it does nothing."""
+    """While active, Ctrl-C (SIGINT) and SIGTERM (a scheduler's preemption) only set
+    :attr:`requested`: the loop saves at the end of the round and stops with one line
+    (:meth:`stop`); a second one raises KeyboardInterrupt at once. A handler installed
+    before for SIGTERM or SIGUSR2 (the submitit launcher's, which requeues a preempted
+    SLURM job) runs after the save. Outside the main thread it does nothing."""
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGUSR2)
 
     def __init__(self):
-        self.requested = False
-        self._previous = None
+        self.requested: int | None = None  # the signal received
+        self._previous: dict[int, Any] = {}
 
     def _handle(self, signum, frame) -> None:
-        if self.requested:
+        if self.requested is not None:
             raise KeyboardInterrupt
-        self.requested = True
-        print("\nCtrl-C: stopping after this round (press again to stop now)",
-              file=sys.stderr)
+        self.requested = signum
+        name = "Ctrl-C" if signum == signal.SIGINT else signal.Signals(signum).name
+        print(f"\n{name}: stopping after this round (again to stop now, keeping the last "
+              f"checkpoint)", file=sys.stderr)
 
     def __enter__(self) -> DeferredInterrupt:
         if threading.current_thread() is threading.main_thread():
-            self._previous = signal.signal(signal.SIGINT, self._handle)
+            for sig in self.SIGNALS:
+                before = signal.getsignal(sig)
+                if sig == signal.SIGUSR2 and not callable(before):
+                    continue  # only chained where someone (submitit) listens
+                self._previous[sig] = signal.signal(sig, self._handle)
         return self
 
     def __exit__(self, *exc) -> None:
-        if self._previous is not None:
-            signal.signal(signal.SIGINT, self._previous)
-            self._previous = None
+        for sig, before in self._previous.items():
+            signal.signal(sig, before)
+        self._previous = {}
+
+    def stop(self, message: str) -> None:
+        """After the save: run a chained handler of the signal (submitit's requeue),
+        then raise :class:`Stopped` with ``message``."""
+        signum = self.requested
+        before = self._previous.get(signum)
+        self.__exit__()
+        if callable(before) and before is not signal.default_int_handler:
+            before(signum, None)
+        raise Stopped(message, signum)
 
 
 class Progress:
@@ -74,8 +105,11 @@ class Progress:
     def update(self, rec: dict[str, Any]) -> None:
         self.collisions += rec["collisions"]
         self.bar.update()
-        self.bar.set_postfix(R=f"{rec['return']:.0f}", eps=f"{rec['epsilon']:.2f}",
-                             coll=int(self.collisions), eval_R=f"{self.last_eval:.0f}")
+        shown = {"R": f"{rec['return']:.0f}", "eps": f"{rec['epsilon']:.2f}",
+                 "coll": int(self.collisions)}
+        if not math.isnan(self.last_eval):  # none yet in this session (a resume)
+            shown["eval_R"] = f"{self.last_eval:.0f}"
+        self.bar.set_postfix(shown)
 
     def close(self) -> None:
         self.bar.close()
@@ -89,11 +123,13 @@ def run_state(exp, cfg: RunConfig, learner: dict, best_eval: float,
               selector_gen: torch.Generator, env_gen: torch.Generator,
               buffer: ReplayBuffer) -> dict:
     """The checkpoint of a run (or of one member of a population, ``exp`` being the
-    population): its config and learner state, ``exp``'s counters, the global RNG,
+    population): its config, the run's identity (``uabs_rl.runfolder``; None outside
+    ``uabs_rl.train.prepare``), learner state, ``exp``'s counters, the global RNG,
     the selector's and env's generators and, with ``train.checkpoint_buffer``, the
     replay buffer."""
     return {
-        "format": CKPT_FORMAT, "config": config_dict(cfg), "learner": learner,
+        "format": CKPT_FORMAT, "config": config_dict(cfg), "run": exp.identity,
+        "learner": learner,
         "counters": {"episode": exp.episode, "env_steps": exp.collector.env_steps,
                      "update_credit": exp.updates.credit, "best_eval": best_eval,
                      "total_steps": exp.total_steps},
@@ -131,20 +167,46 @@ def restore_streams(state: dict, selector_gen: torch.Generator, env_gen: torch.G
 
 
 def run_rounds(exp, logs: list[RunLog]) -> float:
-    """``exp._rounds()`` with its logs open, a progress bar and Ctrl-C deferred to the
-    end of a round (see :meth:`Experiment.fit`); returns the minutes it took."""
-    for lg in logs:
-        lg.open(resume_episode=exp.episode if exp.episode else None)
-    exp.progress = Progress(exp.cfg.train, exp.episode)
-    t0 = time.perf_counter()
+    """``exp._rounds()`` with its logs open, a progress bar and Ctrl-C / SIGTERM deferred
+    to the end of a round (see :meth:`Experiment.fit`); returns the minutes it took. The
+    run folder's lock (``exp.run_lock``) is released when it ends, however it ends."""
     try:
-        with exp.interrupt:
-            exp._rounds()
-    finally:
-        exp.progress.close()
         for lg in logs:
-            lg.close()
+            lg.open(resume_episode=exp.episode if exp.episode else None)
+        exp.progress = Progress(exp.cfg.train, exp.episode)
+        t0 = time.perf_counter()
+        try:
+            with exp.interrupt:
+                exp._rounds()
+        finally:
+            exp.progress.close()
+            for lg in logs:
+                lg.close()
+    except OSError as e:
+        raise write_error(e, exp.run_dir) from None
+    finally:
+        if exp.run_lock is not None:
+            exp.run_lock.release()
     return (time.perf_counter() - t0) / 60
+
+
+def write_error(e: OSError | RuntimeError, run_dir: Path) -> Exception:
+    """A failed write of a run's files as one line saying why and what to do; ``e``
+    itself when it is not about the run folder."""
+    if not run_dir.is_dir():
+        return RunFolderError(f"the run folder {run_dir} was removed or moved while the "
+                              f"run was writing it: the run stopped; nothing more was "
+                              f"written.")
+    where = getattr(e, "filename", None) or run_dir
+    if getattr(e, "errno", None) == errno.ENOSPC or "unexpected pos" in str(e):
+        free = shutil.disk_usage(run_dir).free / 2**20
+        return RunFolderError(f"no space left on the device while writing {where} "
+                              f"({free:.0f} MiB free): free some space, then continue with "
+                              f"resume={run_dir} (the last complete checkpoint is kept).")
+    if getattr(e, "errno", None) in (errno.EACCES, errno.EROFS, errno.EPERM):
+        return RunFolderError(f"cannot write {where} ({e.strerror}): make the run folder "
+                              f"writable, then continue with resume={run_dir}.")
+    return e
 
 
 class Experiment:
@@ -185,6 +247,8 @@ class Experiment:
         self.interrupt = DeferredInterrupt()
         self.total_steps = tr.episodes * p.episode_steps  # per-env steps of the protocol
         self.episode, self.best_eval = 0, -math.inf
+        self.identity: dict | None = None  # the run folder's (set by train.prepare)
+        self.run_lock = None  # the run folder's lock, released when fit ends
 
     # ------------------------------------------------------------------ steps
     def collect(self) -> list[dict[str, Any]]:
@@ -229,7 +293,10 @@ class Experiment:
 
     def save(self, name: str) -> Path:
         path = self.run_dir / "checkpoints" / f"{name}.pt"
-        save_checkpoint(self.state_dict(), path)
+        try:
+            save_checkpoint(self.state_dict(), path)
+        except (OSError, RuntimeError) as e:
+            raise write_error(e, self.run_dir) from None
         return path
 
     def _rounds(self) -> None:
@@ -244,14 +311,14 @@ class Experiment:
                 self.progress.last_eval = self.evaluate()
             if self.interrupt.requested:
                 path = self.save("last")
-                raise Interrupted(f"interrupted at episode {self.episode}: saved {path}; "
-                                  f"continue with resume={self.run_dir}")
+                self.interrupt.stop(f"interrupted at episode {self.episode}: saved {path}; "
+                                    f"continue with resume={self.run_dir}")
 
     # ------------------------------------------------------------------ loop
     def fit(self) -> dict[str, Any]:
         """Train to ``train.episodes``, evaluating every ``train.eval_every`` episodes.
-        Ctrl-C finishes the current round, saves ``last`` and raises :class:`Interrupted`
-        (a second Ctrl-C stops at once, keeping the last checkpoint)."""
+        Ctrl-C or SIGTERM finishes the current round, saves ``last`` and raises
+        :class:`Stopped` (a second one stops at once, keeping the last checkpoint)."""
         minutes = run_rounds(self, [self.log])
         self.save("last")
         summary = {"episodes": self.episode, "updates": self.learner.updates,

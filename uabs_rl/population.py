@@ -27,8 +27,10 @@ members' solo updates to float precision.
 from __future__ import annotations
 
 import copy
+import json
 import logging
 import math
+import os
 from pathlib import Path
 from typing import Any
 
@@ -36,7 +38,6 @@ import torch
 
 from uabs_rl.checkpoint import (
     CheckpointError,
-    Interrupted,
     check_compatible,
     load_checkpoint,
     save_checkpoint,
@@ -51,6 +52,7 @@ from uabs_rl.experiment import (
     restore_streams,
     run_rounds,
     run_state,
+    write_error,
 )
 from uabs_rl.learner import PopulationLearner
 from uabs_rl.make import make_env, make_selector, resolve_device
@@ -58,6 +60,7 @@ from uabs_rl.model import DuelingQNet, StackedQNet
 from uabs_rl.replay import PopulationReplay
 from uabs_rl.rng import Generators
 from uabs_rl.rollout import Collector, UpdateSchedule, episode_records, epsilon
+from uabs_rl.runfolder import check_identity
 from uabs_rl.runlog import RunLog, check_logger
 from uabs_rl.traces import TraceSet
 
@@ -70,6 +73,20 @@ def member_seeds(cfg: RunConfig) -> list[int]:
 
 def member_dir(run_dir: Path, seed: int) -> Path:
     return Path(run_dir) / f"seed={seed}"
+
+
+def complete_save(run_dir: Path, name: str = "last") -> None:
+    """Finish or drop an interrupted :meth:`Population.save_all`: with its commit record,
+    the staged checkpoints replace the old ones; without it, they are removed."""
+    record = Path(run_dir) / f".{name}.commit"
+    if record.is_file():
+        for staged in json.loads(record.read_text()):
+            staged = Path(staged)
+            if staged.is_file():
+                os.replace(staged, staged.with_name(f"{name}.pt"))
+        record.unlink()
+    for staged in Path(run_dir).glob(f"seed=*/checkpoints/{name}.staged.pt"):
+        staged.unlink()
 
 
 class Member:
@@ -127,6 +144,8 @@ class Population:
         self.interrupt = DeferredInterrupt()
         self.total_steps = tr.episodes * p.episode_steps
         self.episode = 0  # per member
+        self.identity: dict | None = None  # the population folder's (set by train.prepare)
+        self.run_lock = None  # the population folder's lock, released when fit ends
 
     # ------------------------------------------------------------------ steps
     def collect(self) -> list[list[dict[str, Any]]]:
@@ -165,8 +184,8 @@ class Population:
             if is_best:
                 m.best_eval = record["return"]
                 self.save(i, "best")
-            self.save(i, "last")
             returns.append(record["return"])
+        self.save_all("last")
         return returns
 
     # ------------------------------------------------------------------ checkpoints
@@ -181,12 +200,26 @@ class Population:
 
     def save(self, i: int, name: str) -> Path:
         path = self.members[i].run_dir / "checkpoints" / f"{name}.pt"
-        save_checkpoint(self.member_state_dict(i), path)
+        try:
+            save_checkpoint(self.member_state_dict(i), path)
+        except (OSError, RuntimeError) as e:
+            raise write_error(e, self.run_dir) from None
         return path
 
     def save_all(self, name: str) -> None:
+        """Every member's ``<name>.pt`` at this episode, all or none: each is written
+        beside its old one (``<name>.staged.pt``), then a commit record in the population
+        folder says they are complete, then they replace the old ones. A kill in between
+        leaves either the old set (no record: the staged files are dropped on resume) or
+        a record that :func:`complete_save` finishes."""
+        staged = []
         for i in range(self.n):
-            self.save(i, name)
+            staged.append(self.save(i, f"{name}.staged"))
+        record = self.run_dir / f".{name}.commit"
+        tmp = record.with_name(record.name + ".tmp")
+        tmp.write_text(json.dumps([str(p) for p in staged]))
+        os.replace(tmp, record)
+        complete_save(self.run_dir, name)
 
     def load(self) -> None:
         """Continue every member from its ``last.pt`` (written at the same episode)."""
@@ -199,8 +232,17 @@ class Population:
                 f"member cannot be rewound. Start the population again in a new folder.")
         env_rng = self.collector.env.base_env.rng
         buffers = True
+        seeds = [m.seed for m in self.members]
         for i, (m, st) in enumerate(zip(self.members, states, strict=True)):
-            check_compatible(st, m.cfg, m.run_dir / "checkpoints" / "last.pt")
+            path = m.run_dir / "checkpoints" / "last.pt"
+            check_identity(st, self.run_dir, path)
+            pop = st.get("population") or {}
+            if list(pop.get("seeds", [])) != seeds or pop.get("member") != i:
+                raise CheckpointError(
+                    f"{path} is not member {i} (seed {m.seed}) of this population of seeds "
+                    f"{seeds}: it belongs to another run. Put this member's own last.pt "
+                    f"back, or resume the population it came from.")
+            check_compatible(st, m.cfg, path)
             self.learner.load_member(i, st["learner"])
             m.best_eval = float(st["counters"]["best_eval"])
             buffers &= restore_streams(st, self.gen.gens[i], env_rng.gens[i],
@@ -226,8 +268,8 @@ class Population:
                 self.progress.last_eval = sum(self.evaluate()) / self.n
             if self.interrupt.requested:
                 self.save_all("last")
-                raise Interrupted(f"interrupted at episode {self.episode}: saved every "
-                                  f"member's last.pt; continue with resume={self.run_dir}")
+                self.interrupt.stop(f"interrupted at episode {self.episode}: saved every "
+                                    f"member's last.pt; continue with resume={self.run_dir}")
 
     def fit(self) -> dict[str, Any]:
         """Train every member to ``train.episodes`` (see :meth:`Experiment.fit`)."""
