@@ -1,4 +1,4 @@
-"""Physics against hand-computed values (SPEC §3, §4, §5)."""
+"""Physics against hand-computed values (docs/model.md §3, §4, §5)."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """The service shortcut (distance radii per LoS state) against a direct SNR computation
-written here from SPEC §3, for several beam grids, thresholds and LoS modes."""
+written here from docs/model.md §3, for several beam grids, thresholds and LoS modes."""
 
 from __future__ import annotations
 

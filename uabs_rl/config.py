@@ -39,7 +39,7 @@ N_MOVES = 4  # the actions: up, right, down, left (uabs_rl.env.N_ACTIONS)
 # to members by name: ``masking.mode: flat`` -> ``MaskingMode.flat``; Hydra rejects
 # any other value when the config is composed.
 class MaskingMode(StrEnum):
-    """The anti-collision mechanism (SPEC §6); its rules live in ``uabs_rl.masking``."""
+    """The anti-collision mechanism (docs/model.md §6); its rules live in ``uabs_rl.masking``."""
 
     penalty = "penalty"
     flat = "flat"
@@ -54,7 +54,7 @@ class RankNextMask(StrEnum):
 
 
 class LosMode(StrEnum):
-    """How a link's LoS state is decided (SPEC §3)."""
+    """How a link's LoS state is decided (docs/model.md §3)."""
 
     sample = "sample"
     expected = "expected"
@@ -146,7 +146,7 @@ class TracesConfig:
 
 @dataclass
 class ScenarioConfig:
-    """The city, its vehicles, and the UABS fleet flying over it (SPEC §1, §4, §5)."""
+    """The city, its vehicles, and the UABS fleet flying over it (docs/model.md §1, §4, §5)."""
 
     name: str = "manhattan"
     area: AreaConfig = field(default_factory=AreaConfig)
@@ -180,7 +180,7 @@ class ScenarioConfig:
 
 @dataclass
 class ChannelConfig:
-    """3GPP TR 38.901 UMa uplink, GUE to UABS, with a k×k beam grid (SPEC §3)."""
+    """3GPP TR 38.901 UMa uplink, GUE to UABS, with a k×k beam grid (docs/model.md §3)."""
 
     name: str = "uma"
     carrier_ghz: float = 30.0  # f_c
@@ -202,7 +202,7 @@ class ChannelConfig:
 
 @dataclass
 class MaskingConfig:
-    """Anti-collision mechanism (SPEC §6)."""
+    """Anti-collision mechanism (docs/model.md §6)."""
 
     mode: MaskingMode = MaskingMode.rank  # penalty | flat | rank
     flat_margin: float | None = None  # flat: unsafe below d_th + this; null = v·δt (paper)
@@ -210,7 +210,7 @@ class MaskingConfig:
     # [decision] next-state mask of the double-DQN target in rank mode: "greedy" = the
     # masks a greedy rank selection would apply at s'; "boundary" = boundary mask only
     rank_next_mask: RankNextMask = RankNextMask.greedy
-    # [decision] recoverable flat and rank masks (SPEC §6): every UABS always keeps a
+    # [decision] recoverable flat and rank masks (docs/model.md §6): every UABS always keeps a
     # legal move that is safe, so no fallback is ever needed; false = the paper's
     # literal rules (fallbacks possible, pairs may end closer than d_th)
     recoverable: bool = True
@@ -229,8 +229,8 @@ def validate_masking(masking: MaskingConfig) -> None:
 
 @dataclass
 class AlgoConfig:
-    """3DQN: shared dueling double DQN (SPEC §7). Defaults follow the authors' single-UABS
-    3DQN where the paper is silent (see README, "Hyper-parameters")."""
+    """3DQN: shared dueling double DQN (docs/model.md §7). Defaults follow the authors' single-UABS
+    3DQN where the paper is silent (see docs/configuration.md, "Learning hyper-parameters")."""
 
     name: str = "dqn3"
     hidden: list[int] = field(default_factory=lambda: [256, 256])  # MLP trunk widths
@@ -253,7 +253,7 @@ class AlgoConfig:
 
 @dataclass
 class TrainConfig:
-    """Training protocol (SPEC §7, §8)."""
+    """Training protocol (docs/model.md §7, §8)."""
 
     episodes: int = 1000  # N_t
     eval_every: int = 20  # N_e: greedy evaluation on held-out traces every N_e episodes
@@ -263,7 +263,7 @@ class TrainConfig:
     n_envs: int = 1
     # seeds trained together in one process: seed, seed + 1, ..., seed + population - 1,
     # their episodes side by side in one env and their networks stacked (batched
-    # products); each member writes a solo run's folder, <run>/seed=<s>/ (README,
+    # products); each member writes a solo run's folder, <run>/seed=<s>/ (docs/scaling.md,
     # "Population training", says what differs from training each alone)
     population: int = 1
     checkpoint_buffer: bool = False  # also store the replay buffer in checkpoints (~20 MB)

@@ -1,4 +1,5 @@
-"""``UABSEnv``: a batched TorchRL environment replaying cached vehicle traces (SPEC §1, §3-§5).
+"""``UABSEnv``: a batched TorchRL environment replaying cached vehicle traces
+(docs/model.md §1, §3-§5).
 
 Batch ``[n_envs]``; one agent group ``"agents"`` with nested batch ``(n_envs, M)``.
 The physics live in plain tensor code elsewhere: :mod:`uabs_rl.geometry` (lattice,
@@ -7,7 +8,7 @@ starts, boundary, distances), :class:`uabs_rl.links.LinkModel` (beams and servic
 one step on plain tensors, so a benchmark can time it without any TensorDict and a test
 can call it directly; ``UABSEnv`` only moves state in and out of TensorDicts.
 
-Order inside a step (SPEC §5): agents move → vehicles advance to t+1 → served flags
+Order inside a step (docs/model.md §5): agents move → vehicles advance to t+1 → served flags
 at t+1 → priorities p_{t+1} → per-beam sums b_{t+1} → rewards and observations.
 """
 

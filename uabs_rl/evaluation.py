@@ -1,4 +1,4 @@
-"""Greedy evaluation on fixed held-out windows (SPEC §8): needs only an eval env and a
+"""Greedy evaluation on fixed held-out windows (docs/model.md §8): needs only an eval env and a
 policy (a Q-network with the masking rule's selector, or a baseline); no trainer,
 replay buffer or optimiser."""
 

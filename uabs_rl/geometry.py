@@ -1,4 +1,4 @@
-"""UABS geometry (SPEC §1, §6, §8): the lattice, start positions, the boundary mask,
+"""UABS geometry (docs/model.md §1, §6, §8): the lattice, start positions, the boundary mask,
 pair distances and the closest approach between two steps, as batched tensor math."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""3DQN updates: double DQN with a target network, Huber loss, Adam (SPEC §7).
+"""3DQN updates: double DQN with a target network, Huber loss, Adam (docs/model.md §7).
 
 Two implementations of the same loss, selected by ``algo.loss``:
 

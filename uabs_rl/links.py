@@ -1,4 +1,4 @@
-"""Which vehicles each UABS's beams cover and which of them are served (SPEC §3),
+"""Which vehicles each UABS's beams cover and which of them are served (docs/model.md §3),
 batched over ``[E, M, V]`` links, from the channel functions of :mod:`uabs_rl.channel`."""
 
 from __future__ import annotations
@@ -91,7 +91,7 @@ def _radius(ok, hi: float = 1e6, iters: int = 80) -> float:
 
 
 class LinkModel:
-    """Which vehicles each UABS's beams cover and which are served (SPEC §3), batched
+    """Which vehicles each UABS's beams cover and which are served (docs/model.md §3), batched
     over ``[E, M, V]`` links.
 
     Without shadowing the SNR falls monotonically with distance, so "served" is "closer

@@ -1,4 +1,4 @@
-"""Anti-collision mechanisms (SPEC §6): one rule class per masking mode.
+"""Anti-collision mechanisms (docs/model.md §6): one rule class per masking mode.
 
 Every mode is a :class:`MaskingRule`, registered under its :class:`MaskingMode` in
 :data:`RULES`; this is the only module that tells modes apart. A rule says
@@ -331,7 +331,7 @@ class FlatRule(MaskingRule):
 @register
 class RankRule(MaskingRule):
     """Agents choose in rank order; a lower-ranked agent may not end closer than d_th to
-    the chosen next position of a higher-ranked potential collider (SPEC §6).
+    the chosen next position of a higher-ranked potential collider (docs/model.md §6).
 
     Target mask at s' (``masking.rank_next_mask``): a lower-ranked agent's mask depends
     on what the higher-ranked ones will choose there, unknown when the transition is

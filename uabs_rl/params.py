@@ -1,5 +1,5 @@
 """``EnvParams``: every number the environment's physics needs, derived once from the
-scenario and channel configs (SPEC §1, §3-§5)."""
+scenario and channel configs (docs/model.md §1, §3-§5)."""
 
 from __future__ import annotations
 

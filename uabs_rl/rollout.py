@@ -1,4 +1,4 @@
-"""Collection (SPEC §7): ε-greedy episodes in the training env, every agent's step stored
+"""Collection (docs/model.md §7): ε-greedy episodes in the training env, every agent's step stored
 as one transition of the shared replay buffer, and the update schedule that interleaves
 gradient steps with env steps."""
 

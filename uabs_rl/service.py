@@ -1,4 +1,4 @@
-"""Service bookkeeping (SPEC §4): which trace rows an env replays, priorities, per-beam
+"""Service bookkeeping (docs/model.md §4): which trace rows an env replays, priorities, per-beam
 priority sums, service windows and P_g. Plain functions on batched tensors; the state
 ``st`` is the env's dict of ``[E, ...]`` tensors, updated in place."""
 
@@ -45,7 +45,7 @@ def beam_sums(inside: torch.Tensor, beam: torch.Tensor, priority: torch.Tensor,
 
 def update_service(st: dict[str, torch.Tensor], served: torch.Tensor, present: torch.Tensor,
                    window_steps: int) -> None:
-    """Priorities, per-window served counts and the P_g tallies (SPEC §4), in place.
+    """Priorities, per-window served counts and the P_g tallies (docs/model.md §4), in place.
     ``st["t"]`` is the step the flags belong to."""
     n = window_steps
     t = st["t"]
