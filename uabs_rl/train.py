@@ -342,10 +342,13 @@ def summary_text(cfg: RunConfig, summary: dict[str, Any], run_dir: Path) -> str:
                 ("collisions", "collisions"), ("proximity", "proximity events"),
                 ("fallbacks", "mask fallbacks"))) + f" in {len(train)} episodes")
     q = shlex.quote(str(run_dir))
+    # a sweep's job: the report over the whole sweep (it groups the sweep's settings)
+    sweep = run_dir.parent if (run_dir.parent / "multirun.yaml").is_file() else run_dir
+    report_dir = shlex.quote(str(sweep))
     lines += ["next:",
               f"  {command('uabs-eval')} {q} --policy all   # test traces, beside the "
               f"baselines, with CIs",
-              f"  {command('uabs-report')} {q}   # tables and figures of "
+              f"  {command('uabs-report')} {report_dir}   # tables and figures of "
               f"the runs in that folder"]
     logger = LoggerKind(cfg.train.logger)
     if logger is LoggerKind.tensorboard:
