@@ -126,3 +126,13 @@ def test_help_lists_every_group_option_and_shows_the_command_lines_values():
                         flags=re.M)
     assert len(listed) >= 20
     assert all(setting_exists(k) for k in listed), [k for k in listed if not setting_exists(k)]
+
+
+def test_every_test_that_bad_inputs_md_names_exists():
+    text = (PROJECT_ROOT / "docs" / "bad_inputs.md").read_text()
+    named = set(re.findall(r"(test_\w+\.py)::(test_\w+)", text))
+    assert len(named) > 50
+    missing = [f"{f}::{t}" for f, t in sorted(named)
+               if not re.search(rf"^def {t}\(", (PROJECT_ROOT / "tests" / f).read_text(),
+                                re.MULTILINE)]
+    assert not missing
