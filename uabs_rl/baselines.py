@@ -10,6 +10,9 @@ action, so baselines obey exactly the masks the learned policy obeys.
 * ``oracle``: the same with the vehicles' true next positions: an optimistic reference
   no deployable policy can see.
 * the coverage bound min(1, M·B·π·r_b² / (W·H)) is :func:`uabs_rl.channel.coverage_bound`.
+
+Beyond these (:mod:`uabs_rl.planner`): the ``kmeans`` and ``junctions`` heuristics and
+the ``planner``, a receding-horizon plan over the vehicles' true future positions.
 """
 
 from __future__ import annotations
@@ -24,6 +27,8 @@ from uabs_rl.masking import ACTION_VALUE, MaskedActionSelector
 from uabs_rl.service import move_scores
 
 BASELINES = ("random", "greedy", "oracle")
+HEURISTICS = ("kmeans", "junctions")  # classic heuristics (uabs_rl.planner)
+PLANNER = "planner"  # the receding-horizon planning reference (uabs_rl.planner)
 
 
 class CoverageScore(TensorDictModuleBase):
@@ -46,15 +51,31 @@ class CoverageScore(TensorDictModuleBase):
 
 
 def baseline_policy(name: str, env: TransformedEnv, selector: MaskedActionSelector,
-                    seed: int = 0) -> TensorDictModuleBase:
-    """The baseline ``name`` as a policy for ``env`` (a transformed UABS env)."""
-    if name not in BASELINES:
-        raise ValueError(f"unknown baseline {name!r}: choose from {BASELINES}")
+                    seed: int = 0, horizon: int = 1,
+                    sites: torch.Tensor | None = None) -> TensorDictModuleBase:
+    """The baseline ``name`` (one of BASELINES, HEURISTICS or PLANNER) as a policy for
+    ``env`` (a transformed UABS env). ``horizon``: the planner's; ``sites [M, 2]``: the
+    junctions heuristic's sites (:func:`uabs_rl.planner.junction_sites`)."""
+    from uabs_rl.planner import ClusterScore, PlannerScore, SiteScore
+
+    names = (*BASELINES, *HEURISTICS, PLANNER)
+    if name not in names:
+        raise ValueError(f"unknown baseline {name!r}: choose from {names}")
+    if name == "junctions" and sites is None:
+        raise ValueError("the junctions baseline needs its sites (planner.junction_sites)")
     gen = torch.Generator(device=env.base_env.device)
     gen.manual_seed(seed)
     if name == "random":
         selector.eps.fill_(1.0)
         selector.generator = gen
         return selector
-    score = CoverageScore(env.base_env, lookahead=1 if name == "oracle" else 0, generator=gen)
+    base = env.base_env
+    if name == PLANNER:
+        score = PlannerScore(base, horizon, gen)
+    elif name == "kmeans":
+        score = ClusterScore(base, gen)
+    elif name == "junctions":
+        score = SiteScore(base, gen, sites)
+    else:
+        score = CoverageScore(base, lookahead=1 if name == "oracle" else 0, generator=gen)
     return TensorDictSequential(score, selector)

@@ -2,6 +2,7 @@
 
     uabs-eval outputs/runs/<run dir>                 # best checkpoint, test traces
     uabs-eval outputs/runs/<run dir> --policy all    # + random, greedy, oracle baselines
+    uabs-eval outputs/runs/<run dir> --policy all --policy planner --horizon 10
     uabs-eval path/to/last.pt --split eval --windows 20 --gif
     uabs-eval outputs/runs/<run dir> scenario.sumo.fleet_size=120 channel.los_mode=los
     uabs-eval outputs/runs/<run dir> --config-dir myconf scenario=grid6   # another city
@@ -13,7 +14,12 @@ numbers, fractions as percentages, their differences in percentage points) and w
 ``eval.json`` (fractions as fractions): the split, per policy R, collisions, proximity
 events, fallbacks, served fraction, P_g at N̂_s, the whole P_g(N̂_s) curve and the
 per-window values, and with baselines the paired differences learned − baseline
-(same windows, same masks) with bootstrap 95 % confidence intervals. Also a
+(same windows, same masks) with bootstrap 95 % confidence intervals. ``--policy`` may
+be given more than once; beyond ``all`` (learned, random, greedy, oracle) it takes the
+``kmeans`` and ``junctions`` heuristics and ``planner``, a receding-horizon plan over
+the vehicles' true future positions ``--horizon`` steps ahead (an upper reference, not
+a deployable policy; its cost per window is printed). With learned, greedy and planner
+together it also prints the learned policy's share of the greedy-to-planner gap. Also a
 trajectory picture per policy and, with ``--gif``, an animation of one episode of the
 learned policy, into ``<run dir>/evaluation/`` (or ``--out``, checked before anything
 is evaluated).
@@ -37,15 +43,17 @@ import argparse
 import json
 import os
 import sys
+import time
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
+import torch
 from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 from tensordict.nn import TensorDictModuleBase
 
-from uabs_rl.baselines import BASELINES, baseline_policy
+from uabs_rl.baselines import BASELINES, HEURISTICS, PLANNER, baseline_policy
 from uabs_rl.checkpoint import (
     CheckpointError,
     check_finite,
@@ -67,9 +75,11 @@ from uabs_rl.evaluation import Evaluator, greedy_policy, make_eval_env
 from uabs_rl.make import make_selector, resolve_device
 from uabs_rl.model import DuelingQNet
 from uabs_rl.params import EnvParams
+from uabs_rl.planner import gap_share, junction_sites
 from uabs_rl.stats import paired_difference
 
-POLICIES = ("learned", *BASELINES)
+POLICIES = ("learned", *BASELINES)  # --policy all
+CHOICES = (*POLICIES, *HEURISTICS, PLANNER)  # every --policy
 
 
 @dataclass
@@ -274,19 +284,36 @@ def make_out_dir(out: Path, given: bool) -> None:
                           f"a folder you can write with --out.") from None
 
 
-def evaluate_policies(ev: Evaluation, policies: tuple[str, ...],
-                      seed: int = 0) -> dict[str, tuple[dict[str, Any], Any]]:
-    """Records and rollouts of each policy on the same held-out windows and masks."""
+def evaluate_policies(ev: Evaluation, policies: tuple[str, ...], seed: int = 0,
+                      horizon: int = 1) -> dict[str, tuple[dict[str, Any], Any]]:
+    """Records and rollouts of each policy on the same held-out windows and masks
+    (``horizon``: the planner's). The planner's record holds its ``horizon`` and
+    ``seconds``, the wall time of its rollout of all the windows side by side."""
     results = {}
     env = ev.evaluator.env
     for name in policies:
         if name == "learned":
             policy = ev.greedy
         else:
-            policy = baseline_policy(name, env, make_selector(env, ev.cfg.masking), seed)
+            sites = junction_sites(ev.cfg, env.base_env) if name == "junctions" else None
+            policy = baseline_policy(name, env, make_selector(env, ev.cfg.masking), seed,
+                                     horizon=horizon, sites=sites)
+        t0 = time.perf_counter()
         results[name] = ev.evaluator.evaluate(policy, ev.episode, ev.env_steps)
         results[name][0]["policy"] = name
+        if name == PLANNER:
+            results[name][0].update(horizon=horizon, seconds=time.perf_counter() - t0)
     return results
+
+
+def gap_shares(results: dict[str, tuple[dict, Any]]) -> dict[str, dict]:
+    """The learned policy's share of the greedy-to-planner gap per metric (served
+    fraction, P_g), per window paired, with bootstrap CIs; {} unless all three ran."""
+    if not {"learned", "greedy", PLANNER} <= set(results):
+        return {}
+    recs = {k: results[k][0] for k in ("learned", "greedy", PLANNER)}
+    return {m: gap_share(*(r[METRICS[m]] for r in recs.values()))
+            for m in ("served_fraction", "pg")}
 
 
 METRICS = {"return": "returns", "served_fraction": "served_fractions", "pg": "pgs"}
@@ -341,6 +368,21 @@ def _print_differences(diffs: dict[str, dict[str, dict]]) -> None:
             .rstrip())
 
 
+def _print_planner(results: dict[str, tuple[dict, Any]], shares: dict[str, dict]) -> None:
+    if PLANNER not in results:
+        return
+    rec = results[PLANNER][0]
+    print(f"\nplanner: horizon {rec['horizon']}, {rec['seconds'] / rec['windows']:.2f} s per "
+          f"window ({rec['windows']} windows side by side, {rec['seconds']:.1f} s, "
+          f"{torch.get_num_threads()} torch thread(s)); it knows the vehicles' future "
+          f"positions: an upper reference, not a deployable policy")
+    for m, d in shares.items():
+        name = DIFF_FORMATS[m][0]
+        print(f"learned share of the greedy-to-planner gap, {name}: {100 * d['share']:.0f} % "
+              f"[{100 * d['ci_low']:.0f}, {100 * d['ci_high']:.0f}] (95 % bootstrap CI "
+              f"over windows)")
+
+
 def _print_table(results: dict[str, tuple[dict, Any]], nhat: int) -> None:
     heads = ("R", "R std", "collisions", "proximity", "fallbacks", "served",
              f"P_g(N̂s={nhat})")
@@ -365,7 +407,12 @@ def main(argv: list[str] | None = None) -> int:
                          "before the package's conf/; may be repeated")
     ap.add_argument("--checkpoint", choices=("best", "last"), default="best",
                     help="which checkpoint of a run directory (default: best)")
-    ap.add_argument("--policy", choices=(*POLICIES, "all"), default="learned")
+    ap.add_argument("--policy", choices=(*CHOICES, "all"), action="append",
+                    help="what to evaluate, may be repeated: learned (default), the "
+                         "random, greedy and oracle baselines, all (these four), the "
+                         "kmeans and junctions heuristics, planner (see --horizon)")
+    ap.add_argument("--horizon", type=int, default=10,
+                    help="the planner's horizon in steps (default 10; 1 = the oracle)")
     ap.add_argument("--split", choices=("test", "eval"), default="test",
                     help="test traces (default; never seen by training or selection) or "
                          "eval, the validation traces training evaluated on")
@@ -377,6 +424,8 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_intermixed_args(argv)
     if args.windows is not None and args.windows < 1:
         ap.error(f"--windows must be >= 1, got {args.windows}")
+    if args.horizon < 1:
+        ap.error(f"--horizon must be >= 1, got {args.horizon}")
     out = args.out or default_out_dir(args.path, args.overrides)
     try:  # the output folder is checked before anything is evaluated
         find_checkpoint(args.path, args.checkpoint)
@@ -387,8 +436,9 @@ def main(argv: list[str] | None = None) -> int:
     except (CheckpointError, ConfigError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    policies = POLICIES if args.policy == "all" else (args.policy,)
-    results = evaluate_policies(ev, policies)
+    policies = tuple(dict.fromkeys(
+        q for p in args.policy or ["learned"] for q in (POLICIES if p == "all" else [p])))
+    results = evaluate_policies(ev, policies, horizon=args.horizon)
     n = ev.evaluator.env.base_env.n_envs
     tc = getattr(ev.cfg.traces, args.split)
     print(f"split: {args.split} (traces.{args.split}: SUMO seeds {tc.first_seed}.."
@@ -399,10 +449,13 @@ def main(argv: list[str] | None = None) -> int:
     _print_table(results, ev.evaluator.params.nhat_s)
     diffs = differences(results)
     _print_differences(diffs)
+    shares = gap_shares(results)
+    _print_planner(results, shares)
     (out / "eval.json").write_text(json.dumps(
         {"split": args.split, "windows": n, "checkpoint": args.checkpoint,
          "overrides": args.overrides, "scenario": ev.cfg.scenario.name,
-         "policies": {k: r for k, (r, _) in results.items()}, "differences": diffs},
+         "policies": {k: r for k, (r, _) in results.items()}, "differences": diffs,
+         **({"gap_share": shares} if shares else {})},
         indent=1))
     _write_pictures(ev, results, out, args.gif, args.split)
     print(f"wrote {out / 'eval.json'} and pictures under {out}")
