@@ -26,8 +26,10 @@ QUIET = ["train.trajectory_images=false", "train.logger=none", "train.threads=1"
 
 
 def uabs_train(cwd: Path, *args: str, env: dict | None = None) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "uabs_rl.train", "train.progress=false",
-                             *args], cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+    flags = [a for a in args if a.startswith("-")]  # Hydra's flags before the overrides
+    return subprocess.Popen([sys.executable, "-m", "uabs_rl.train", *flags,
+                             "train.progress=false", *(a for a in args if a not in flags)],
+                            cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, env=None if env is None else {**os.environ, **env})
 
 
@@ -290,3 +292,22 @@ def test_bad_run_folders_and_ctrl_c_while_loading_are_one_line(trace_cache, tmp_
     p.send_signal(signal.SIGINT)
     _, err = p.communicate(timeout=120)
     assert p.returncode == 130 and err.strip() == "interrupted", err[-2000:]
+
+
+def test_a_sweep_retyped_with_resume_continues_every_job(trace_cache, tmp_path):
+    sweep = ["-m", "experiment=smoke", "masking=flat,rank", f"traces.cache_dir={trace_cache}",
+             *QUIET, "train.episodes=3", "hydra.sweep.dir=sweep"]
+    p = uabs_train(tmp_path, *sweep)
+    _, err = p.communicate(timeout=300)
+    assert p.returncode == 0, err[-2000:]
+    jobs = sorted(d for d in (tmp_path / "sweep").iterdir() if d.is_dir())
+    assert len(jobs) == 2
+    first = {j: load_checkpoint(j / "checkpoints" / "last.pt")["run"]["id"] for j in jobs}
+    p = uabs_train(tmp_path, *sweep, f"resume={tmp_path / 'sweep'}")
+    _, err = p.communicate(timeout=300)
+    assert p.returncode == 0, err[-2000:]
+    for j in jobs:  # each job continued its own run (finished: nothing appended)
+        assert f"resuming {j}" in err
+        assert episodes(j) == [1, 2, 3]
+        assert load_checkpoint(j / "checkpoints" / "last.pt")["run"]["id"] == first[j]
+    assert sorted(d for d in (tmp_path / "sweep").iterdir() if d.is_dir()) == jobs
