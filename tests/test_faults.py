@@ -311,3 +311,25 @@ def test_a_sweep_retyped_with_resume_continues_every_job(trace_cache, tmp_path):
         assert episodes(j) == [1, 2, 3]
         assert load_checkpoint(j / "checkpoints" / "last.pt")["run"]["id"] == first[j]
     assert sorted(d for d in (tmp_path / "sweep").iterdir() if d.is_dir()) == jobs
+
+
+@pytest.mark.parametrize("damage", [b'{"kind": "train", "epis', b"17", b"\xff\xfe{}",
+                                    b'{"kind": "train", "episode": "3", "env_steps": 60}'])
+def test_a_damaged_line_before_the_last_is_refused_on_resume(trace_cache, tmp_path, damage):
+    run_dir = tmp_path / "run"
+    run(smoke(trace_cache, *QUIET, "train.episodes=3"), run_dir)
+    original = (run_dir / "metrics.jsonl").read_bytes().splitlines()
+    lines = [*original[:1], damage, *original[2:]]
+    (run_dir / "metrics.jsonl").write_bytes(b"\n".join(lines) + b"\n")
+    before = (run_dir / "metrics.jsonl").read_bytes()
+    exp = prepare(smoke(trace_cache, f"resume={run_dir}", "train.episodes=6"), Path("x"),
+                  overrides=[f"resume={run_dir}", "train.episodes=6"])
+    with pytest.raises(RunFolderError, match=rf"metrics\.jsonl, line 2 of {len(lines)}, is "
+                                             r"damaged"):
+        exp.fit()
+    assert (run_dir / "metrics.jsonl").read_bytes() == before  # nothing dropped
+    # the same damage on the last line is a write cut by a crash: repaired
+    (run_dir / "metrics.jsonl").write_bytes(b"\n".join([*original, damage]))
+    run(smoke(trace_cache, f"resume={run_dir}", "train.episodes=6"), Path("x"),
+        overrides=[f"resume={run_dir}", "train.episodes=6"])
+    assert episodes(run_dir) == [1, 2, 3, 4, 5, 6]

@@ -25,6 +25,7 @@ from tensordict import TensorDictBase
 
 from uabs_rl.config import ConfigError, LoggerKind, RunConfig
 from uabs_rl.evaluation import Evaluator
+from uabs_rl.runfolder import RunFolderError
 
 # record fields that count or index rather than measure: kept in metrics.jsonl, never
 # plotted as curves
@@ -230,18 +231,26 @@ class RunLog:
             self.logger = None
 
     def truncate(self, episode: int) -> list[dict[str, Any]]:
-        """Keep the records of episodes up to ``episode`` (and no half-written line);
-        returns them."""
+        """Keep the records of episodes up to ``episode`` and drop a last line cut by a
+        crash; returns the records kept. A damaged line before the last one was not cut
+        by a crash (the file was edited or mixed): refused, naming it, nothing changed."""
         if not self.metrics_path.exists():
             return []
         keep, recs = [], []
-        for line in self.metrics_path.read_text().splitlines():
-            try:
-                rec = json.loads(line)
-            except json.JSONDecodeError:
-                continue  # a line cut by a crash
-            if rec.get("episode", 0) <= episode:
-                keep.append(line + "\n")
+        lines = self.metrics_path.read_bytes().splitlines()
+        while lines and not lines[-1].strip():
+            lines.pop()
+        for i, raw in enumerate(lines, 1):
+            rec = _record(raw)
+            if isinstance(rec, str):
+                if i == len(lines):
+                    break  # a line cut by a crash
+                raise RunFolderError(
+                    f"{self.metrics_path}, line {i} of {len(lines)}, is damaged ({rec}): "
+                    f"only a last line cut by a crash is repaired on resume. Restore the "
+                    f"file, or remove that line, and resume again.")
+            if rec["episode"] <= episode:
+                keep.append(raw.decode() + "\n")
                 recs.append(rec)
         tmp = self.metrics_path.with_suffix(".jsonl.tmp")
         tmp.write_text("".join(keep))
@@ -325,6 +334,21 @@ def _is_timestamp(name: str) -> bool:
     except ValueError:
         return False
     return True
+
+
+def _record(raw: bytes) -> dict[str, Any] | str:
+    """A metrics.jsonl line as its record, or why it is not one."""
+    try:
+        rec = json.loads(raw.decode())
+    except UnicodeDecodeError:
+        return "not UTF-8 text"
+    except json.JSONDecodeError as e:
+        return f"not JSON: {e.msg}"
+    if not isinstance(rec, dict) or rec.get("kind") not in ("train", "eval"):
+        return "not a train or eval record"
+    if not isinstance(rec.get("episode"), int) or not isinstance(rec.get("env_steps"), int):
+        return "its episode or env_steps is not a whole number"
+    return rec
 
 
 def truncate_csv(scalars: Path, cutoff: int) -> None:
