@@ -333,3 +333,27 @@ def test_a_damaged_line_before_the_last_is_refused_on_resume(trace_cache, tmp_pa
     run(smoke(trace_cache, f"resume={run_dir}", "train.episodes=6"), Path("x"),
         overrides=[f"resume={run_dir}", "train.episodes=6"])
     assert episodes(run_dir) == [1, 2, 3, 4, 5, 6]
+
+
+def test_a_failed_checkpoint_write_leaves_the_old_file_and_no_temporary(tmp_path, monkeypatch):
+    from uabs_rl import checkpoint
+
+    path = tmp_path / "checkpoints" / "last.pt"
+    checkpoint.save_checkpoint({"format": 1, "x": torch.ones(3)}, path)
+    before = path.read_bytes()
+
+    def full(obj, f):  # a write that fills the disk halfway
+        f.write(b"PK\x03\x04 half")
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(checkpoint.torch, "save", full)
+    with pytest.raises(OSError, match="No space left"):
+        checkpoint.save_checkpoint({"format": 1, "x": torch.zeros(3)}, path)
+    assert path.read_bytes() == before
+    assert sorted(p.name for p in path.parent.iterdir()) == ["last.pt"]
+    shutil.rmtree(tmp_path / "checkpoints")  # the run folder's content removed mid-run
+    (tmp_path / "gone").mkdir()
+    shutil.rmtree(tmp_path / "gone")
+    with pytest.raises(FileNotFoundError):  # not made again behind the user's back
+        checkpoint.save_checkpoint({"format": 1}, tmp_path / "gone" / "checkpoints" / "x.pt")
+    assert not (tmp_path / "gone").exists()

@@ -66,11 +66,18 @@ class UnreadableFile(Exception):
 
 
 def save_checkpoint(state: dict, path: Path) -> None:
-    """Atomic write: a crash or Ctrl-C mid-write never damages the previous file."""
-    path.parent.mkdir(parents=True, exist_ok=True)
+    """Atomic write: a crash or Ctrl-C mid-write never damages the previous file, and a
+    failed write (a full disk) leaves no temporary file. Only ``checkpoints/`` itself is
+    made: a run folder removed while the run writes it is not made again."""
+    path.parent.mkdir(exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    torch.save(state, tmp)
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "wb") as f:  # through a file, a full disk is OSError(ENOSPC)
+            torch.save(state, f)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def read_weights(path: Path) -> Any:
