@@ -65,7 +65,9 @@ class PlannerScore(TensorDictModuleBase):
 
     The score of move a of UABS u is the oracle's (the priority under u's footprints
     after a, at the vehicles' next positions and current priorities) plus the best
-    value of steps 2..H over the paths that start with a. Step k of a path earns the
+    value of steps 2..H over the paths that start with a (the first step is scored
+    alone, as the oracle scores it: the others' first moves are settled only when the
+    masked selector runs, in rank order under rank masks). Step k of a path earns the
     priority (at least 1 per present vehicle) of the vehicles under its footprints that
     no other UABS's plan covers at step k, with the priorities simulated along the path
     (+1 per served step, 1 at each window start and for an arriving vehicle, §4), so a
