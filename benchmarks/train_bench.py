@@ -12,11 +12,23 @@ of 80 steps, one update per step) and the share of the time spent in the environ
 Evaluation is excluded.
 With ``train.population=P`` the figures are per member: a member's episodes per minute
 and ms per member env step, so they compare with a solo run's directly.
+
+    python benchmarks/train_bench.py --threads        # default vs train.threads=1, 2
+    python benchmarks/train_bench.py --busy --turns 2 # the same beside a busy core
+
+``--threads`` measures the default thread count (``uabs_rl.make.resolve_threads``) and
+``train.threads=1``, ``2`` (and all CPUs, if more), each in its own process, in turn,
+and prints ms per env step with the ratio to the best; ``--busy`` does it beside one
+other process keeping a core busy (a Python busy loop), as on a shared machine.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import re
+import subprocess
+import sys
 import tempfile
 import time
 from collections import defaultdict
@@ -26,6 +38,7 @@ import torch
 
 from uabs_rl.config import compose
 from uabs_rl.experiment import Experiment
+from uabs_rl.make import resolve_threads, usable_cpus
 from uabs_rl.population import Population
 
 SPENT: dict[str, float] = defaultdict(float)
@@ -57,13 +70,11 @@ def wrap(obj, attr: str, name: str, outside_update: bool = False) -> None:
     setattr(obj, attr, inner)
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--episodes", type=int, default=30)
-    ap.add_argument("overrides", nargs="*", help="uabs-train overrides")
-    args = ap.parse_args()
-    cfg = compose("config", ["train.progress=false", "train.logger=none",
-                                 *args.overrides])
+def measure(overrides: list[str], n_episodes: int) -> None:
+    """Train ``n_episodes`` after filling the buffer; print the figures."""
+    cfg = compose("config", ["train.progress=false", "train.logger=none", *overrides])
+    threads, why = resolve_threads(cfg)
+    torch.set_num_threads(threads)  # as uabs-train does
     kind = Population if cfg.train.population > 1 else Experiment
     tr = kind(cfg, tempfile.mkdtemp(prefix="uabs_bench_"))
     wrap(tr.collector.direct, "step", "env")
@@ -78,11 +89,11 @@ def main() -> None:
         tr.collect()
     SPENT.clear()
     start_updates, t0 = tr.learner.updates, time.perf_counter()
-    for _ in range(args.episodes // cfg.train.n_envs):
+    for _ in range(n_episodes // cfg.train.n_envs):
         tr.collect()
     wall = time.perf_counter() - t0
     updates = tr.learner.updates - start_updates
-    episodes = args.episodes // cfg.train.n_envs * cfg.train.n_envs
+    episodes = n_episodes // cfg.train.n_envs * cfg.train.n_envs
     per_ep = wall / episodes
     full = cfg.train.episodes * per_ep
     print(f"scenario={cfg.scenario.name} M={cfg.scenario.n_uabs} "
@@ -90,6 +101,7 @@ def main() -> None:
           f"masking={cfg.masking.mode} loss={cfg.algo.loss} n_envs={cfg.train.n_envs} "
           f"threads={torch.get_num_threads()} hidden={list(cfg.algo.hidden)} "
           f"batch={cfg.algo.batch_size} population={cfg.train.population}")
+    print(f"threads: {why}")
     each = " per member" if cfg.train.population > 1 else ""
     print(f"{episodes} episodes{each}, {updates} updates in {wall:.1f} s: "
           f"{60 / per_ep:.1f} episodes/min{each}, "
@@ -105,6 +117,66 @@ def main() -> None:
     for name in ("env", "action selection", "replay", "update"):
         print(f"  {name:>17}: {SPENT[name]:6.2f} s  {100 * SPENT[name] / wall:5.1f} %")
     print(f"  {'other (loop)':>17}: {other:6.2f} s  {100 * other / wall:5.1f} %")
+
+
+BUSY_LOOP = "while True: pass"
+
+
+def one_setting(threads: int | None, overrides: list[str], n_episodes: int,
+                busy: bool) -> tuple[float, str]:
+    """ms per env step of one run of this script in its own process at ``threads``
+    (None: the default), beside a busy loop with ``busy``; and its thread line."""
+    setting = [] if threads is None else [f"train.threads={threads}"]
+    cmd = [sys.executable, __file__, "--episodes", str(n_episodes), *overrides, *setting]
+    hog = subprocess.Popen([sys.executable, "-c", BUSY_LOOP]) if busy else None
+    try:
+        out = subprocess.run(cmd, capture_output=True, text=True, check=True).stdout
+    finally:
+        if hog is not None:
+            hog.kill()
+            hog.wait()
+    ms = float(re.search(r"([\d.]+) ms per env step of one run", out).group(1))
+    return ms, re.search(r"^threads: (.*)$", out, re.M).group(1)
+
+
+def compare_threads(overrides: list[str], n_episodes: int, busy: bool, turns: int) -> None:
+    """The default thread count against each fixed one, in turns; the best time of each
+    and its ratio to the best setting's."""
+    cpus, what = usable_cpus()
+    settings: list[int | None] = [None, *sorted({1, 2, cpus})]
+    label = {None: "default", **{n: f"threads={n}" for n in settings if n is not None}}
+    print(f"{cpus} CPUs allowed by {what}; " + ("beside one busy process (a Python busy "
+          "loop)" if busy else "no other load started") + f"; {turns} turn(s)")
+    best: dict[int | None, float] = {}
+    for turn in range(turns):
+        for n in settings:
+            ms, why = one_setting(n, overrides, n_episodes, busy)
+            best[n] = min(ms, best.get(n, ms))
+            print(f"  turn {turn + 1} {label[n]:>10}: {ms:7.2f} ms per env step  ({why})",
+                  flush=True)
+    top = min(best.values())
+    print(json.dumps({"busy": busy, "overrides": overrides,
+                      "ms_per_env_step": {label[n]: best[n] for n in settings}}))
+    for n in settings:
+        print(f"{label[n]:>10}: {best[n]:7.2f} ms per env step, {best[n] / top:5.2f}x the best")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--episodes", type=int, default=30)
+    ap.add_argument("--threads", action="store_true",
+                    help="compare the default thread count with train.threads=1, 2, ...")
+    ap.add_argument("--busy", action="store_true",
+                    help="--threads beside one other process keeping a core busy")
+    ap.add_argument("--turns", type=int, default=1, help="rounds of --threads / --busy")
+    ap.add_argument("overrides", nargs="*", help="uabs-train overrides")
+    args = ap.parse_args()
+    if args.threads or args.busy:
+        if any(o.startswith("train.threads=") for o in args.overrides):
+            ap.error("--threads and --busy set train.threads themselves")
+        compare_threads(args.overrides, args.episodes, args.busy, args.turns)
+    else:
+        measure(args.overrides, args.episodes)
 
 
 if __name__ == "__main__":
