@@ -166,7 +166,9 @@ def test_learned_vs_baselines_on_test_traces(sweep, report):
     with open(out / "learned_vs_baselines.csv") as f:
         rows = list(csv.DictReader(f))
     assert list(rows[0]) == ["mode", "n_uabs", "config", "metric", "baseline", "learned",
-                             "diff", "ci_low", "ci_high", "n_seeds"]
+                             "diff", "ci_low", "ci_high", "n_seeds", "gap_share",
+                             "gap_ci_low", "gap_ci_high"]
+    assert {r["gap_share"] for r in rows} == {""}  # no planner asked for
     # 2 modes x 3 metrics x 3 baselines, 2 seeds each, smoke runs: recoverable, paper obs
     assert len(rows) == 18 and {r["n_seeds"] for r in rows} == {"2"}
     # every setting of the smoke preset that differs from the defaults is named, and the
@@ -182,6 +184,43 @@ def test_learned_vs_baselines_on_test_traces(sweep, report):
         assert float(r["diff"]) == pytest.approx(full["learned"] - full["baseline_value"],
                                                  abs=1e-6)
         assert float(r["ci_low"]) <= float(r["diff"]) <= float(r["ci_high"])
+
+
+def test_planner_places_each_group_on_the_greedy_to_planner_scale(sweep, tmp_path, capsys):
+    """``uabs-report --planner H``: the planner runs once per panel, joins the baselines,
+    and each group's greedy rows hold (learned − greedy) / (planner − greedy) with the
+    interval of learned − greedy divided by the same gap; its value equals the planner
+    of ``uabs-eval`` on the panel's run."""
+    from uabs_rl.evaluate import evaluate_policies, load_evaluation
+
+    out = tmp_path / "report"
+    assert report_main([str(sweep), "--out", str(out), "--planner", "2"]) == 0
+    with open(out / "baselines.csv") as f:
+        planners = {r["policy"]: r for r in csv.DictReader(f) if r["policy"].startswith("planner")}
+    assert set(planners) == {"planner (penalty masks)", "planner (rank masks)"}
+    with open(out / "learned_vs_baselines.csv") as f:
+        rows = list(csv.DictReader(f))
+    shares = [r for r in rows if r["gap_share"]]
+    assert {(r["mode"], r["metric"], r["baseline"]) for r in shares} == {
+        (m, k, "greedy") for m in ("penalty", "rank") for k in ("served_fraction", "pg")}
+    ev = load_evaluation(sweep / "masking=rank,seed=0", "best", split="test")
+    planner = evaluate_policies(ev, ("planner",), horizon=2)["planner"][0]
+    assert float(planners["planner (rank masks)"]["served_fraction"]) == pytest.approx(
+        planner["served_fraction"])
+    for r in (r for r in shares if r["mode"] == "rank" and r["metric"] == "served_fraction"):
+        learned, diff = float(r["learned"]), float(r["diff"])
+        gap = planner["served_fraction"] - (learned - diff)
+        if gap > 0:
+            assert float(r["gap_share"]) == pytest.approx(diff / gap, rel=1e-6)
+            assert float(r["gap_ci_low"]) == pytest.approx(float(r["ci_low"]) / gap, rel=1e-6)
+        else:
+            assert r["gap_share"] == "nan"
+    md = (out / "learned_vs_baselines.md").read_text()
+    assert "learned share of the greedy-to-planner gap" in md
+    assert "planner H=2 on" in capsys.readouterr().err  # its cost, per panel
+    with pytest.raises(SystemExit) as refused:  # the planner needs the test evaluation
+        report_main([str(sweep), "--no-baselines", "--planner", "2"])
+    assert refused.value.code == 2
 
 
 def test_runs_of_other_settings_are_grouped_not_refused(sweep, tmp_path):

@@ -33,7 +33,9 @@ PAPER_RC = {"font.size": 8, "axes.titlesize": 8, "axes.labelsize": 8, "legend.fo
 MODE_COLORS = {"penalty": "#d62728", "flat": "#1f77b4", "rank": "#2ca02c"}
 BASELINE_STYLES = {"random": {"color": "0.6", "ls": ":", "marker": "v"},
                    "greedy": {"color": "0.35", "ls": "--", "marker": "s"},
-                   "oracle": {"color": "0.0", "ls": "-.", "marker": "^"}}
+                   "oracle": {"color": "0.0", "ls": "-.", "marker": "^"},
+                   # uabs-report --planner: the upper reference
+                   "planner": {"color": "0.0", "ls": "-", "marker": "*"}}
 
 
 def save_figure(fig, path: Path | str) -> list[Path]:
@@ -276,7 +278,8 @@ def pg_panels_figure(panels: dict[str, list[SeedCurve]],
         for c in panels[key]:
             _draw_curve(ax, c, marker="o")
         for name, curve in baselines.get(key, {}).items():
-            ax.plot(x, curve, lw=1, label=f"{name} baseline", **BASELINE_STYLES[name])
+            label = "planner (knows the future)" if name == "planner" else f"{name} baseline"
+            ax.plot(x, curve, lw=1, label=label, **BASELINE_STYLES[name])
         ax.set_title((titles or {}).get(key, key))
         ax.set_xlabel(r"$\hat{N}_s$ (served steps per window)")
         ax.set_xticks(x[::max(1, len(x) // 5)])

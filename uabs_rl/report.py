@@ -47,7 +47,7 @@ from typing import Any
 
 import numpy as np
 
-from uabs_rl.baselines import BASELINES
+from uabs_rl.baselines import BASELINES, PLANNER
 from uabs_rl.channel import beam_footprint_radius, coverage_bound
 from uabs_rl.checkpoint import CheckpointError
 from uabs_rl.config import ConfigError
@@ -244,15 +244,38 @@ def evaluate_on_test(runs: list[Run]) -> dict[Path, dict[str, dict]]:
     return out
 
 
+def _panel_run(grouping: Grouping, labels: list[str]) -> Run:
+    """The run a panel's baselines come from: the lowest seed of its first group (the
+    baselines depend on the masks and the scenario, not on the learner)."""
+    return min(grouping.groups[labels[0]], key=lambda r: r.seed)
+
+
+def planner_on_test(grouping: Grouping, horizon: int) -> dict[Path, dict]:
+    """The receding-horizon planner (``uabs-eval --policy planner``) on every test window,
+    once per Fig. 4 panel (deterministic, and like the baselines independent of the
+    learner): ``{panel run's path: {"planner": record}}``, to merge into the test
+    records."""
+    from uabs_rl.evaluate import evaluate_policies, load_evaluation
+
+    out = {}
+    for labels in grouping.panels().values():
+        run = _panel_run(grouping, labels)
+        ev = load_evaluation(run.path, "best", split="test")
+        rec, _ = evaluate_policies(ev, (PLANNER,), horizon=horizon)[PLANNER]
+        print(f"planner H={horizon} on {run.path}: {rec['seconds'] / rec['windows']:.2f} s "
+              f"per window ({rec['windows']} windows)", file=sys.stderr)
+        out[run.path] = {PLANNER: rec}
+    return out
+
+
 def baselines_by_panel(grouping: Grouping,
                        tests: dict[Path, dict]) -> dict[str, dict[str, dict]]:
-    """``{panel: {baseline: test record}}`` (:meth:`Grouping.panels`), from the lowest
-    seed's run of the panel's first group (the baselines depend on the masks and the
-    scenario, not on the learner)."""
+    """``{panel: {baseline: test record}}`` (:meth:`Grouping.panels`), from
+    :func:`_panel_run`; the planner too where it ran."""
     out = {}
     for key, labels in grouping.panels().items():
-        run = min(grouping.groups[labels[0]], key=lambda r: r.seed)
-        out[key] = {name: tests[run.path][name] for name in BASELINES}
+        rec = tests[_panel_run(grouping, labels).path]
+        out[key] = {name: rec[name] for name in (*BASELINES, PLANNER) if name in rec}
     return out
 
 
@@ -277,7 +300,7 @@ def learned_pg_on_test(groups: dict[str, list[Run]],
 
 # ----------------------------------------------------------------------------- test set
 LVB_COLUMNS = ["mode", "n_uabs", "config", "metric", "baseline", "learned", "diff", "ci_low",
-               "ci_high", "n_seeds"]
+               "ci_high", "n_seeds", "gap_share", "gap_ci_low", "gap_ci_high"]
 
 
 def learned_vs_baselines(grouping: Grouping, tests: dict[Path, dict]) -> list[dict[str, Any]]:
@@ -286,14 +309,22 @@ def learned_vs_baselines(grouping: Grouping, tests: dict[Path, dict]) -> list[di
     over seeds), the mean over seeds of each seed's per-window paired difference, and
     its bootstrap 95 % CI over seeds (the min-max range with 2 seeds; over windows for
     one seed). ``config`` names the group's settings against the defaults
-    (:attr:`Run.label`), so rows of several reports can be put in one table."""
+    (:attr:`Run.label`), so rows of several reports can be put in one table.
+
+    Where the planner ran (``uabs-report --planner H``), the greedy rows of the served
+    fraction and P_g also hold the learned share of the greedy-to-planner gap,
+    (learned − greedy) / (planner − greedy), its interval that of learned − greedy
+    divided by the gap (the planner and greedy are deterministic on these windows)."""
     from uabs_rl.evaluate import METRICS, POLICIES
 
     order = sorted(grouping.groups.items(), key=lambda g: (
         g[1][0].mode, int(g[1][0].settings["scenario.n_uabs"]), g[1][0].label, g[0]))
+    panel_of = {label: key for key, labels in grouping.panels().items() for label in labels}
+    planners = baselines_by_panel(grouping, tests)
     rows = []
     for group, runs in order:
         per_seed = [tests[run.path] for run in runs]
+        planner = planners[panel_of[group]].get(PLANNER)
         for metric, k in METRICS.items():
             for base in POLICIES[1:]:
                 diffs = [np.subtract(r["learned"][k], r[base][k]) for r in per_seed]
@@ -307,7 +338,20 @@ def learned_vs_baselines(grouping: Grouping, tests: dict[Path, dict]) -> list[di
                     "baseline_value": float(np.mean([np.mean(r[base][k]) for r in per_seed])),
                     "n_seeds": len(per_seed), "group": group,
                     "nhat": int(runs[0].settings["scenario.nhat_s"])})
+                if planner is not None and base == "greedy" and metric != "return":
+                    rows[-1].update(_gap_share(rows[-1], float(np.mean(planner[k]))))
     return rows
+
+
+def _gap_share(row: dict[str, Any], planner: float) -> dict[str, float]:
+    """The learned share of the greedy-to-planner gap of a greedy row, with its interval
+    (NaN where the planner does not beat greedy: no gap to share)."""
+    gap = planner - row["baseline_value"]
+    if gap <= 0:
+        return {"planner_value": planner, "gap_share": float("nan"),
+                "gap_ci_low": float("nan"), "gap_ci_high": float("nan")}
+    return {"planner_value": planner, "gap_share": row["diff"] / gap,
+            "gap_ci_low": row["ci_low"] / gap, "gap_ci_high": row["ci_high"] / gap}
 
 
 METRIC_NAMES = {"return": "return R", "served_fraction": "served fraction",
@@ -352,7 +396,19 @@ def learned_vs_baselines_markdown(rows: list[dict[str, Any]], common: str = "") 
             f"{fmt_level(r['metric'], r['learned'])} | "
             f"{fmt_level(r['metric'], r['baseline_value'])} | "
             f"{fmt_diff(r['metric'], r['diff'], r['ci_low'], r['ci_high'])} |\n" for r in rs)
+        text += "".join(
+            f"\n{METRIC_NAMES[r['metric']].format(nhat=r['nhat'])}: planner "
+            f"{fmt_level(r['metric'], r['planner_value'])}; learned share of the "
+            f"greedy-to-planner gap {fmt_share(r)}.\n" for r in rs if "gap_share" in r)
     return text
+
+
+def fmt_share(row: dict[str, Any]) -> str:
+    """``+30 % [+26, +34]``, or why there is none."""
+    if np.isnan(row["gap_share"]):
+        return "none (the planner does not beat greedy here)"
+    lo, mid, hi = (round(100 * row[k]) + 0 for k in ("gap_ci_low", "gap_share", "gap_ci_high"))
+    return f"{mid:+d} % [{lo:+d}, {hi:+d}]"
 
 
 # ----------------------------------------------------------------------------- comparison
@@ -592,8 +648,10 @@ def _write_baselines(path: Path, baselines: dict[str, dict]) -> None:
 
 
 def build_report(roots: Path | list[Path], out: Path, with_baselines: bool = True,
-                 command: str = "") -> dict[str, Any]:
-    """Every file of the report of the runs under ``roots``, written to ``out``."""
+                 command: str = "", planner: int | None = None) -> dict[str, Any]:
+    """Every file of the report of the runs under ``roots``, written to ``out``
+    (``planner``: the planner's horizon, to place the learned runs between greedy and
+    it)."""
     roots = [roots] if isinstance(roots, str | Path) else list(roots)
     grouping = group_runs(find_runs(*roots))
     groups = grouping.groups
@@ -605,6 +663,9 @@ def build_report(roots: Path | list[Path], out: Path, with_baselines: bool = Tru
     curves_figure(grouping, out / "curves")
     tests = evaluate_on_test([r for runs in groups.values() for r in runs]) \
         if with_baselines else {}
+    if tests and planner is not None:
+        for path, rec in planner_on_test(grouping, planner).items():
+            tests[path].update(rec)
     baselines = baselines_on_test(grouping, tests) if tests else {}
     if baselines:
         _write_baselines(out / "baselines.csv", baselines)
@@ -645,10 +706,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-baselines", dest="baselines", action="store_false",
                     help="skip the test-trace evaluation: Fig. 4 from each run's best "
                          "validation evaluation, no baselines")
+    ap.add_argument("--planner", type=int, metavar="H",
+                    help="also run the receding-horizon planner of horizon H (it knows the "
+                         "vehicles' future positions: an upper reference) and give each "
+                         "group's share of the greedy-to-planner gap; about 1 s per test "
+                         "window and masking mode at H = 10")
     ap.add_argument("--curves", action="store_true",
                     help="only overlay the runs' training and validation curves "
                          "(curves.png/.pdf), in seconds")
     args = ap.parse_args(argv)
+    if args.planner is not None and (args.planner < 1 or not args.baselines):
+        ap.error("--planner H needs H >= 1 and the test-trace evaluation (no --no-baselines)")
     out = args.out or default_out(args.roots)
     cmd = "uabs-report " + " ".join(sys.argv[1:] if argv is None else argv)
     try:
@@ -657,7 +725,7 @@ def main(argv: list[str] | None = None) -> int:
             files = curves_figure(group_runs(find_runs(*args.roots)), out / "curves")
             print(f"wrote {files[0]} (and .pdf)")
             return 0
-        res = build_report(args.roots, out, args.baselines, cmd)
+        res = build_report(args.roots, out, args.baselines, cmd, args.planner)
     except (ReportError, ConfigError, CheckpointError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
