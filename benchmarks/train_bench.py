@@ -16,7 +16,8 @@ and ms per member env step, so they compare with a solo run's directly.
     python benchmarks/train_bench.py --threads        # default vs train.threads=1, 2
     python benchmarks/train_bench.py --busy --turns 2 # the same beside a busy core
 
-``--threads`` measures the default thread count (``uabs_rl.make.resolve_threads``) and
+``--threads`` measures the default thread count (``uabs_rl.threads``: resolve_threads and
+the ThreadGovernor that takes it down beside busy CPUs) and
 ``train.threads=1``, ``2`` (and all CPUs, if more), each in its own process, in turn,
 and prints ms per env step with the ratio to the best; ``--busy`` does it beside one
 other process keeping a core busy (a Python busy loop), as on a shared machine.
@@ -38,8 +39,8 @@ import torch
 
 from uabs_rl.config import compose
 from uabs_rl.experiment import Experiment
-from uabs_rl.make import resolve_threads, usable_cpus
 from uabs_rl.population import Population
+from uabs_rl.threads import resolve_threads, usable_cpus
 
 SPENT: dict[str, float] = defaultdict(float)
 
@@ -73,8 +74,7 @@ def wrap(obj, attr: str, name: str, outside_update: bool = False) -> None:
 def measure(overrides: list[str], n_episodes: int) -> None:
     """Train ``n_episodes`` after filling the buffer; print the figures."""
     cfg = compose("config", ["train.progress=false", "train.logger=none", *overrides])
-    threads, why = resolve_threads(cfg)
-    torch.set_num_threads(threads)  # as uabs-train does
+    _, why = resolve_threads(cfg)  # the run sets its threads (and governor) as uabs-train
     kind = Population if cfg.train.population > 1 else Experiment
     tr = kind(cfg, tempfile.mkdtemp(prefix="uabs_bench_"))
     wrap(tr.collector.direct, "step", "env")
@@ -87,10 +87,12 @@ def measure(overrides: list[str], n_episodes: int) -> None:
     # fill the buffer past learning_starts first, so every timed step updates
     while len(tr.buffer) < cfg.algo.learning_starts:
         tr.collect()
+        tr.threads.check()
     SPENT.clear()
     start_updates, t0 = tr.learner.updates, time.perf_counter()
     for _ in range(n_episodes // cfg.train.n_envs):
         tr.collect()
+        tr.threads.check()  # once a round, as the training loop does
     wall = time.perf_counter() - t0
     updates = tr.learner.updates - start_updates
     episodes = n_episodes // cfg.train.n_envs * cfg.train.n_envs
@@ -101,7 +103,8 @@ def measure(overrides: list[str], n_episodes: int) -> None:
           f"masking={cfg.masking.mode} loss={cfg.algo.loss} n_envs={cfg.train.n_envs} "
           f"threads={torch.get_num_threads()} hidden={list(cfg.algo.hidden)} "
           f"batch={cfg.algo.batch_size} population={cfg.train.population}")
-    print(f"threads: {why}")
+    print(f"threads: {why}" + (f"; the governor ended at {tr.threads.n} after "
+                               f"{tr.threads.changes} change(s)" if tr.threads.active else ""))
     each = " per member" if cfg.train.population > 1 else ""
     print(f"{episodes} episodes{each}, {updates} updates in {wall:.1f} s: "
           f"{60 / per_ep:.1f} episodes/min{each}, "

@@ -12,11 +12,13 @@ import pytest
 import torch
 
 from tests.test_train import smoke
-from uabs_rl.make import (
+from uabs_rl.make import resolve_device
+from uabs_rl.threads import (
     WORK_PER_THREAD,
+    ThreadGovernor,
     cgroup_cpus,
-    resolve_device,
     resolve_threads,
+    setup_threads,
     update_work,
     usable_cpus,
 )
@@ -82,24 +84,24 @@ def test_usable_cpus_is_the_least_limit_and_names_it(tmp_path, eight_cores):
 
 def test_default_threads_follow_the_network_size(trace_cache, monkeypatch, eight_cores):
     env = {}
-    monkeypatch.setattr("uabs_rl.make.cgroup_cpus", lambda *a: None)
+    monkeypatch.setattr("uabs_rl.threads.cgroup_cpus", lambda *a: None)
     paper = smoke(trace_cache, "algo.hidden=[256,256]", "algo.batch_size=128")
     assert update_work(paper) == 128 * 3 * (18 * 256 + 256 * 256 + 256 * 5)
     assert resolve_threads(paper, env) == (
-        1, "1 (27.4M multiply-adds per update: one thread below 440M; 8 CPUs allowed "
+        2, "2 (27.4M multiply-adds per update: a thread per 10M; 8 CPUs allowed "
            "by affinity)")
-    big = smoke(trace_cache, "algo.hidden=[1024,1024]", "algo.batch_size=512",
-                "algo.learning_starts=512")
-    work = update_work(big)
-    assert work == 512 * 3 * (18 * 1024 + 1024 * 1024 + 1024 * 5) == 1_646_788_608
-    assert work // WORK_PER_THREAD == 3
-    assert resolve_threads(big, env) == (
-        3, "3 (1,646.8M multiply-adds per update: a thread per 440M; 8 CPUs allowed by "
+    assert resolve_threads(paper, {"SLURM_CPUS_PER_TASK": "1"})[0] == 1  # capped
+    small = smoke(trace_cache)  # the smoke network: one thread
+    assert update_work(small) < WORK_PER_THREAD
+    assert resolve_threads(small, env) == (
+        1, "1 (0.2M multiply-adds per update: one thread below 10M; 8 CPUs allowed by "
            "affinity)")
-    assert resolve_threads(big, {"SLURM_CPUS_PER_TASK": "2"})[0] == 2  # capped
-    pop = smoke(trace_cache, "algo.hidden=[1024,1024]", "algo.batch_size=512",
-                "algo.learning_starts=512", "train.population=4")
-    assert update_work(pop) == 4 * work and resolve_threads(pop, env)[0] == 8
+    big = smoke(trace_cache, "algo.hidden=[512,512]", "algo.batch_size=128")
+    work = update_work(big)
+    assert work == 128 * 3 * (18 * 512 + 512 * 512 + 512 * 5) == 105_185_280
+    assert work // WORK_PER_THREAD == 10 and resolve_threads(big, env)[0] == 8
+    pop = smoke(trace_cache, "train.population=4")
+    assert update_work(pop) == 4 * update_work(small)
     # an explicit count wins, even above the CPUs allowed (said in the reason)
     assert resolve_threads(smoke(trace_cache, "train.threads=12"), env) == (
         12, "12 (train.threads; 8 CPUs allowed by affinity)")
@@ -117,3 +119,66 @@ def test_device_auto_says_what_it_chose(monkeypatch, caplog):
     assert "device=auto: using cuda:1 (Fake GPU 1)" in caplog.messages
     caplog.clear()
     assert resolve_device("cpu") == torch.device("cpu") and not caplog.messages
+
+
+def proc_stat(tmp_path: Path, busy: dict[int, int], idle: int = 0) -> Path:
+    """A /proc/stat whose cpuN lines hold ``busy[N]`` user ticks and ``idle`` idle ticks."""
+    lines = ["cpu  0 0 0 0 0 0 0 0 0 0"] + [
+        f"cpu{c} {b} 0 0 {idle} 0 0 0 0 0 0" for c, b in busy.items()]
+    path = tmp_path / "stat"
+    path.write_text("\n".join(lines) + "\nintr 1 2 3\n")
+    return path
+
+
+def test_governor_uses_the_cpus_others_leave_free(tmp_path, monkeypatch):
+    """Two CPUs: the full count while others use at most NOISE of a core, one thread
+    while another process keeps a core busy (whether or not its own threads took part of
+    that core), and the full count again once it stops; the count is set in torch."""
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)
+    set_to = []
+    monkeypatch.setattr(torch, "set_num_threads", set_to.append)
+    gov = ThreadGovernor(2, fixed=False, period_s=0.0, stat=proc_stat(tmp_path, {0: 0, 1: 0}))
+    assert gov.active and gov.cpus == [0, 1]
+    assert [gov.threads_for(o) for o in (0.0, 0.25, 0.3, 0.5, 1.0, 1.9, 2.0)] == [
+        2, 2, 1, 1, 1, 1, 1]
+    tick = 1 / os.sysconf("SC_CLK_TCK")
+    before = (0.0, 0.0, 0.0)
+    # 1 s: both CPUs fully busy, this process used 1.0 of them -> another core is busy
+    assert gov.others(before, (1.0, 2.0, 1.0)) == pytest.approx(1.0)
+    assert gov.others(before, (1.0, 2.0, 1.5)) == pytest.approx(0.5)  # our spinning threads
+    assert gov.others(before, (1.0, 1.0, 1.2)) == 0.0  # never negative
+    # check() through the file: ticks of busy time, this process's CPU time faked
+    # (children's CPU time counts as this process's: torch.compile's workers are not others)
+    monkeypatch.setattr("uabs_rl.threads._children_cpu", lambda: 0.0)
+    own = iter([0.0, 0.1, 0.2, 0.3, 1.3, 2.3, 3.3])
+    monkeypatch.setattr("uabs_rl.threads.time.process_time", lambda: next(own))
+    clock = iter(range(10))
+    monkeypatch.setattr("uabs_rl.threads.time.monotonic", lambda: float(next(clock)))
+    gov = ThreadGovernor(2, fixed=False, period_s=0.5, stat=tmp_path / "stat")
+    t = round(1 / tick)
+    # busy CPU-seconds of both CPUs so far, and the thread count after each look
+    for busy, threads in [(2.0, 2), (2.1, 2),  # a second of a busy core changes nothing;
+                          (4.1, 2), (6.1, 1),  # two in a row do (ours: 0.1, then 1.0);
+                          (7.1, 1), (8.1, 2)]:  # then two quiet seconds (all ours)
+        ticks = round(busy * t)
+        proc_stat(tmp_path, {0: ticks // 2, 1: ticks - ticks // 2})
+        assert gov.check() == threads, busy
+    assert set_to == [1, 2] and gov.changes == 2
+
+
+def test_governor_is_off_with_a_fixed_count_one_thread_or_no_proc_stat(tmp_path):
+    stat = proc_stat(tmp_path, {0: 0})
+    assert not ThreadGovernor(2, fixed=True, stat=stat).active
+    assert not ThreadGovernor(1, fixed=False, stat=stat).active
+    assert not ThreadGovernor(2, fixed=False, stat=tmp_path / "missing").active
+    assert ThreadGovernor(2, fixed=True, stat=stat).check() == 2
+
+
+def test_a_run_logs_its_threads_and_why(trace_cache, caplog, monkeypatch):
+    monkeypatch.setattr(torch, "set_num_threads", lambda n: None)
+    caplog.set_level(logging.INFO, logger="uabs_rl.threads")
+    gov = setup_threads(smoke(trace_cache, "train.threads=3"))
+    assert not gov.active and gov.n == 3
+    assert caplog.messages[-1].startswith("threads: 3 (train.threads; ")
+    gov = setup_threads(smoke(trace_cache))
+    assert gov.n == 1 and "one thread below 10M" in caplog.messages[-1]

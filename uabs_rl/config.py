@@ -275,7 +275,9 @@ class TrainConfig:
     # torch.compile the env step and the action selection: ~2x faster training, ~20 s to
     # compile (eager if compilation fails)
     compile: bool = True
-    # torch CPU threads; null = all cores (use cores / n_jobs in parallel sweeps)
+    # torch CPU threads; null = by the update's size, at most the CPUs this process may use,
+    # fewer while other processes keep them busy (uabs_rl/threads.py); set it for runs
+    # that must be bit-reproducible whatever the load, and to cores / n_jobs in sweeps
     threads: int | None = None
 
 
@@ -365,7 +367,7 @@ def _train_checks(cfg: RunConfig) -> list[tuple[bool, str, str, Any]]:
         (t.episodes % max(t.n_envs, 1) == 0, "train.episodes",
          "must be a multiple of train.n_envs", (t.episodes, t.n_envs)),
         (t.threads is None or t.threads >= 1, "train.threads",
-         "must be null (all cores) or >= 1", t.threads),
+         "must be null (chosen for the machine) or >= 1", t.threads),
         (SEED_MIN <= t.eval_seed < SEED_END, "train.eval_seed", f"must be {seeds}",
          t.eval_seed),
         (SEED_MIN <= cfg.seed < SEED_END, "seed", f"must be {seeds}", cfg.seed),

@@ -34,6 +34,7 @@ from uabs_rl.replay import ReplayBuffer
 from uabs_rl.rollout import Collector, UpdateSchedule, episode_records, epsilon
 from uabs_rl.runfolder import RunFolderError
 from uabs_rl.runlog import RunLog, check_logger
+from uabs_rl.threads import setup_threads
 from uabs_rl.traces import TraceSet
 
 log = logging.getLogger(__name__)
@@ -221,8 +222,7 @@ class Experiment:
         self.cfg, self.run_dir = cfg, Path(run_dir)
         dev = self.device = resolve_device(cfg.device)
         tr = cfg.train
-        if tr.threads is not None:
-            torch.set_num_threads(tr.threads)
+        self.threads = setup_threads(cfg)
         torch.manual_seed(cfg.seed)
         traces = traces or {}
         env = make_env(cfg.scenario, cfg.channel, cfg.masking, traces.get("train", cfg.traces),
@@ -307,6 +307,7 @@ class Experiment:
             for rec in self.collect():
                 self.log.record(rec)
                 self.progress.update(rec)
+            self.threads.check()
             if self.episode % tr.eval_every == 0 or self.episode >= tr.episodes:
                 self.progress.last_eval = self.evaluate()
             if self.interrupt.requested:

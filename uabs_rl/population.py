@@ -62,6 +62,7 @@ from uabs_rl.rng import Generators
 from uabs_rl.rollout import Collector, UpdateSchedule, episode_records, epsilon
 from uabs_rl.runfolder import check_identity
 from uabs_rl.runlog import RunLog, check_logger
+from uabs_rl.threads import setup_threads
 from uabs_rl.traces import TraceSet
 
 log = logging.getLogger(__name__)
@@ -117,8 +118,7 @@ class Population:
         dev = self.device = resolve_device(cfg.device)
         tr, seeds = cfg.train, member_seeds(cfg)
         self.n = P = len(seeds)
-        if tr.threads is not None:
-            torch.set_num_threads(tr.threads)
+        self.threads = setup_threads(cfg)
         traces = traces or {}
         env = make_env(cfg.scenario, cfg.channel, cfg.masking, traces.get("train", cfg.traces),
                        "train", n_envs=tr.n_envs * P, device=dev, seed=seeds,
@@ -256,6 +256,7 @@ class Population:
         tr = self.cfg.train
         while self.episode < tr.episodes:
             per_member = self.collect()
+            self.threads.check()
             for member, records in zip(self.members, per_member, strict=True):
                 for rec in records:
                     member.log.record(rec)
