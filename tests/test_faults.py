@@ -311,6 +311,14 @@ def test_a_sweep_retyped_with_resume_continues_every_job(trace_cache, tmp_path):
         assert episodes(j) == [1, 2, 3]
         assert load_checkpoint(j / "checkpoints" / "last.pt")["run"]["id"] == first[j]
     assert sorted(d for d in (tmp_path / "sweep").iterdir() if d.is_dir()) == jobs
+    # a sweep stopped before its last job: re-typed, that job starts in its own folder
+    shutil.rmtree(jobs[1])
+    p = uabs_train(tmp_path, *sweep, f"resume={tmp_path / 'sweep'}")
+    _, err = p.communicate(timeout=300)
+    assert p.returncode == 0, err[-2000:]
+    assert f"resuming {jobs[0]}" in err and f"run folder: {jobs[1]}" in err
+    assert episodes(jobs[0]) == episodes(jobs[1]) == [1, 2, 3]
+    assert (jobs[1] / ".hydra" / "config.yaml").is_file()
 
 
 @pytest.mark.parametrize("damage", [b'{"kind": "train", "epis', b"17", b"\xff\xfe{}",

@@ -450,7 +450,11 @@ def _run_and_report(cfg: RunConfig, run_dir: Path, overrides: list[str]) -> None
     hc = HydraConfig.get()
     multirun = hc.mode == RunMode.MULTIRUN
     if cfg.resume and multirun:  # a re-typed sweep: this job's own folder under it
-        cfg.resume = str(run_dir)
+        if runfolder.holds_run(run_dir) or (run_dir / ".hydra" / "config.yaml").is_file():
+            cfg.resume = str(run_dir)
+        else:  # a job the stopped sweep never reached: it starts now, in its folder
+            cfg.resume = None
+            _write_hydra_files(cfg, run_dir)
     exp = prepare(cfg, run_dir, overrides, auto_named=not os.environ.get(_TYPED_DIR),
                   sweep_dir=Path(hc.sweep.dir) if multirun else None,
                   on_move=lambda folder: _write_hydra_files(cfg, folder))
