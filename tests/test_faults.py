@@ -207,6 +207,26 @@ def test_a_stale_lock_of_a_dead_process_is_taken_over(tmp_path):
     lock.release()
 
 
+def test_the_final_checkpoint_is_written_while_the_run_folder_is_locked(trace_cache, tmp_path,
+                                                                        monkeypatch):
+    """A second writer cannot take the folder between the last round and the final save."""
+    from uabs_rl.experiment import Experiment
+
+    save, free_at_save = Experiment.save, []
+
+    def checked_save(self, name):
+        probe = RunLock(self.run_dir)
+        free_at_save.append(probe.acquire())
+        if free_at_save[-1]:
+            probe.release()
+        return save(self, name)
+
+    monkeypatch.setattr(Experiment, "save", checked_save)
+    run(smoke(trace_cache, *QUIET, "train.episodes=3", "train.eval_every=3"), tmp_path / "run")
+    assert free_at_save and not any(free_at_save)  # every save, the final one included
+    assert RunLock(tmp_path / "run").acquire()  # released once the run ended
+
+
 def test_a_slurm_requeued_job_continues_its_run(trace_cache, tmp_path):
     run_dir = tmp_path / "job"
     args = ["experiment=smoke", f"traces.cache_dir={trace_cache}", *QUIET,

@@ -167,10 +167,11 @@ def restore_streams(state: dict, selector_gen: torch.Generator, env_gen: torch.G
     return True
 
 
-def run_rounds(exp, logs: list[RunLog]) -> float:
+def run_rounds(exp, logs: list[RunLog], save_last) -> float:
     """``exp._rounds()`` with its logs open, a progress bar and Ctrl-C / SIGTERM deferred
-    to the end of a round (see :meth:`Experiment.fit`); returns the minutes it took. The
-    run folder's lock (``exp.run_lock``) is released when it ends, however it ends."""
+    to the end of a round (see :meth:`Experiment.fit`), then ``save_last()``; returns the
+    minutes the rounds took. The run folder's lock (``exp.run_lock``) is released when
+    it ends, however it ends, and only after the last save."""
     try:
         for lg in logs:
             lg.open(resume_episode=exp.episode if exp.episode else None)
@@ -183,12 +184,14 @@ def run_rounds(exp, logs: list[RunLog]) -> float:
             exp.progress.close()
             for lg in logs:
                 lg.close()
+        minutes = (time.perf_counter() - t0) / 60
+        save_last()
     except OSError as e:
         raise write_error(e, exp.run_dir) from None
     finally:
         if exp.run_lock is not None:
             exp.run_lock.release()
-    return (time.perf_counter() - t0) / 60
+    return minutes
 
 
 def write_error(e: OSError | RuntimeError, run_dir: Path) -> Exception:
@@ -320,8 +323,7 @@ class Experiment:
         """Train to ``train.episodes``, evaluating every ``train.eval_every`` episodes.
         Ctrl-C or SIGTERM finishes the current round, saves ``last`` and raises
         :class:`Stopped` (a second one stops at once, keeping the last checkpoint)."""
-        minutes = run_rounds(self, [self.log])
-        self.save("last")
+        minutes = run_rounds(self, [self.log], lambda: self.save("last"))
         summary = {"episodes": self.episode, "updates": self.learner.updates,
                    "best_eval_return": self.best_eval, "last_eval_return": self.progress.last_eval,
                    "minutes": minutes}

@@ -274,8 +274,7 @@ class Population:
 
     def fit(self) -> dict[str, Any]:
         """Train every member to ``train.episodes`` (see :meth:`Experiment.fit`)."""
-        minutes = run_rounds(self, [m.log for m in self.members])
-        self.save_all("last")
+        minutes = run_rounds(self, [m.log for m in self.members], lambda: self.save_all("last"))
         log.info("done: %d members x %d episodes, %d updates, %.1f min", self.n,
                  self.episode, self.learner.updates, minutes)
         return {"episodes": self.episode, "updates": self.learner.updates,
