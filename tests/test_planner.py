@@ -12,6 +12,7 @@ import torch
 
 from tests.test_train import smoke
 from uabs_rl.baselines import baseline_policy
+from uabs_rl.config import ConfigError
 from uabs_rl.env import ACTION, MASK, POSITION
 from uabs_rl.evaluate import main as eval_main
 from uabs_rl.evaluation import Evaluator, make_eval_env
@@ -147,6 +148,12 @@ def test_busiest_sites_by_hand_and_manhattan_junctions(trace_cache):
     # no 3 sites 1000 m apart: the spacing halves (62.5 m) until 3 fit
     assert busiest_sites(cand, veh, present, 3, 11.64, 9, 1000.0).tolist() == \
         [[30.0, 0.0], [200.0, 0.0], [400.0, 0.0]]
+    # two sites on one point: they fit once the spacing is gone; fewer sites than UABS: refused
+    twin = torch.tensor([[30.0, 0.0], [30.0, 0.0]])
+    assert busiest_sites(twin, veh, present, 2, 11.64, 9, 100.0).tolist() == [[30.0, 0.0]] * 2
+    with pytest.raises(ConfigError, match="at least as many junctions inside the area as "
+                                          "UABS: 4 for scenario.n_uabs=5"):
+        busiest_sites(cand, veh, present, 5, 11.64, 9, 100.0)
     cfg = smoke(trace_cache)
     p = EnvParams.from_config(cfg.scenario, cfg.channel)
     geo = Geometry(p, torch.device("cpu"))

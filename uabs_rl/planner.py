@@ -302,7 +302,13 @@ def busiest_sites(candidates: torch.Tensor, veh: torch.Tensor, present: torch.Te
     """[M, 2] the ``m`` candidate sites (``[S, 2]``) under whose footprints the most
     vehicles pass (mean over the steps of ``veh [N, 2, V]``, ``present [N, V]``), chosen
     busiest first among those at least ``spacing`` from the sites already chosen (the
-    spacing halved until m fit)."""
+    spacing halved until m fit, down to none)."""
+    from uabs_rl.config import ConfigError
+
+    if candidates.shape[0] < m:
+        raise ConfigError(f"the junctions heuristic needs at least as many junctions inside "
+                          f"the area as UABS: {candidates.shape[0]} for scenario.n_uabs={m}; "
+                          f"compare with another baseline (kmeans, greedy) here.")
     inside = footprint(candidates[None].expand(veh.shape[0], -1, -1), veh, r_b, n_beams)
     busy = (inside & present[:, None, :]).float().sum(-1).mean(0)  # [S]
     order = busy.argsort(descending=True)
@@ -314,7 +320,7 @@ def busiest_sites(candidates: torch.Tensor, veh: torch.Tensor, present: torch.Te
                 chosen.append(i)
             if len(chosen) == m:
                 return candidates[chosen]
-        spacing /= 2.0
+        spacing = spacing / 2.0 if spacing > 1e-3 else 0.0  # at 0 every candidate fits
 
 
 def junctions(scenario, geometry) -> torch.Tensor:
