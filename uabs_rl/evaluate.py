@@ -438,7 +438,11 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     policies = tuple(dict.fromkeys(
         q for p in args.policy or ["learned"] for q in (POLICIES if p == "all" else [p])))
-    results = evaluate_policies(ev, policies, horizon=args.horizon)
+    try:
+        results = evaluate_policies(ev, policies, horizon=args.horizon)
+    except ConfigError as e:  # a baseline this scenario cannot hold (junctions)
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     n = ev.evaluator.env.base_env.n_envs
     tc = getattr(ev.cfg.traces, args.split)
     print(f"split: {args.split} (traces.{args.split}: SUMO seeds {tc.first_seed}.."
