@@ -41,10 +41,16 @@ def test_uabs_traces_config_error_is_one_line(trace_cache):
                                                 "got -1.0."]
 
 
-def test_corrupt_metrics_line_names_the_file_and_line(tmp_path):
+@pytest.mark.parametrize("line, why", [
+    (b'{"kind": "tr', "not JSON"), (b"17", "not a train or eval record"),
+    (b"\xff\xfe{}", "not UTF-8 text"),
+    (b'{"kind": "train", "episode": "3", "env_steps": 60}', "its episode or env_steps")])
+def test_corrupt_metrics_line_names_the_file_and_line(tmp_path, line, why):
+    """Every line resume refuses, uabs-report refuses too: one line naming file, line and
+    why (a bare number or bytes that are not text once ended in a traceback)."""
     m = tmp_path / "metrics.jsonl"
-    m.write_text('{"kind": "train", "episode": 1}\n{"kind": "tr\n')
-    with pytest.raises(SystemExit, match=r"metrics\.jsonl, line 2, is not a JSON record"):
+    m.write_bytes(b'{"kind": "train", "episode": 1, "env_steps": 20}\n' + line + b"\n")
+    with pytest.raises(SystemExit, match=rf"metrics\.jsonl, line 2, is {why}"):
         read_metrics(m)
 
 

@@ -151,15 +151,15 @@ def read_metrics(path: Path) -> list[dict]:
     """The records of a metrics.jsonl; a damaged line is an error naming file and line
     (a run killed mid-write is repaired by resuming it)."""
     recs = []
-    for i, line in enumerate(path.read_text().splitlines(), 1):
+    for i, line in enumerate(path.read_bytes().splitlines(), 1):
         if not line.strip():
             continue
-        try:
-            recs.append(json.loads(line))
-        except json.JSONDecodeError as e:
-            raise SystemExit(f"error: {path}, line {i}, is not a JSON record ({e.msg}): "
-                             f"resume that run (uabs-train resume={path.parent}) to repair "
-                             f"its metrics, or move the folder out of the sweep.") from None
+        rec = _record(line)
+        if isinstance(rec, str):
+            raise SystemExit(f"error: {path}, line {i}, is {rec}: resume that run "
+                             f"(uabs-train resume={path.parent}) to repair its metrics, or "
+                             f"move the folder out of the sweep.")
+        recs.append(rec)
     return recs
 
 
