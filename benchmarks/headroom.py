@@ -30,7 +30,7 @@ from uabs_rl.baselines import baseline_policy
 from uabs_rl.config import compose
 from uabs_rl.evaluation import Evaluator, make_eval_env
 from uabs_rl.make import make_selector
-from uabs_rl.planner import PlannerScore, junction_sites
+from uabs_rl.planner import PlannerScore, junction_sites, scale_to_gap
 
 RESULTS = Path(__file__).resolve().parents[1] / "docs" / "results"
 # where the learned runs' baselines of each fleet size were written
@@ -117,8 +117,8 @@ def learned_gap(rows: list[dict]) -> list[dict]:
                     "n_seeds": r["n_seeds"], "learned": learned, "greedy": greedy[metric],
                     "greedy_in_csv_matches": abs(csv_greedy - greedy[metric]) < 1e-6,
                     "planner": best[metric], "planner_horizon": best["horizon"],
-                    "share": float(r["diff"]) / gap, "ci_low": float(r["ci_low"]) / gap,
-                    "ci_high": float(r["ci_high"]) / gap})
+                    **scale_to_gap(float(r["diff"]), float(r["ci_low"]), float(r["ci_high"]),
+                                   gap)})
     return out
 
 

@@ -26,6 +26,7 @@ from uabs_rl.planner import (
     junctions,
     nearest_assignment,
     next_priority,
+    scale_to_gap,
     weighted_kmeans,
 )
 from uabs_rl.traces import TraceSet
@@ -170,6 +171,11 @@ def test_gap_share_by_hand():
     assert d["share"] == pytest.approx(5.0 / 10.0) and d["n"] == 3
     assert d["ci_low"] <= 0.5 <= d["ci_high"]
     assert math.isnan(gap_share([1.0, 2.0], [1.0, 1.0], [1.0, 1.0])["share"])  # no gap
+    # the planner below greedy: no gap either (not a share with its sign flipped), and
+    # uabs-report's scaling of a difference and its interval agrees
+    assert math.isnan(gap_share([1.0, 2.0], [2.0, 2.0], [1.0, 1.0])["share"])
+    assert scale_to_gap(0.5, 0.2, 0.8, 2.0) == {"share": 0.25, "ci_low": 0.1, "ci_high": 0.4}
+    assert all(math.isnan(v) for v in scale_to_gap(0.5, 0.2, 0.8, -1.0).values())
 
 
 def test_uabs_eval_planner_prints_its_cost_and_the_gap_share(trace_cache, tmp_path, capsys):

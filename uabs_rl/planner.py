@@ -372,7 +372,7 @@ def gap_share(learned: list[float], greedy: list[float], planner: list[float],
     if not a.shape == g.shape == p.shape:
         raise ValueError(f"per-window values of unequal shapes {a.shape}, {g.shape}, {p.shape}")
     nan = float("nan")
-    if a.size == 0 or (p - g).mean() == 0:  # no gap to share
+    if a.size == 0 or (p - g).mean() <= 0:  # no gap to share: the planner is not above greedy
         return {"share": nan, "ci_low": nan, "ci_high": nan, "n": int(a.size)}
     idx = np.random.default_rng(seed).integers(0, a.size, size=(n_boot, a.size))
     num, den = (a - g)[idx].mean(-1), (p - g)[idx].mean(-1)
@@ -380,3 +380,13 @@ def gap_share(learned: list[float], greedy: list[float], planner: list[float],
     lo, hi = np.quantile(boots, [0.025, 0.975])
     return {"share": float((a - g).mean() / (p - g).mean()), "ci_low": float(lo),
             "ci_high": float(hi), "n": int(a.size)}
+
+
+def scale_to_gap(diff: float, ci_low: float, ci_high: float, gap: float) -> dict[str, float]:
+    """A difference learned − greedy with its interval as shares of the greedy-to-planner
+    ``gap`` (``share``, ``ci_low``, ``ci_high``); NaN where the planner is not above
+    greedy (no gap to share), as :func:`gap_share`."""
+    if gap <= 0:
+        nan = float("nan")
+        return {"share": nan, "ci_low": nan, "ci_high": nan}
+    return {"share": diff / gap, "ci_low": ci_low / gap, "ci_high": ci_high / gap}

@@ -346,12 +346,11 @@ def learned_vs_baselines(grouping: Grouping, tests: dict[Path, dict]) -> list[di
 def _gap_share(row: dict[str, Any], planner: float) -> dict[str, float]:
     """The learned share of the greedy-to-planner gap of a greedy row, with its interval
     (NaN where the planner does not beat greedy: no gap to share)."""
-    gap = planner - row["baseline_value"]
-    if gap <= 0:
-        return {"planner_value": planner, "gap_share": float("nan"),
-                "gap_ci_low": float("nan"), "gap_ci_high": float("nan")}
-    return {"planner_value": planner, "gap_share": row["diff"] / gap,
-            "gap_ci_low": row["ci_low"] / gap, "gap_ci_high": row["ci_high"] / gap}
+    from uabs_rl.planner import scale_to_gap
+
+    s = scale_to_gap(row["diff"], row["ci_low"], row["ci_high"], planner - row["baseline_value"])
+    return {"planner_value": planner, "gap_share": s["share"], "gap_ci_low": s["ci_low"],
+            "gap_ci_high": s["ci_high"]}
 
 
 METRIC_NAMES = {"return": "return R", "served_fraction": "served fraction",
