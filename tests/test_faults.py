@@ -178,11 +178,16 @@ def test_a_population_save_cut_between_members_is_completed_or_dropped(trace_cac
     ck = [run_dir / f"seed={s}" / "checkpoints" for s in (0, 1)]
     old = [load_checkpoint(c / "last.pt") for c in ck]
     newer = [dict(s, counters=dict(s["counters"], episode=99)) for s in old]
-    # killed after the staged files and the commit record: the save is finished
+    # killed after the staged files and the commit record: the save is finished, also
+    # when the population folder was moved since (the record names files relative to it)
     for c, s in zip(ck, newer, strict=True):
         torch.save(s, c / "last.staged.pt")
-    (run_dir / ".last.commit").write_text(json.dumps([str(c / "last.staged.pt") for c in ck]))
-    complete_save(run_dir)
+    (run_dir / ".last.commit").write_text(json.dumps([f"seed={s}/checkpoints/last.staged.pt"
+                                                      for s in (0, 1)]))
+    moved = tmp_path / "moved"
+    run_dir.rename(moved)
+    complete_save(moved)
+    moved.rename(run_dir)
     assert [load_checkpoint(c / "last.pt")["counters"]["episode"] for c in ck] == [99, 99]
     assert not (run_dir / ".last.commit").exists()
     # killed before the commit record: the staged files are dropped, the old set stays

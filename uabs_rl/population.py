@@ -82,7 +82,7 @@ def complete_save(run_dir: Path, name: str = "last") -> None:
     record = Path(run_dir) / f".{name}.commit"
     if record.is_file():
         for staged in json.loads(record.read_text()):
-            staged = Path(staged)
+            staged = Path(run_dir) / staged  # relative to the population folder
             if staged.is_file():
                 os.replace(staged, staged.with_name(f"{name}.pt"))
         record.unlink()
@@ -217,7 +217,8 @@ class Population:
             staged.append(self.save(i, f"{name}.staged"))
         record = self.run_dir / f".{name}.commit"
         tmp = record.with_name(record.name + ".tmp")
-        tmp.write_text(json.dumps([str(p) for p in staged]))
+        # names relative to the population folder: it may be resumed from elsewhere or moved
+        tmp.write_text(json.dumps([os.path.relpath(p, self.run_dir) for p in staged]))
         os.replace(tmp, record)
         complete_save(self.run_dir, name)
 
