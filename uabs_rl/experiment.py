@@ -99,6 +99,9 @@ class Progress:
     """The progress bar of a run: episodes, last return, ε, collisions, last eval R."""
 
     def __init__(self, train: TrainConfig, episode: int):
+        # a thread lock: tqdm's default creates a multiprocessing semaphore, which a run
+        # killed with kill -9 leaves to Python's resource tracker to warn about
+        tqdm.set_lock(threading.RLock())
         self.bar = tqdm(total=train.episodes, initial=episode, unit="ep",
                         disable=not train.progress, dynamic_ncols=True)
         self.collisions, self.last_eval = 0.0, float("nan")
