@@ -138,3 +138,37 @@ def test_coverage_fraction_equals_the_direct_count(width, height, m, n_beams, sp
         direct = (d2 <= r_b * r_b).any(-1).float().mean(-1)
         assert torch.equal(ch.coverage_fraction(pos, r_b, n_beams, width, height, spacing),
                            direct)
+
+
+def test_channel_name_dispatches_through_the_registry(monkeypatch, trace_cache):
+    """``channel.name`` picks the model of ``channel.CHANNELS`` that the links use; an
+    unknown name is refused at start-up naming the registered ones."""
+    from dataclasses import replace
+
+    from tests.test_train import smoke
+    from uabs_rl.config import ConfigError
+    from uabs_rl.links import LinkModel
+    from uabs_rl.params import EnvParams
+
+    class Walled(ch.UMa):  # UMa behind 200 dB of walls: no link reaches SNR_th
+        def pathloss_los(self, d2d, d3d):
+            return super().pathloss_los(d2d, d3d) + 200.0
+
+        def pathloss_nlos(self, d2d, d3d):
+            return super().pathloss_nlos(d2d, d3d) + 200.0
+
+    monkeypatch.setitem(ch.CHANNELS, "walled", Walled)
+    # a vehicle right below UABS 0 (the smoke fleet is 3; the others far from it)
+    pos, veh = T([[[100.0, 100.0], [300.0, 20.0], [30.0, 150.0]]]), T([[[100.0], [100.0]]])
+    present = torch.ones(1, 1, dtype=torch.bool)
+    served = {}
+    for name in ("uma", "walled"):
+        cfg = smoke(trace_cache, f"channel.name={name}")
+        links = LinkModel(EnvParams.from_config(cfg.scenario, cfg.channel), torch.device("cpu"))
+        assert type(links.model) is ch.CHANNELS[name]
+        inside, _, served[name] = links.links(pos, veh, present, torch.Generator())
+        assert inside[0, 0].all() and not inside[0, 1:].any()
+    assert served["uma"].all() and not served["walled"].any()
+    with pytest.raises(ConfigError, match=r"channel.name='nope' is not a channel model: use "
+                                          r"one of uma, walled"):
+        EnvParams.from_config(cfg.scenario, replace(cfg.channel, name="nope"))

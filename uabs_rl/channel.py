@@ -50,6 +50,37 @@ def pathloss_nlos(d2d: torch.Tensor, d3d: torch.Tensor, h_bs: float, h_ut: float
     return torch.maximum(pathloss_los(d2d, d3d, h_bs, h_ut, fc_ghz), pl_nlos)
 
 
+class UMa:
+    """TR 38.901 UMa between a ground UE at ``h_ut`` and a UABS at ``altitude`` on carrier
+    ``fc_ghz``: the channel model ``channel.name=uma`` (docs/model.md §3).
+
+    A channel model is a class with this constructor and these three methods, registered
+    in :data:`CHANNELS`; :mod:`uabs_rl.links` draws LoS states, applies ``los_mode`` and
+    shadowing, and decides service from them."""
+
+    def __init__(self, altitude: float, h_ut: float, fc_ghz: float):
+        self.altitude, self.h_ut, self.fc_ghz = altitude, h_ut, fc_ghz
+
+    def los_probability(self, d2d: torch.Tensor) -> torch.Tensor:
+        return los_probability(d2d, self.h_ut)
+
+    def pathloss_los(self, d2d: torch.Tensor, d3d: torch.Tensor) -> torch.Tensor:
+        return pathloss_los(d2d, d3d, self.altitude, self.h_ut, self.fc_ghz)
+
+    def pathloss_nlos(self, d2d: torch.Tensor, d3d: torch.Tensor) -> torch.Tensor:
+        return pathloss_nlos(d2d, d3d, self.altitude, self.h_ut, self.fc_ghz)
+
+
+# channel.name -> channel model (docs/code.md: how to add a channel model)
+CHANNELS: dict[str, type[UMa]] = {"uma": UMa}
+
+
+def make_channel(name: str, altitude: float, h_ut: float, fc_ghz: float) -> UMa:
+    """The channel model registered as ``name`` (checked at start-up by
+    ``config.validate_env``)."""
+    return CHANNELS[name](altitude, h_ut, fc_ghz)
+
+
 def snr_db(pathloss_db: torch.Tensor, tx_power_dbm: float, tx_gain_db: float,
            rx_gain_db: float | torch.Tensor, noise_dbm: float) -> torch.Tensor:
     """SNR = P_tx + G_tx + G_rx − PL − P_n."""

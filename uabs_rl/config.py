@@ -182,7 +182,7 @@ class ScenarioConfig:
 class ChannelConfig:
     """3GPP TR 38.901 UMa uplink, GUE to UABS, with a k×k beam grid (docs/model.md §3)."""
 
-    name: str = "uma"
+    name: str = "uma"  # the channel model: a key of uabs_rl.channel.CHANNELS
     carrier_ghz: float = 30.0  # f_c
     ue_height: float = 1.5  # h_UT (m)
     tx_power_dbm: float = 14.0  # P_tx
@@ -542,6 +542,11 @@ def validate_env(scenario: ScenarioConfig, channel: ChannelConfig) -> None:
     ]
     _raise_first(checks)
     enum_value(LosMode, channel.los_mode, "channel.los_mode")
+    from uabs_rl.channel import CHANNELS
+
+    if channel.name not in CHANNELS:
+        raise ConfigError(f"channel.name={channel.name!r} is not a channel model: use one of "
+                          f"{', '.join(sorted(CHANNELS))} (uabs_rl.channel.CHANNELS).")
 
 
 def check_finite(obj: Any, prefix: str = "") -> None:

@@ -8,14 +8,7 @@ import math
 import torch
 
 from uabs_rl import rng
-from uabs_rl.channel import (
-    beam_cells,
-    beam_grid_side,
-    los_probability,
-    pathloss_los,
-    pathloss_nlos,
-    snr_db,
-)
+from uabs_rl.channel import UMa, beam_cells, beam_grid_side, make_channel, snr_db
 from uabs_rl.params import EnvParams
 
 
@@ -24,16 +17,16 @@ class ServiceRadii:
     gain: ``r_los`` if LoS, ``r_nlos`` if NLoS, ``r_exp`` with the expected path loss.
     Valid without shadowing (the path loss then grows with distance)."""
 
-    def __init__(self, p: EnvParams, gain_db: float, reach: float):
-        self.p = p
+    def __init__(self, p: EnvParams, model: UMa, gain_db: float, reach: float):
+        self.p, self.model = p, model
         f = lambda pl: snr_db(pl, p.tx_dbm, p.tx_gain_db, gain_db, p.noise_dbm)  # noqa: E731
 
         def pl(kind: str):
             def fn(d: torch.Tensor) -> torch.Tensor:
                 d3 = (d * d + (p.altitude - p.h_ut) ** 2).sqrt()
-                los = pathloss_los(d, d3, p.altitude, p.h_ut, p.fc_ghz)
-                nlos = pathloss_nlos(d, d3, p.altitude, p.h_ut, p.fc_ghz)
-                rho = los_probability(d, p.h_ut)
+                los = model.pathloss_los(d, d3)
+                nlos = model.pathloss_nlos(d, d3)
+                rho = model.los_probability(d)
                 return {"los": los, "nlos": nlos, "exp": rho * los + (1 - rho) * nlos}[kind]
             return fn
 
@@ -58,8 +51,7 @@ class ServiceRadii:
         if not self.needs_draw:
             return sure
         maybe = d2 <= _squared(self.r_los)
-        los = rng.rand(d2.shape, gen, d2.device) < los_probability(
-            d2.sqrt(), self.p.h_ut)
+        los = rng.rand(d2.shape, gen, d2.device) < self.model.los_probability(d2.sqrt())
         return sure | (maybe & los)
 
 
@@ -100,6 +92,7 @@ class LinkModel:
 
     def __init__(self, p: EnvParams, device: torch.device):
         self.p = p
+        self.model = make_channel(p.channel, p.altitude, p.h_ut, p.fc_ghz)
         # beam index space of all agents: agent u's beams are u·B .. u·B + B − 1
         self.agent_offset = (torch.arange(p.n_uabs, device=device, dtype=torch.float32)
                              * p.n_beams)[None, :, None]
@@ -109,7 +102,7 @@ class LinkModel:
             # farthest link that can be a candidate: the footprints' reach, or the area
             reach = footprint_reach(p.r_b, p.n_beams) if p.outside_gain_db is None else \
                 math.hypot(p.width, p.height)
-            self.radii = {g: ServiceRadii(p, g, reach) for g in gains}
+            self.radii = {g: ServiceRadii(p, self.model, g, reach) for g in gains}
         self.always_served = p.outside_gain_db is None and bool(self.radii) and \
             self.radii[p.gain_db].always_within(reach)
         self.beam_k = beam_grid_side(p.n_beams)
@@ -151,12 +144,12 @@ class LinkModel:
         p = self.p
         d2d = d2d_sq.sqrt()
         d3d = (d2d_sq + (p.altitude - p.h_ut) ** 2).sqrt()
-        pl_los = pathloss_los(d2d, d3d, p.altitude, p.h_ut, p.fc_ghz)
+        pl_los = self.model.pathloss_los(d2d, d3d)
         if p.los_mode == "los":
             pl, los = pl_los, None
         else:
-            pl_nlos = pathloss_nlos(d2d, d3d, p.altitude, p.h_ut, p.fc_ghz)
-            rho = los_probability(d2d, p.h_ut)
+            pl_nlos = self.model.pathloss_nlos(d2d, d3d)
+            rho = self.model.los_probability(d2d)
             if p.los_mode == "expected":
                 pl, los = rho * pl_los + (1.0 - rho) * pl_nlos, None
             else:

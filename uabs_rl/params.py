@@ -47,6 +47,7 @@ class EnvParams:
     shadow: bool
     sigma_los: float
     sigma_nlos: float
+    channel: str  # channel.name: the model of uabs_rl.channel.CHANNELS
 
     @classmethod
     def from_config(cls, scenario: ScenarioConfig, channel: ChannelConfig) -> EnvParams:
@@ -71,7 +72,7 @@ class EnvParams:
             gain_db=ch.beam_gain_db(channel.fov_deg, channel.n_beams),
             outside_gain_db=channel.outside_beam_gain_db, los_mode=LosMode(channel.los_mode),
             shadow=channel.shadow_fading, sigma_los=channel.shadow_sigma_los_db,
-            sigma_nlos=channel.shadow_sigma_nlos_db,
+            sigma_nlos=channel.shadow_sigma_nlos_db, channel=channel.name,
         )
 
     @property
