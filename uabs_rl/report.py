@@ -232,15 +232,24 @@ def curves_figure(grouping: Grouping, path: Path) -> list[Path]:
 
 
 # ----------------------------------------------------------------------------- baselines
-def evaluate_on_test(runs: list[Run]) -> dict[Path, dict[str, dict]]:
+def evaluate_on_test(runs: list[Run], planner_runs: frozenset[Path] = frozenset(),
+                     horizon: int = 1) -> dict[Path, dict[str, dict]]:
     """Each run's ``best.pt`` (chosen on validation) and the random, greedy and oracle
-    baselines with the run's masks, on every window of the test traces."""
+    baselines with the run's masks, on every window of the test traces; for the runs in
+    ``planner_runs`` also the receding-horizon planner of ``horizon`` (its cost per
+    window said on stderr)."""
     from uabs_rl.evaluate import POLICIES, evaluate_policies, load_evaluation
 
     out = {}
     for run in runs:
         ev = load_evaluation(run.path, "best", split="test")
-        out[run.path] = {k: rec for k, (rec, _) in evaluate_policies(ev, POLICIES).items()}
+        policies = (*POLICIES, PLANNER) if run.path in planner_runs else POLICIES
+        out[run.path] = {k: rec for k, (rec, _) in
+                         evaluate_policies(ev, policies, horizon=horizon).items()}
+        if PLANNER in out[run.path]:
+            rec = out[run.path][PLANNER]
+            print(f"planner H={horizon} on {run.path}: {rec['seconds'] / rec['windows']:.2f} "
+                  f"s per window ({rec['windows']} windows)", file=sys.stderr)
     return out
 
 
@@ -250,22 +259,10 @@ def _panel_run(grouping: Grouping, labels: list[str]) -> Run:
     return min(grouping.groups[labels[0]], key=lambda r: r.seed)
 
 
-def planner_on_test(grouping: Grouping, horizon: int) -> dict[Path, dict]:
-    """The receding-horizon planner (``uabs-eval --policy planner``) on every test window,
-    once per Fig. 4 panel (deterministic, and like the baselines independent of the
-    learner): ``{panel run's path: {"planner": record}}``, to merge into the test
-    records."""
-    from uabs_rl.evaluate import evaluate_policies, load_evaluation
-
-    out = {}
-    for labels in grouping.panels().values():
-        run = _panel_run(grouping, labels)
-        ev = load_evaluation(run.path, "best", split="test")
-        rec, _ = evaluate_policies(ev, (PLANNER,), horizon=horizon)[PLANNER]
-        print(f"planner H={horizon} on {run.path}: {rec['seconds'] / rec['windows']:.2f} s "
-              f"per window ({rec['windows']} windows)", file=sys.stderr)
-        out[run.path] = {PLANNER: rec}
-    return out
+def panel_runs(grouping: Grouping) -> frozenset[Path]:
+    """The runs the baselines (and the planner, once per Fig. 4 panel: it is
+    deterministic and independent of the learner) are taken from."""
+    return frozenset(_panel_run(grouping, labels).path for labels in grouping.panels().values())
 
 
 def baselines_by_panel(grouping: Grouping,
@@ -660,11 +657,9 @@ def build_report(roots: Path | list[Path], out: Path, with_baselines: bool = Tru
     _write_csv(out / "table2.csv", rows)
     fig3(grouping, out / "fig3_eval_return")
     curves_figure(grouping, out / "curves")
-    tests = evaluate_on_test([r for runs in groups.values() for r in runs]) \
-        if with_baselines else {}
-    if tests and planner is not None:
-        for path, rec in planner_on_test(grouping, planner).items():
-            tests[path].update(rec)
+    tests = evaluate_on_test([r for runs in groups.values() for r in runs],
+                             panel_runs(grouping) if planner is not None else frozenset(),
+                             planner or 1) if with_baselines else {}
     baselines = baselines_on_test(grouping, tests) if tests else {}
     if baselines:
         _write_baselines(out / "baselines.csv", baselines)
