@@ -19,6 +19,9 @@ from uabs_rl.config import RunConfig
 
 log = logging.getLogger(__name__)
 
+# clock ticks per second of /proc's CPU times
+TICKS = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+
 
 def cgroup_cpus(root: Path = Path("/sys/fs/cgroup"),
                 proc_cgroup: Path = Path("/proc/self/cgroup")) -> int | None:
@@ -171,7 +174,6 @@ class ThreadGovernor:
             lines = self.stat.read_text().splitlines()
         except OSError:
             return None
-        ticks = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
         wanted = {f"cpu{c}" for c in self.cpus}
         busy = 0
         for line in lines:
@@ -179,7 +181,7 @@ class ThreadGovernor:
             if name in wanted:
                 vals = [int(v) for v in fields[:8]]
                 busy += sum(vals) - vals[3] - vals[4]  # all but idle and iowait
-        return busy / ticks
+        return busy / TICKS
 
     def _sample(self) -> tuple[float, float, float]:
         return time.monotonic(), self._busy() or 0.0, time.process_time() + _children_cpu()
@@ -219,8 +221,8 @@ class ThreadGovernor:
 def _children_cpu(pid: int | None = None) -> float:
     """CPU seconds of the running descendants of ``pid`` (this process), from /proc
     (0 where /proc lists no children)."""
-    ticks = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
-    total, todo = 0, [os.getpid() if pid is None else pid]
+    root = os.getpid() if pid is None else pid
+    total, todo = 0, [root]
     while todo:
         parent = todo.pop()
         for task in Path(f"/proc/{parent}/task").glob("*/children"):
@@ -228,13 +230,13 @@ def _children_cpu(pid: int | None = None) -> float:
                 todo += [int(c) for c in task.read_text().split()]
             except OSError:
                 continue
-        if parent != (os.getpid() if pid is None else pid):
+        if parent != root:
             try:  # utime and stime: fields 14 and 15, after the command in parentheses
                 fields = Path(f"/proc/{parent}/stat").read_text().rsplit(")", 1)[1].split()
                 total += int(fields[11]) + int(fields[12])
             except (OSError, IndexError, ValueError):
                 continue
-    return total / ticks
+    return total / TICKS
 
 
 def setup_threads(cfg: RunConfig) -> ThreadGovernor:
