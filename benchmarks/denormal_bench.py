@@ -6,8 +6,8 @@
 
 A ReLU unit that never fires gets exactly zero gradients, so its Adam moments decay
 geometrically (x 0.9 and x 0.999 per update) into the denormal range, where the CPU
-computes up to a hundred times slower. ``DQNLearner.update`` flushes denormals to zero
-around Adam's step (``uabs_rl.learner.flush_denormals``; ``tests/test_learner.py`` shows
+computes up to a hundred times slower. ``DQN3.update`` flushes denormals to zero
+around Adam's step (``uabs_rl.algorithms.base.flush_denormals``; ``tests/test_algorithms.py`` shows
 the parameters stay bit for bit the same). This prints, for Adam over the paper's
 network (``--members`` stacked copies, as a population holds them) with ``--share`` of
 its moments denormal, the time of one step unflushed and flushed, measured in turns in
@@ -22,7 +22,7 @@ import time
 
 import torch
 
-from uabs_rl.learner import flush_denormals
+from uabs_rl.algorithms.base import flush_denormals
 from uabs_rl.model import DuelingQNet
 
 

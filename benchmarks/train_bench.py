@@ -81,7 +81,7 @@ def measure(overrides: list[str], n_episodes: int) -> None:
     wrap(tr.collector.direct, "reset", "env")
     wrap(tr.qnet, "forward", "action selection", outside_update=True)
     wrap(tr.collector.selector, "forward", "action selection")
-    wrap(tr.buffer, "push", "replay")
+    wrap(tr.buffer, "extend", "replay")
     wrap(tr.buffer, "sample", "replay")
     wrap(tr.learner, "update", "update")
     # fill the buffer past learning_starts first, so every timed step updates

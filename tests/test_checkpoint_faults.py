@@ -135,8 +135,8 @@ def _del(*keys):
      ["learner.qnet is a str, expected a dict of tensors"]),
     (_del("counters", "episode"), ["it lacks counters.episode."]),
     (_set("rng", "torch", value=torch.zeros(3)), ["rng.torch is a Tensor, expected a uint8"]),
-    (_set("replay", "size", value="10"), ["replay.size is a str, expected an integer"]),
-    (_set("format", value=2), ["not a uabs-train checkpoint of format 1 (it has format 2)"]),
+    (_set("replay", "written", value="10"), ["replay.written is a str, expected an integer"]),
+    (_set("format", value=3), ["not a uabs-train checkpoint of format 2 (it has format 3)"]),
     (_set("config", value="manhattan"), ["edited.pt: config is a str, expected a dict"]),
     (_set("config", value={}), ["its config is empty"]),
     (_del("config", "seed"), ["its config lacks config.seed"]),
@@ -314,3 +314,21 @@ def test_uabs_eval_prints_percentages_and_whole_returns(ckpt_run, tmp_path, caps
     line = next(ln for ln in text.splitlines() if ln.strip().startswith("greedy  R:"))
     assert evaluate.return_difference(d["return"]) in line
     assert evaluate.points(d["served_fraction"]) in line and " pt [" in line
+
+
+def test_a_format_1_checkpoint_loads_with_its_replay_in_todays_layout(state, tmp_path):
+    """Format 1 held the replay as a flat ring of per-agent transitions; it loads as
+    format 2 with the same transitions in the same step slots."""
+    replay = state["replay"]
+    m, held = replay["data"]["obs"].shape[1], replay["data"]["obs"].shape[0]
+    size = held * m  # the smoke run's buffer has not wrapped
+    cap = state["config"]["algo"]["buffer_size"]
+    assert size < cap and state["counters"]["env_steps"] * m == size  # n_envs = 1
+    old = {**state, "format": 1, "replay": {
+        "data": {k: v.reshape(size, *v.shape[2:]) for k, v in replay["data"].items()},
+        "cursor": size % cap, "size": size, "generator": replay["generator"]}}
+    torch.save(old, tmp_path / "old.pt")
+    loaded = load_checkpoint(tmp_path / "old.pt")
+    assert loaded["format"] == 2 and loaded["replay"]["written"] == replay["written"]
+    for k, v in replay["data"].items():
+        assert torch.equal(loaded["replay"]["data"][k], v), k

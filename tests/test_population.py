@@ -4,20 +4,18 @@ and one batched update is every member's solo update."""
 
 from __future__ import annotations
 
-import copy
 import math
 from pathlib import Path
 
 import pytest
 import torch
 
-from tests.test_learner import batch
+from tests.test_algorithms import batch, dqn3
 from tests.test_train import records, smoke
 from uabs_rl.checkpoint import CheckpointError, Interrupted, load_checkpoint
 from uabs_rl.config import AlgoConfig, ConfigError, validate_run
 from uabs_rl.evaluate import load_evaluation
-from uabs_rl.learner import DQNLearner, PopulationLearner
-from uabs_rl.model import DuelingQNet, StackedQNet
+from uabs_rl.model import DuelingQNet
 from uabs_rl.population import Population
 from uabs_rl.report import find_runs
 from uabs_rl.rng import Generators, rand, randint
@@ -76,12 +74,8 @@ def test_members_with_updates_track_their_solo_runs(trace_cache, tmp_path):
 
 def test_one_population_update_is_each_members_solo_update():
     algo = AlgoConfig(hidden=[64, 64], lr=1e-3, target_update=1, grad_clip=0.5)
-    nets = []
-    for s in (0, 1, 2):
-        torch.manual_seed(s)
-        nets.append(DuelingQNet(18, 4, [64, 64]))
-    pop = PopulationLearner(StackedQNet(copy.deepcopy(nets)), algo)
-    solos = [DQNLearner(n, algo, 4) for n in nets]
+    pop = dqn3(algo, seeds=(0, 1, 2))
+    solos = [dqn3(algo, seeds=(s,)) for s in (0, 1, 2)]
     for step in range(3):
         bs = [batch(seed=10 * step + i) for i in range(3)]
         stacked = {k: torch.stack([b[k] for b in bs]) for k in bs[0]}
@@ -92,14 +86,14 @@ def test_one_population_update_is_each_members_solo_update():
     for i, learner in enumerate(solos):
         member = pop.member_state_dict(i)
         for part in ("qnet", "target"):
-            for k, v in getattr(learner, part).state_dict().items():
+            for k, v in learner.state_dict()[part].items():
                 torch.testing.assert_close(member[part][k], v, rtol=1e-5, atol=1e-6)
         mine = learner.optim.state_dict()["state"]
         for j, st in member["optim"]["state"].items():
             torch.testing.assert_close(st["exp_avg"], mine[j]["exp_avg"], rtol=1e-4, atol=1e-7)
             assert st["step"].item() == mine[j]["step"].item() == 3
         # the member's state loads into a solo learner and back unchanged
-        solo = DQNLearner(DuelingQNet(18, 4, [64, 64]), algo, 4)
+        solo = dqn3(algo, seeds=(9,))
         solo.load_state_dict(member)
         pop.load_member(i, solo.state_dict())
         assert all(torch.equal(a, b) for a, b in zip(

@@ -14,13 +14,12 @@ from hydra.errors import ConfigCompositionException
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from tests.conftest import compose_cfg
+from uabs_rl.algorithms import Dims, make_algorithm
 from uabs_rl.checkpoint import CheckpointError, Interrupted, load_checkpoint
 from uabs_rl.config import ConfigError, validate_run
 from uabs_rl.evaluate import load_evaluation
 from uabs_rl.experiment import Experiment
-from uabs_rl.learner import DQNLearner
 from uabs_rl.make import make_selector
-from uabs_rl.model import DuelingQNet
 from uabs_rl.traces import TraceSet
 from uabs_rl.train import run
 
@@ -280,12 +279,13 @@ def test_loss_falls_when_fitting_a_fixed_buffer(trace_cache, tmp_path):
     tr.cfg.algo.learning_starts = 10**9  # collect without updating
     for _ in range(5):
         tr.collect()
-    lrn = DQNLearner(DuelingQNet(tr.params.obs_dim, 4, [64, 64]), cfg.algo, 4)
+    lrn = make_algorithm(cfg.algo, Dims(tr.params.obs_dim, 4, tr.params.n_uabs), [0],
+                         torch.device("cpu"))
     b = tr.buffer.sample(100)
     first = lrn.update(b)[0].item()
     for _ in range(1000):
         lrn.update(b)
-    assert lrn.fused_loss(b)[0].item() < 0.1 * first
+    assert lrn.loss(b)[0].item() < 0.1 * first
 
 
 def test_checkpoint_of_an_earlier_version_still_loads(rank_run, tmp_path):

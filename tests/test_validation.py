@@ -16,6 +16,7 @@ import torch
 
 from tests.test_train import smoke
 from uabs_rl import config
+from uabs_rl.algorithms.replay import storage
 from uabs_rl.config import (
     CONF_DIR,
     ChannelConfig,
@@ -35,7 +36,6 @@ from uabs_rl.config import (
 )
 from uabs_rl.env import N_ACTIONS, empty_state
 from uabs_rl.params import EnvParams
-from uabs_rl.replay import storage
 
 BAD = [  # (override on the smoke preset, the setting its message must name)
     ("algo.lr=inf", "algo.lr"),

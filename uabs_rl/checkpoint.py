@@ -27,7 +27,9 @@ from uabs_rl.config import ConfigError, RunConfig
 from uabs_rl.model import DuelingQNet
 from uabs_rl.params import EnvParams
 
-CKPT_FORMAT = 1
+# 2: the replay keeps the agent dimension (step slots of M agents); format 1's flat
+# ring of per-agent transitions is converted on load (upgrade_state)
+CKPT_FORMAT = 2
 # config sections a checkpoint must agree with to be resumed or evaluated
 COMPAT_KEYS = ("scenario", "channel", "masking", "algo", "traces", "seed", "train.n_envs",
                "train.population")
@@ -149,8 +151,29 @@ def load_checkpoint(path: Path) -> dict:
                 f"could run code. Use a checkpoint written by uabs-train.") from None
         raise CheckpointError(f"cannot read checkpoint {path} ({e}); the file is damaged or "
                               f"not a uabs-train checkpoint: {ANOTHER}.") from None
+    state = upgrade_state(state)
     validate_state(state, path)
     return state
+
+
+def upgrade_state(state: Any) -> Any:
+    """A checkpoint of format 1 in format 2: its replay buffer, a flat ring of per-agent
+    transitions, laid out in step slots (the same transitions, so a resumed run samples
+    what it would have). Anything else is returned as it is, for :func:`validate_state`."""
+    from uabs_rl.algorithms.replay import upgrade_flat_replay
+
+    if not (isinstance(state, dict) and state.get("format") == 1):
+        return state
+    replay = state.get("replay")
+    if replay is not None:
+        try:
+            cfg = state["config"]
+            m = int(cfg["scenario"]["n_uabs"])
+            total = int(state["counters"]["env_steps"]) * int(cfg["train"]["n_envs"]) * m
+            replay = upgrade_flat_replay(replay, int(cfg["algo"]["buffer_size"]), m, total)
+        except (KeyError, TypeError, ValueError, IndexError, RuntimeError):
+            return state  # not whole: validate_state names what is wrong
+    return {**state, "format": CKPT_FORMAT, "replay": replay}
 
 
 def validate_state(state: Any, path: Path) -> None:
@@ -166,7 +189,7 @@ def validate_state(state: Any, path: Path) -> None:
                               f"(it has {found}): {ANOTHER}.")
     _check_layout(state, LAYOUT, "", path)
     if state.get("replay") is not None:
-        _check_layout(state, {"replay": {"data": TENSORS, "cursor": INT, "size": INT,
+        _check_layout(state, {"replay": {"data": TENSORS, "written": INT,
                                          "generator": BYTES}}, "", path)
     cfg = config_from_checkpoint(state, path)
     _check_network(state["learner"], cfg, path)

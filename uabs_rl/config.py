@@ -72,7 +72,7 @@ class LoggerKind(StrEnum):
 
 
 class LossKind(StrEnum):
-    """Which implementation of the 3DQN loss (``uabs_rl.learner``)."""
+    """Which implementation of the 3DQN loss (``uabs_rl.algorithms.dqn3``)."""
 
     fused = "fused"
     torchrl = "torchrl"
@@ -311,12 +311,20 @@ def validate_run(cfg: RunConfig) -> None:
     validate_scenario_traces(cfg.scenario, cfg.traces)
     validate_env(cfg.scenario, cfg.channel)
     validate_masking(cfg.masking)
+    validate_algo_name(cfg.algo)
     enum_value(LossKind, cfg.algo.loss, "algo.loss")
     enum_value(LoggerKind, cfg.train.logger, "train.logger")
     _raise_first(_algo_checks(cfg) + _train_checks(cfg))
     if not (cfg.device in ("cpu", "cuda", "auto") or cfg.device.startswith("cuda:")):
         raise ConfigError(f"device must be cpu, cuda, cuda:N or auto, got {cfg.device!r}.")
     check_memory(cfg)
+
+
+def validate_algo_name(algo: AlgoConfig) -> None:
+    """``algo.name`` names a registered algorithm (``uabs_rl.algorithms``)."""
+    from uabs_rl.algorithms import algorithm_class  # here: it imports this module
+
+    algorithm_class(algo.name)
 
 
 def _algo_checks(cfg: RunConfig) -> list[tuple[bool, str, str, Any]]:
@@ -580,7 +588,7 @@ def observation_size(scenario: ScenarioConfig, channel: ChannelConfig) -> int:
 
 
 def transition_bytes(obs_dim: int) -> int:
-    """Bytes of one stored transition (``uabs_rl.replay.storage``): obs and next_obs
+    """Bytes of one stored transition (``uabs_rl.algorithms.replay.storage``): obs and next_obs
     float32, action int64, mask and next_mask bool per move, reward float32,
     terminated bool."""
     return 2 * 4 * obs_dim + 8 + 2 * N_MOVES + 4 + 1

@@ -53,6 +53,7 @@ from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 from tensordict.nn import TensorDictModuleBase
 
+from uabs_rl.algorithms import Dims, algorithm_class
 from uabs_rl.baselines import BASELINES, HEURISTICS, PLANNER, baseline_policy
 from uabs_rl.checkpoint import (
     CheckpointError,
@@ -73,7 +74,6 @@ from uabs_rl.config import (
 from uabs_rl.env import N_ACTIONS
 from uabs_rl.evaluation import Evaluator, greedy_policy, make_eval_env
 from uabs_rl.make import make_selector, resolve_device
-from uabs_rl.model import DuelingQNet
 from uabs_rl.params import EnvParams
 from uabs_rl.planner import gap_share, junction_sites
 from uabs_rl.stats import paired_difference
@@ -241,8 +241,10 @@ def load_evaluation(path: Path, which: str = "best", windows: int | None = None,
     env = make_eval_env(cfg, windows=windows, compile=False, split=split, device=device,
                         windows_name=windows_name)
     p = env.base_env.params
-    qnet = DuelingQNet(p.obs_dim, N_ACTIONS, list(cfg.algo.hidden))
-    load_into(qnet, state["learner"]["qnet"], ckpt, "learner.qnet")
+    algorithm = algorithm_class(cfg.algo.name)
+    qnet = algorithm.acting_network(cfg.algo, Dims(p.obs_dim, N_ACTIONS, p.n_uabs))
+    key = algorithm.acting_key
+    load_into(qnet, state["learner"][key], ckpt, f"learner.{key}")
     qnet.to(env.base_env.device)
     c = state["counters"]
     return Evaluation(cfg, Evaluator(env, cfg.train.eval_seed), greedy_policy(qnet, env, cfg),

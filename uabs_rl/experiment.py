@@ -17,6 +17,8 @@ from typing import Any
 import torch
 from tqdm.auto import tqdm
 
+from uabs_rl.algorithms import Dims, make_algorithm
+from uabs_rl.algorithms.replay import TransitionReplay
 from uabs_rl.checkpoint import (
     CKPT_FORMAT,
     Interrupted,
@@ -27,10 +29,7 @@ from uabs_rl.checkpoint import (
 from uabs_rl.config import RunConfig, TrainConfig, validate_run
 from uabs_rl.env import N_ACTIONS
 from uabs_rl.evaluation import Evaluator, greedy_policy, make_eval_env
-from uabs_rl.learner import DQNLearner
 from uabs_rl.make import make_env, make_selector, resolve_device
-from uabs_rl.model import DuelingQNet
-from uabs_rl.replay import ReplayBuffer
 from uabs_rl.rollout import Collector, UpdateSchedule, episode_records, epsilon
 from uabs_rl.runfolder import RunFolderError
 from uabs_rl.runlog import RunLog, check_logger
@@ -125,12 +124,12 @@ NO_REPLAY = ("the checkpoint holds no replay buffer (train.checkpoint_buffer=fal
 
 def run_state(exp, cfg: RunConfig, learner: dict, best_eval: float,
               selector_gen: torch.Generator, env_gen: torch.Generator,
-              buffer: ReplayBuffer) -> dict:
+              buffer: TransitionReplay, member: int = 0) -> dict:
     """The checkpoint of a run (or of one member of a population, ``exp`` being the
     population): its config, the run's identity (``uabs_rl.runfolder``; None outside
     ``uabs_rl.train.prepare``), learner state, ``exp``'s counters, the global RNG,
     the selector's and env's generators and, with ``train.checkpoint_buffer``, the
-    replay buffer."""
+    replay buffer (member ``member``'s)."""
     return {
         "format": CKPT_FORMAT, "config": config_dict(cfg), "run": exp.identity,
         "learner": learner,
@@ -139,7 +138,7 @@ def run_state(exp, cfg: RunConfig, learner: dict, best_eval: float,
                      "total_steps": exp.total_steps},
         "rng": {"torch": torch.get_rng_state(), "selector": selector_gen.get_state(),
                 "env": env_gen.get_state()},
-        "replay": buffer.state_dict() if cfg.train.checkpoint_buffer else None,
+        "replay": buffer.member_state_dict(member) if cfg.train.checkpoint_buffer else None,
     }
 
 
@@ -159,14 +158,14 @@ def restore_counters(exp, state: dict) -> None:
 
 
 def restore_streams(state: dict, selector_gen: torch.Generator, env_gen: torch.Generator,
-                    buffer: ReplayBuffer) -> bool:
-    """The generators and the replay buffer of a checkpoint written by :func:`run_state`;
-    False when it holds no buffer (``train.checkpoint_buffer=false``)."""
+                    buffer: TransitionReplay, member: int = 0) -> bool:
+    """The generators and the replay buffer (member ``member``'s) of a checkpoint written
+    by :func:`run_state`; False when it holds no buffer (``train.checkpoint_buffer=false``)."""
     selector_gen.set_state(state["rng"]["selector"])
     env_gen.set_state(state["rng"]["env"])
     if state.get("replay") is None:
         return False
-    buffer.load_state_dict(state["replay"])
+    buffer.load_member(member, state["replay"])
     return True
 
 
@@ -236,17 +235,16 @@ class Experiment:
                        compile=tr.compile, spec_mask=False)
         eval_env = make_eval_env(cfg, traces.get("eval"), dev)
         self.params = p = env.base_env.params
-        self.qnet = DuelingQNet(p.obs_dim, N_ACTIONS, list(cfg.algo.hidden)).to(dev)
-        self.learner = DQNLearner(self.qnet, cfg.algo, N_ACTIONS)
-        self.buffer = ReplayBuffer(cfg.algo.buffer_size, p.obs_dim, N_ACTIONS, dev,
-                                   seed=cfg.seed)
+        self.learner = make_algorithm(cfg.algo, Dims(p.obs_dim, N_ACTIONS, p.n_uabs),
+                                      [cfg.seed], dev)
+        self.qnet, self.buffer = self.learner.policy, self.learner.buffer
         self.gen = torch.Generator(device=dev)
         self.gen.manual_seed(cfg.seed)
         selector = make_selector(env, cfg.masking, cfg.algo.eps_start, self.gen,
                                  compile=tr.compile)
         self.collector = Collector(env, self.qnet, selector, self.buffer,
                                    n_step=cfg.algo.n_step, gamma=cfg.algo.gamma)
-        self.updates = UpdateSchedule(self.learner, self.buffer, cfg.algo)
+        self.updates = UpdateSchedule(self.learner, cfg.algo)
         self.evaluator = Evaluator(eval_env, tr.eval_seed)
         self.greedy = greedy_policy(self.qnet, eval_env, cfg, compile=tr.compile)
         self.log = RunLog(cfg, self.run_dir)

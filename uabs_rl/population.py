@@ -6,9 +6,11 @@ together in one process.
 
 Member ``p`` has seed ``seed + p``. Its episodes run in block ``p`` of one env
 (``P · train.n_envs`` envs), drawn from its own generators (:mod:`uabs_rl.rng`); its
-network is slice ``p`` of a :class:`~uabs_rl.model.StackedQNet`, updated by one
-batched :class:`~uabs_rl.learner.PopulationLearner` step per update; its transitions go
-to its own replay buffer; its evaluations are block ``p`` of one batched evaluation.
+network is member ``p`` of the algorithm's (for the 3DQN slice ``p`` of a
+:class:`~uabs_rl.model.StackedQNet`, updated by one batched step per update); its
+transitions go to its own replay buffer (block ``p`` of the algorithm's
+:class:`~uabs_rl.algorithms.replay.TransitionReplay`); its evaluations are block ``p``
+of one batched evaluation.
 Each member writes what a solo run writes, in ``<run>/seed=<s>/``: ``metrics.jsonl``,
 logger files, ``eval/`` pictures, ``checkpoints/{best,last}.pt`` in the solo format
 (so ``uabs-eval`` and ``uabs-report`` read members as runs). Unlike a solo run, a
@@ -34,8 +36,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-import torch
-
+from uabs_rl.algorithms import Dims, make_algorithm
 from uabs_rl.checkpoint import (
     CheckpointError,
     check_compatible,
@@ -54,10 +55,7 @@ from uabs_rl.experiment import (
     run_state,
     write_error,
 )
-from uabs_rl.learner import PopulationLearner
 from uabs_rl.make import make_env, make_selector, resolve_device
-from uabs_rl.model import DuelingQNet, StackedQNet
-from uabs_rl.replay import PopulationReplay
 from uabs_rl.rng import Generators
 from uabs_rl.rollout import Collector, UpdateSchedule, episode_records, epsilon
 from uabs_rl.runfolder import check_identity
@@ -125,19 +123,15 @@ class Population:
                        compile=tr.compile, spec_mask=False)
         eval_env = make_eval_env(cfg, traces.get("eval"), dev, members=P)
         self.params = p = env.base_env.params
-        nets = []
-        for s in seeds:  # each member's initial network is its solo run's
-            torch.manual_seed(s)
-            nets.append(DuelingQNet(p.obs_dim, N_ACTIONS, list(cfg.algo.hidden)))
-        self.qnet = StackedQNet(nets).to(dev)
-        self.learner = PopulationLearner(self.qnet, cfg.algo)
-        self.buffer = PopulationReplay(cfg.algo.buffer_size, p.obs_dim, N_ACTIONS, dev, seeds)
+        self.learner = make_algorithm(cfg.algo, Dims(p.obs_dim, N_ACTIONS, p.n_uabs),
+                                      seeds, dev)
+        self.qnet, self.buffer = self.learner.policy, self.learner.buffer
         self.gen = Generators(seeds, dev)
         selector = make_selector(env, cfg.masking, cfg.algo.eps_start, self.gen,
                                  compile=tr.compile)
         self.collector = Collector(env, self.qnet, selector, self.buffer, members=P,
                                    n_step=cfg.algo.n_step, gamma=cfg.algo.gamma)
-        self.updates = UpdateSchedule(self.learner, self.buffer, cfg.algo)
+        self.updates = UpdateSchedule(self.learner, cfg.algo)
         self.evaluator = Evaluator(eval_env, tr.eval_seed)
         self.greedy = greedy_policy(self.qnet, eval_env, cfg, compile=tr.compile, members=P)
         self.members = [Member(cfg, s, self.run_dir) for s in seeds]
@@ -194,7 +188,7 @@ class Population:
         m = self.members[i]
         state = run_state(self, m.cfg, self.learner.member_state_dict(i), m.best_eval,
                           self.gen.gens[i], self.collector.env.base_env.rng.gens[i],
-                          self.buffer.buffers[i])
+                          self.buffer, member=i)
         state["population"] = {"seeds": [x.seed for x in self.members], "member": i}
         return state
 
@@ -247,7 +241,7 @@ class Population:
             self.learner.load_member(i, st["learner"])
             m.best_eval = float(st["counters"]["best_eval"])
             buffers &= restore_streams(st, self.gen.gens[i], env_rng.gens[i],
-                                       self.buffer.buffers[i])
+                                       self.buffer, member=i)
         restore_counters(self, states[0])  # the members' counters are equal
         if not buffers:
             log.warning(NO_REPLAY)

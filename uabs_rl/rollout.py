@@ -1,6 +1,6 @@
-"""Collection (docs/model.md §7): ε-greedy episodes in the training env, every agent's step stored
-as one transition of the shared replay buffer, and the update schedule that interleaves
-gradient steps with env steps."""
+"""Collection (docs/model.md §7): ε-greedy episodes in the training env, every env step's
+transitions (all agents, the agent dimension kept) stored in the learner's replay, and
+the update schedule that interleaves gradient steps with env steps."""
 
 from __future__ import annotations
 
@@ -12,11 +12,11 @@ from tensordict import TensorDict, TensorDictBase
 from torch import nn
 from torchrl.envs import TransformedEnv
 
+from uabs_rl.algorithms import Algorithm
+from uabs_rl.algorithms.replay import TransitionReplay
 from uabs_rl.config import AlgoConfig
-from uabs_rl.env import ACTION, DIAG, DIAG_ENTRIES, MASK, N_ACTIONS, OBS, REWARD
-from uabs_rl.learner import DQNLearner
+from uabs_rl.env import ACTION, DIAG, DIAG_ENTRIES, MASK, OBS, REWARD
 from uabs_rl.masking import ACTION_VALUE, DirectEnv, MaskedActionSelector
-from uabs_rl.replay import PopulationReplay, ReplayBuffer
 
 
 def epsilon(algo: AlgoConfig, env_steps: int, total_steps: int) -> float:
@@ -31,8 +31,8 @@ class UpdateSchedule:
     paper's one update per step with n_envs = 1, and n_envs updates per collector step
     otherwise. Updates start once the buffer holds ``algo.learning_starts`` transitions."""
 
-    def __init__(self, learner: DQNLearner, buffer: ReplayBuffer, algo: AlgoConfig):
-        self.learner, self.buffer, self.algo = learner, buffer, algo
+    def __init__(self, algorithm: Algorithm, algo: AlgoConfig):
+        self.algorithm, self.buffer, self.algo = algorithm, algorithm.buffer, algo
         self.credit = 0.0
 
     def __call__(self, new_env_steps: int) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
@@ -41,7 +41,7 @@ class UpdateSchedule:
         while self.credit >= 1.0:
             self.credit -= 1.0
             if len(self.buffer) >= self.algo.learning_starts:
-                yield self.learner.update(self.buffer.sample(self.algo.batch_size))
+                yield self.algorithm.update(self.buffer.sample())
 
 
 class Collector:
@@ -51,7 +51,7 @@ class Collector:
     step of every member)."""
 
     def __init__(self, env: TransformedEnv, qnet: nn.Module, selector: MaskedActionSelector,
-                 buffer: ReplayBuffer | PopulationReplay, members: int = 1,
+                 buffer: TransitionReplay, members: int = 1,
                  n_step: int = 1, gamma: float = 1.0):
         self.env, self.qnet, self.selector, self.buffer = env, qnet, selector, buffer
         self.direct = DirectEnv(env)  # env.reset / env.step without TensorDicts
@@ -74,9 +74,8 @@ class Collector:
         return tr
 
     def _push(self, tr: dict[str, torch.Tensor], next_mask: torch.Tensor) -> None:
-        n = tr["obs"].shape[0] * tr["obs"].shape[1]
-        self.buffer.push(**{k: v.reshape(n, *v.shape[2:]) for k, v in tr.items()},
-                         next_mask=next_mask.reshape(n, N_ACTIONS))
+        self.buffer.extend(TensorDict({**tr, "next_mask": next_mask},
+                                      batch_size=tr["obs"].shape[:2]))
 
     def round(self, eps_at: Callable[[int], float],
               optimise: Callable[[int], Iterator[tuple[torch.Tensor, torch.Tensor]]]):

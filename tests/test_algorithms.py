@@ -1,0 +1,284 @@
+"""The learners (uabs_rl.algorithms): the registry, the 3DQN's losses and update, and
+the replay of env-step transitions."""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+
+import pytest
+import torch
+
+from uabs_rl.algorithms import ALGORITHMS, Dims, make_algorithm
+from uabs_rl.algorithms import dqn3 as dqn3_module
+from uabs_rl.algorithms.replay import TransitionReplay, upgrade_flat_replay
+from uabs_rl.config import AlgoConfig, ConfigError
+from uabs_rl.model import DuelingQNet
+
+
+def dqn3(algo: AlgoConfig | None = None, obs_dim: int = 18, seeds=(0,), agents: int = 3):
+    return make_algorithm(algo or AlgoConfig(), Dims(obs_dim, 4, agents), list(seeds),
+                          torch.device("cpu"))
+
+
+def seeded_net(seed: int, obs_dim: int = 18, hidden=(256, 256)) -> DuelingQNet:
+    """The initial network of a run of seed ``seed`` (what DQN3 builds)."""
+    torch.manual_seed(seed)
+    return DuelingQNet(obs_dim, 4, list(hidden))
+
+
+def batch(n=64, d=18, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    mask = torch.rand(n, 4, generator=g) < 0.7
+    mask[:, 0] = True
+    return {"obs": torch.randn(n, d, generator=g), "action": torch.randint(0, 4, (n,), generator=g),
+            "mask": torch.ones(n, 4, dtype=torch.bool), "reward": torch.randn(n, generator=g),
+            "next_obs": torch.randn(n, d, generator=g), "next_mask": mask,
+            "terminated": torch.rand(n, generator=g) < 0.2}
+
+
+def test_dueling_head_is_v_plus_centred_advantage():
+    net = DuelingQNet(5, 4, [8])
+    x = torch.randn(3, 2, 5)  # [envs, agents, obs]: parameters shared across agents
+    q = net(x)
+    z = net.trunk(x)
+    a = net.advantage(z)
+    assert q.shape == (3, 2, 4)
+    assert torch.allclose(q.mean(-1, keepdim=True), net.value(z), atol=1e-6)
+    assert torch.allclose(q - q.mean(-1, keepdim=True), a - a.mean(-1, keepdim=True), atol=1e-6)
+
+
+def test_registry_dispatches_algo_name_and_refuses_an_unknown_one():
+    assert type(dqn3()).__name__ == "DQN3" and "dqn3" in ALGORITHMS
+    with pytest.raises(ConfigError, match=r"algo.name='vdm' is not a registered.*dqn3"):
+        make_algorithm(AlgoConfig(name="vdm"), Dims(18, 4, 3), [0], torch.device("cpu"))
+
+
+def test_fused_and_torchrl_losses_agree():
+    algo = dict(hidden=[32, 32], gamma=0.8)
+    fused = dqn3(AlgoConfig(loss="fused", **algo))
+    trl = dqn3(AlgoConfig(loss="torchrl", **algo))
+    assert isinstance(trl.loss_module, dqn3_module.TorchRLDQN3Loss)
+    # make the target differ from the online net, identically in both learners
+    with torch.no_grad():
+        for p in fused.loss_module.target_network.parameters():
+            p.add_(0.1)
+    # through the resume path: a learner state whose target differs from the online net
+    trl.load_state_dict({**trl.state_dict(), "target": fused.state_dict()["target"]})
+    assert all(torch.equal(v, fused.state_dict()["target"][k])
+               for k, v in trl.state_dict()["target"].items())
+    b = batch()
+    lf, _ = fused.loss(b)
+    lt, _ = trl.loss(b)
+    assert lf.item() == pytest.approx(lt.item(), rel=1e-5)
+    lf.backward()
+    lt.backward()
+    for pf, pt in zip(fused.policy.parameters(), trl.policy.parameters(), strict=True):
+        assert torch.allclose(pf.grad, pt.grad, atol=1e-6)
+
+
+def test_flushing_denormal_adam_moments_keeps_parameters_bit_identical(monkeypatch):
+    """Dead ReLU units get zero gradients, so their Adam moments decay into denormals;
+    the update flushes those to zero (for speed) and must leave every parameter exactly
+    as the unflushed update does."""
+    flushed, plain = (dqn3(AlgoConfig(hidden=[32, 32], lr=1e-3)) for _ in range(2))
+    for lrn in (flushed, plain):
+        with torch.no_grad():
+            lrn.policy.trunk[2].bias[:8] = -1e3  # units 0-7 of the second layer never fire
+        lrn.update(batch(seed=99))
+        st = lrn.optim.state[lrn.policy.trunk[2].weight]  # the dead units' rows
+        st["exp_avg"][:8], st["exp_avg_sq"][:8] = 1e-39, 1e-41  # decayed moments
+    start = copy.deepcopy(flushed.policy.trunk[2].weight)
+    tiny = torch.finfo(torch.float32).tiny
+    for i in range(30):
+        b = batch(seed=i)
+        flushed.update(b)
+        with monkeypatch.context() as m:
+            m.setattr(dqn3_module, "flush_denormals", contextlib.nullcontext)
+            plain.update(b)
+    moments = [lrn.optim.state[lrn.policy.trunk[2].weight]["exp_avg"][:8]
+               for lrn in (flushed, plain)]
+    assert (moments[0] == 0).all()  # flushed ...
+    assert ((moments[1] != 0) & (moments[1].abs() < tiny)).all()  # ... where plain is denormal
+    for pf, pp in zip(flushed.policy.parameters(), plain.policy.parameters(), strict=True):
+        assert torch.equal(pf, pp)
+    assert not torch.equal(flushed.policy.trunk[2].weight, start)  # it learned
+
+
+def test_target_is_used_and_synced_every_target_update_updates():
+    lrn = dqn3(AlgoConfig(hidden=[16], target_update=3, lr=1e-2))
+    b = batch()
+    before = copy.deepcopy(lrn.state_dict()["target"])
+    for k in range(1, 7):
+        lrn.update(b)
+        target, online = lrn.state_dict()["target"], lrn.policy.state_dict()
+        copied = all(torch.equal(online[n], v) for n, v in target.items())
+        assert copied == (k % 3 == 0), k  # the 3rd and 6th updates copy the online net
+        if k < 3:
+            assert all(torch.equal(before[n], v) for n, v in target.items())
+    # a resumed learner copies on the same schedule
+    again = dqn3(AlgoConfig(hidden=[16], target_update=3, lr=1e-2))
+    lrn.update(b)  # the 7th
+    again.load_state_dict(copy.deepcopy(lrn.state_dict()))  # as a checkpoint holds it
+    for _ in range(2):
+        lrn.update(b)
+        again.update(b)
+    assert all(torch.equal(a, c) for a, c in zip(
+        again.state_dict()["target"].values(), lrn.state_dict()["target"].values(), strict=True))
+
+
+def test_terminal_transitions_do_not_bootstrap():
+    lrn = dqn3(AlgoConfig(hidden=[8], gamma=0.9), obs_dim=4)
+    b = batch(8, 4)
+    b["terminated"][:] = True
+    loss, q = lrn.loss(b)
+    expected = torch.nn.functional.smooth_l1_loss(
+        lrn.policy(b["obs"]).gather(1, b["action"][:, None]).squeeze(1), b["reward"])
+    assert loss.item() == pytest.approx(expected.item(), rel=1e-6)
+
+
+def steps(n, agents, seed, obs_dim=2):
+    """``n`` env steps of ``agents`` agents' transitions, as the collector pushes them."""
+    g = torch.Generator().manual_seed(seed)
+    shape = (n, agents)
+    return {"obs": torch.randn(*shape, obs_dim, generator=g),
+            "action": torch.randint(0, 4, shape, generator=g),
+            "mask": torch.rand(*shape, 4, generator=g) < 0.5,
+            "reward": torch.randn(*shape, generator=g),
+            "next_obs": torch.randn(*shape, obs_dim, generator=g),
+            "next_mask": torch.rand(*shape, 4, generator=g) < 0.5,
+            "terminated": torch.rand(*shape, generator=g) < 0.2}
+
+
+class FlatRing:
+    """The paper's shared buffer written out plainly: a ring of ``capacity`` per-agent
+    transitions, sampled uniformly from its slots by a generator seeded ``seed``."""
+
+    def __init__(self, capacity, seed):
+        self.capacity, self.cursor, self.size, self.data = capacity, 0, 0, None
+        self.gen = torch.Generator().manual_seed(seed)
+
+    def push(self, tr):
+        flat = {k: v.reshape(-1, *v.shape[2:]) for k, v in tr.items()}
+        if self.data is None:
+            self.data = {k: torch.zeros(self.capacity, *v.shape[1:], dtype=v.dtype)
+                         for k, v in flat.items()}
+        n = flat["obs"].shape[0]
+        idx = (torch.arange(n) + self.cursor) % self.capacity
+        for k, v in flat.items():
+            self.data[k][idx] = v
+        self.cursor = (self.cursor + n) % self.capacity
+        self.size = min(self.size + n, self.capacity)
+
+    def sample(self, b):
+        idx = torch.randint(0, self.size, (b,), generator=self.gen)
+        return {k: v[idx] for k, v in self.data.items()}
+
+
+@pytest.mark.parametrize("capacity", [12, 13, 14])  # a multiple of M = 3 and two not
+def test_agent_samples_are_the_flat_rings_through_its_wraps(capacity):
+    """Storage in env-step slots, sampling per agent: the same transitions, draw for
+    draw, as a flat ring of ``capacity`` per-agent transitions with the same seed."""
+    buf = TransitionReplay(capacity, 2, 4, 3, seeds=[7], batch_size=5)
+    ring = FlatRing(capacity, 7)
+    for step in range(9):  # 2 env steps of 3 agents a push: wraps several times
+        tr = steps(2, 3, step)
+        buf.extend(tr)
+        ring.push(tr)
+        assert len(buf) == ring.size
+        got, want = buf.sample(), ring.sample(5)
+        for k in want:
+            assert torch.equal(got[k], want[k]), (step, k)
+
+
+def test_step_samples_keep_the_agents_and_add_the_team_reward():
+    buf = TransitionReplay(12, 2, 4, 3, seeds=[1], batch_size=6, unit="step")
+    pushed = [steps(2, 3, s) for s in range(3)]
+    for tr in pushed:
+        buf.extend(tr)
+    td, info = buf.sample(return_info=True)
+    assert td.batch_size == (6,) and td["obs"].shape == (6, 3, 2)
+    assert info["index"].max() < 4  # the 4 newest steps (capacity 12 / 3 agents)
+    every = {k: torch.cat([tr[k] for tr in pushed]) for k in pushed[0]}  # steps 0..5
+    for i, slot in enumerate(info["index"].tolist()):
+        step = slot + 4 if slot < 2 else slot  # slots 0, 1 rewritten by steps 4, 5
+        assert torch.equal(td["obs"][i], every["obs"][step])
+    torch.testing.assert_close(td["team_reward"], td["reward"].sum(-1))
+    with pytest.raises(NotImplementedError):
+        buf.update_priority(info["index"], torch.ones(6))
+
+
+def test_population_replay_equals_each_members_own_buffer():
+    """Stacked storage, one push and one gather for all members: the same transitions,
+    samples and saved state as each member's own buffer, through the ring's wrap."""
+    seeds = [4, 5, 6]
+    pop = TransitionReplay(7, 2, 4, 1, seeds, batch_size=5)
+    solo = [TransitionReplay(7, 2, 4, 1, [s], batch_size=5) for s in seeds]
+    for step in range(6):  # 3 transitions per member a step: wraps twice
+        blocks = [steps(3, 1, 10 * step + p) for p in range(3)]
+        pop.extend({k: torch.cat([b[k] for b in blocks]) for k in blocks[0]})
+        for buf, b in zip(solo, blocks, strict=True):
+            buf.extend(b)
+        got = pop.sample()
+        want = [buf.sample() for buf in solo]
+        for k in want[0].keys():
+            assert torch.equal(got[k], torch.stack([w[k] for w in want])), k
+    for p, buf in enumerate(solo):
+        a, b = pop.member_state_dict(p), buf.state_dict()
+        assert a["written"] == b["written"] == 18
+        assert all(torch.equal(a["data"][k], b["data"][k]) for k in b["data"])
+    fresh = TransitionReplay(7, 2, 4, 1, seeds, batch_size=5)  # a resumed population's
+    for p, buf in enumerate(solo):
+        fresh.load_member(p, buf.state_dict())
+    assert all(torch.equal(fresh.data[k], pop.data[k]) for k in pop.data)
+    assert torch.equal(fresh.sample()["obs"], pop.sample()["obs"])
+
+
+@pytest.mark.parametrize("pushes", [2, 7])  # before and after the ring wraps
+def test_a_format_1_flat_replay_converts_to_the_same_samples(pushes):
+    """A checkpoint of format 1 held a flat ring (data in slot order, cursor, size);
+    converted, it samples what the flat ring would have sampled."""
+    ring = FlatRing(13, 3)
+    for s in range(pushes):
+        ring.push(steps(2, 3, s))
+    ring.sample(4)  # the generator has moved on
+    old = {"data": {k: v[: ring.size].clone() for k, v in ring.data.items()},
+           "cursor": ring.cursor, "size": ring.size, "generator": ring.gen.get_state()}
+    buf = TransitionReplay(13, 2, 4, 3, seeds=[0], batch_size=4)
+    buf.load_state_dict(upgrade_flat_replay(old, 13, 3, total=pushes * 2 * 3))
+    for s in range(3):
+        got, want = buf.sample(), ring.sample(4)
+        assert all(torch.equal(got[k], want[k]) for k in want), s
+        buf.extend(steps(2, 3, 100 + s))
+        ring.push(steps(2, 3, 100 + s))
+
+
+@pytest.mark.parametrize("mode", ["flat", "rank"])  # rank's target mask waits a step
+def test_n_step_transitions_sum_the_next_rewards(trace_cache, tmp_path, mode):
+    """algo.n_step=3 stores r_i + γ r_{i+1} + γ² r_{i+2} with the state 3 steps on (cut
+    at the episode's end, where the transition is terminal), beside the one-step
+    transitions of the same episodes."""
+    from tests.test_train import smoke
+    from uabs_rl.experiment import Experiment
+
+    args = [f"masking={mode}", "algo.learning_starts=100000", "algo.buffer_size=100000",
+            "train.logger=none"]
+    one = Experiment(smoke(trace_cache, *args), tmp_path / "one")
+    three = Experiment(smoke(trace_cache, *args, "algo.n_step=3"), tmp_path / "three")
+    one.collect()
+    three.collect()
+    steps, m, g = one.params.episode_steps, one.params.n_uabs, one.cfg.algo.gamma
+    assert len(one.buffer) == len(three.buffer) == steps * m
+    d1 = {k: v[0, :steps] for k, v in one.buffer.data.items()}
+    d3 = {k: v[0, :steps] for k, v in three.buffer.data.items()}
+    assert torch.equal(d1["obs"], d3["obs"]) and torch.equal(d1["action"], d3["action"])
+    for i in range(steps):
+        last = min(i + 3, steps) - 1
+        want = sum(g ** k * d1["reward"][i + k] for k in range(last - i + 1))
+        torch.testing.assert_close(d3["reward"][i], want)
+        assert torch.equal(d3["next_obs"][i], d1["next_obs"][last])
+        assert torch.equal(d3["terminated"][i], d1["terminated"][last])
+        if last == i + 2:  # bootstrapped: the target mask of s_{i+3}
+            assert torch.equal(d3["next_mask"][i], d1["next_mask"][i + 2])
+    assert d3["terminated"][-3:].all() and not d3["terminated"][:-3].any()
+    assert three.learner.loss_module.gamma == pytest.approx(g ** 3)

@@ -1,0 +1,244 @@
+"""3DQN (``algo=dqn3``): the paper's shared double dueling DQN (docs/model.md §7).
+
+One dueling Q-network shared by every agent; each agent's step is one transition of a
+shared replay (``unit="agent"``); the double-DQN target maximises over the target mask
+at o'; a target network copied every ``algo.target_update`` updates; Huber loss; Adam.
+A population (P members) stacks the members' networks (:class:`StackedQNet`) and steps
+them in one batched update with one fused Adam; each member's state is saved in a single
+run's format.
+
+Two implementations of the same loss, selected by ``algo.loss``:
+
+* ``fused`` (default, :class:`DQN3Loss`): plain tensors: online net on o (with gradient)
+  and on o' (without), target net on o', Huber loss.
+* ``torchrl`` (:class:`TorchRLDQN3Loss`): TorchRL's ``DQNLoss(double_dqn=True)`` over the
+  same batch, kept as the tested reference (single runs only).
+
+Why a hand-written loss: measured on the 2-core development CPU (batch 128 × 3 agents,
+2 × 256 MLP), one update takes 6.9 ms fused against 13.9 ms with ``DQNLoss``, which
+builds TensorDicts, runs the value network through functional calls and masks via
+``QValueModule`` on every call. ``tests/test_algorithms.py`` checks that both give the
+same loss and gradients.
+"""
+
+from __future__ import annotations
+
+import copy
+import warnings
+
+import torch
+import torch.nn.functional as F
+from tensordict import TensorDict, TensorDictParams
+from tensordict.nn import TensorDictModule, TensorDictSequential
+from torch import nn
+from torchrl.modules import QValueModule
+from torchrl.objectives import DQNLoss, LossModule
+
+from uabs_rl.algorithms.base import (
+    Algorithm,
+    Dims,
+    PeriodicHardUpdate,
+    flush_denormals,
+    register,
+)
+from uabs_rl.algorithms.replay import TransitionReplay
+from uabs_rl.config import AlgoConfig, LossKind
+from uabs_rl.model import DuelingQNet, StackedQNet
+
+TARGET_WARNING = "No target network updater has been associated"
+
+
+class DQN3Loss(LossModule):
+    """Huber(Q(o, a), r + γ (1 − terminated) Q_target(o', argmax_{a' ∈ mask'} Q(o', a')))
+    on batches of agent transitions ``[B, ...]`` (a population's ``[P, B, ...]``, one
+    loss per member ``[P]``); ``gamma`` is γ^n with n-step returns. The target network
+    reads ``target_value_network_params``, which TorchRL's target updaters write."""
+
+    value_network: nn.Module
+    value_network_params: TensorDictParams
+    target_value_network_params: TensorDictParams
+
+    def __init__(self, qnet: nn.Module, gamma: float):
+        super().__init__()
+        self.convert_to_functional(qnet, "value_network", create_target_params=True)
+        self.target_network = copy.deepcopy(qnet)
+        with warnings.catch_warnings():  # read before the algorithm attaches its updater
+            warnings.filterwarnings("ignore", message=TARGET_WARNING)
+            self.target_value_network_params.to_module(self.target_network)  # shares them
+        self.gamma = gamma
+
+    def forward(self, b: TensorDict) -> TensorDict:
+        obs, next_obs = b.get("obs"), b.get("next_obs")
+        q_taken = self.value_network(obs).gather(-1, b.get("action")[..., None]).squeeze(-1)
+        with torch.no_grad():  # o' outside the graph: the backward pass covers o only
+            best = self.value_network(next_obs).masked_fill(
+                ~b.get("next_mask"), -torch.inf).argmax(-1, keepdim=True)
+            q_next = self.target_network(next_obs).gather(-1, best).squeeze(-1)
+            y = b.get("reward") + self.gamma * (~b.get("terminated")).float() * q_next
+        if q_taken.dim() == 1:
+            loss = F.smooth_l1_loss(q_taken, y)
+        else:
+            loss = F.smooth_l1_loss(q_taken, y, reduction="none").mean(-1)
+        return TensorDict({"loss": loss, "q_taken": q_taken.detach()}, batch_size=[])
+
+    def target_state(self) -> dict[str, torch.Tensor]:
+        return self.target_network.state_dict()
+
+    def load_target_state(self, state: dict, member: int | None = None) -> None:
+        if member is None:
+            self.target_network.load_state_dict(state)
+        else:
+            self.target_network.load_member(member, state)
+
+
+def value_network(qnet: DuelingQNet) -> TensorDictSequential:
+    """``qnet`` as TorchRL's Q-value actor on flat per-agent batches, masked by
+    ``action_mask``."""
+    return TensorDictSequential(
+        TensorDictModule(qnet, in_keys=["observation"], out_keys=["action_value"]),
+        QValueModule(action_space="categorical", action_mask_key="action_mask"))
+
+
+def batch_to_td(b: TensorDict) -> TensorDict:
+    """A batch of agent transitions in the keys of TorchRL's losses."""
+    n = b.get("obs").shape[0]
+    done = b.get("terminated")[:, None]
+    return TensorDict({
+        "observation": b.get("obs"), "action": b.get("action"), "action_mask": b.get("mask"),
+        "next": {"observation": b.get("next_obs"), "action_mask": b.get("next_mask"),
+                 "reward": b.get("reward")[:, None], "done": done, "terminated": done},
+    }, batch_size=[n])
+
+
+class TorchRLDQN3Loss(DQNLoss):
+    """TorchRL's double-DQN loss on the batches of :class:`DQN3Loss` (single runs)."""
+
+    def __init__(self, qnet: DuelingQNet, gamma: float):
+        super().__init__(value_network(qnet), action_space="categorical", double_dqn=True,
+                         delay_value=True, loss_function="smooth_l1")
+        self.make_value_estimator(gamma=gamma)
+        self.qnet = qnet
+        # the parameters' keys in the loss's layout, by the net's own names
+        names = {p.data_ptr(): k for k, p in qnet.named_parameters()}
+        self.names = {k: names[v.data_ptr()] for k, v in
+                      self.value_network_params.flatten_keys(".").items(True, True)}
+
+    def forward(self, b: TensorDict) -> TensorDict:
+        loss = super().forward(batch_to_td(b))["loss"]
+        with torch.no_grad():
+            q_taken = self.qnet(b.get("obs")).gather(1, b.get("action")[:, None]).squeeze(1)
+        return TensorDict({"loss": loss, "q_taken": q_taken}, batch_size=[])
+
+    def target_state(self) -> dict[str, torch.Tensor]:
+        flat = self.target_value_network_params.flatten_keys(".")
+        return {self.names[k]: flat.get(k).detach().clone() for k in self.names}
+
+    def load_target_state(self, state: dict, member: int | None = None) -> None:
+        flat = self.target_value_network_params.flatten_keys(".")
+        for k, name in self.names.items():
+            flat.get(k).data.copy_(state[name])
+
+
+@register
+class DQN3(Algorithm):
+    """The 3DQN of the paper for P >= 1 members (see the module docstring)."""
+
+    name = "dqn3"
+    acting_key = "qnet"
+
+    def __init__(self, algo: AlgoConfig, dims: Dims, seeds: list[int], device: torch.device):
+        super().__init__(algo, dims, seeds, device)
+        nets = []
+        for s in self.seeds:  # each member's initial network is its single run's
+            torch.manual_seed(s)
+            nets.append(DuelingQNet(dims.obs_dim, dims.n_actions, list(algo.hidden)))
+        self.policy = (nets[0] if self.members == 1 else StackedQNet(nets)).to(device)
+        gamma = float(algo.gamma) ** algo.n_step  # bootstraps n steps on
+        loss_cls = TorchRLDQN3Loss if algo.loss == LossKind.torchrl else DQN3Loss
+        self.loss_module = loss_cls(self.policy, gamma)
+        self.target_updater = PeriodicHardUpdate(self.loss_module, int(algo.target_update))
+        # fused Adam: one kernel for all parameters (3x faster than foreach on CPU here)
+        self.optim = torch.optim.Adam(self.policy.parameters(), lr=algo.lr, fused=True)
+        self.buffer = TransitionReplay(algo.buffer_size, dims.obs_dim, dims.n_actions,
+                                       dims.n_agents, self.seeds, algo.batch_size,
+                                       unit="agent", device=device)
+
+    @classmethod
+    def acting_network(cls, algo: AlgoConfig, dims: Dims) -> nn.Module:
+        return DuelingQNet(dims.obs_dim, dims.n_actions, list(algo.hidden))
+
+    # ------------------------------------------------------------------ update
+    def loss(self, batch: TensorDict) -> tuple[torch.Tensor, torch.Tensor]:
+        with warnings.catch_warnings():  # the updater is ours (PeriodicHardUpdate)
+            warnings.filterwarnings("ignore", message=TARGET_WARNING)
+            out = self.loss_module(batch)
+        return out.get("loss"), out.get("q_taken")
+
+    def update(self, batch: TensorDict) -> tuple[torch.Tensor, torch.Tensor]:
+        loss, q_taken = self.loss(batch)
+        self.optim.zero_grad(set_to_none=True)
+        (loss if loss.dim() == 0 else loss.sum()).backward()
+        if self.algo.grad_clip is not None:
+            self.clip_gradients()
+        with flush_denormals():
+            self.optim.step()
+        self.updates += 1
+        self.target_updater.step()
+        return loss.detach(), q_taken.mean(-1)
+
+    def clip_gradients(self) -> None:
+        """Each member's gradient clipped by its own norm, as ``clip_grad_norm_`` does in
+        a single run."""
+        if self.members == 1:
+            torch.nn.utils.clip_grad_norm_(self.policy.parameters(), self.algo.grad_clip)
+            return
+        grads = [p.grad for p in self.policy.parameters()]
+        norm = torch.stack([g.pow(2).flatten(1).sum(1) for g in grads]).sum(0).sqrt()  # [P]
+        scale = (self.algo.grad_clip / (norm + 1e-6)).clamp(max=1.0)
+        for g in grads:
+            g.mul_(scale.view(-1, *([1] * (g.dim() - 1))))
+
+    # ------------------------------------------------------------------ state
+    def member_state_dict(self, p: int) -> dict:
+        """Member ``p``'s learner state: ``qnet``, ``target`` (``DuelingQNet`` state
+        dicts), ``optim`` (Adam's, over a ``DuelingQNet``'s parameters), ``updates``."""
+        if self.members == 1:
+            return {"qnet": self.policy.state_dict(), "target": self.loss_module.target_state(),
+                    "optim": self.optim.state_dict(), "updates": self.updates}
+        params = list(self.policy.parameters())
+        st, keys = self.optim.state, self.policy.keys
+        optim = {"state": {}, "param_groups": [dict(self.optim.param_groups[0],
+                                                    params=list(range(len(keys))))]}
+        if st:
+            avg, avg_sq = (self.policy.member_tensors([st[q][name] for q in params], p)
+                           for name in ("exp_avg", "exp_avg_sq"))
+            step = st[params[0]]["step"]
+            optim["state"] = {i: {"step": step.clone(), "exp_avg": avg[k], "exp_avg_sq":
+                                  avg_sq[k]} for i, k in enumerate(keys)}
+        return {"qnet": self.policy.member_state_dict(p),
+                "target": self.loss_module.target_network.member_state_dict(p),
+                "optim": optim, "updates": self.updates}
+
+    def load_member(self, p: int, state: dict) -> None:
+        self.updates = int(state["updates"])
+        self.target_updater.set_calls(self.updates)
+        if self.members == 1:
+            self.policy.load_state_dict(state["qnet"])
+            self.loss_module.load_target_state(state["target"])
+            self.optim.load_state_dict(state["optim"])
+            return
+        self.policy.load_member(p, state["qnet"])
+        self.loss_module.load_target_state(state["target"], member=p)
+        params, keys = list(self.policy.parameters()), self.policy.keys
+        saved = state["optim"]["state"]
+        if saved:
+            for name in ("exp_avg", "exp_avg_sq"):
+                tensors = [self.optim.state[q].get(name) for q in params]
+                tensors = [torch.zeros_like(q) if t is None else t
+                           for q, t in zip(params, tensors, strict=True)]
+                self.policy.write_member(tensors, p, {k: saved[i][name]
+                                                      for i, k in enumerate(keys)})
+                for q, t in zip(params, tensors, strict=True):
+                    self.optim.state[q][name] = t
+            for q in params:
+                self.optim.state[q]["step"] = saved[0]["step"].clone()
