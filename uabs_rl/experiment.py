@@ -170,7 +170,7 @@ def restore_streams(state: dict, selector_gen: torch.Generator, env_gen: torch.G
 
 
 def run_rounds(exp, logs: list[RunLog], save_last) -> float:
-    """``exp._rounds()`` with its logs open, a progress bar and Ctrl-C / SIGTERM deferred
+    """``exp.rounds()`` with its logs open, a progress bar and Ctrl-C / SIGTERM deferred
     to the end of a round (see :meth:`Experiment.fit`), then ``save_last()``; returns the
     minutes the rounds took. The run folder's lock (``exp.run_lock``) is released when
     it ends, however it ends, and only after the last save."""
@@ -181,7 +181,7 @@ def run_rounds(exp, logs: list[RunLog], save_last) -> float:
         t0 = time.perf_counter()
         try:
             with exp.interrupt:
-                exp._rounds()
+                exp.rounds()
         finally:
             exp.progress.close()
             for lg in logs:
@@ -303,7 +303,7 @@ class Experiment:
             raise write_error(e, self.run_dir) from None
         return path
 
-    def _rounds(self) -> None:
+    def rounds(self) -> None:
         """Collect and evaluate until ``train.episodes``, stopping early (after a whole
         round, so the saved state is consistent) when Ctrl-C was pressed."""
         tr = self.cfg.train

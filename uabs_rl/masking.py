@@ -245,6 +245,9 @@ class MaskingRule(nn.Module):
     # True if :meth:`target_mask` needs the Q-values at s' (then a transition is stored
     # once the next step's Q-values are known); else it is the mask written at s'
     target_needs_q: bool = False
+    # True if the rule masks the moves that could collide; False if safety is left to
+    # the reward penalties
+    masks_collisions: ClassVar[bool] = True
 
     def __init__(self, masking: MaskingConfig, d_th: float, step_m: float,
                  moves: torch.Tensor):
@@ -278,6 +281,19 @@ class MaskingRule(nn.Module):
 
 
 RULES: dict[MaskingMode, type[MaskingRule]] = {}
+# the paper's ranking of its modes, worst to best: collisions under penalty only, and
+# validation return and P_g rank > flat > penalty (the claims uabs-report checks)
+PAPER_ORDER = (MaskingMode.penalty, MaskingMode.flat, MaskingMode.rank)
+
+
+def masks_collisions(mode: str) -> bool:
+    """Whether masking mode ``mode`` masks colliding moves (False: penalties only)."""
+    return RULES[MaskingMode(mode)].masks_collisions
+
+
+def mode_phrase(mode: str) -> str:
+    """How figures and reports name ``mode``: "flat masks", "rank masks", "penalty"."""
+    return f"{mode} masks" if masks_collisions(mode) else str(mode)
 
 
 def register(cls: type[MaskingRule]) -> type[MaskingRule]:
@@ -291,6 +307,7 @@ class PenaltyRule(MaskingRule):
     """Only the boundary mask: safety is left to the penalties λ_s, λ_c."""
 
     mode = MaskingMode.penalty
+    masks_collisions = False
 
 
 @register

@@ -19,6 +19,7 @@ from matplotlib.patches import Circle  # noqa: E402
 
 from uabs_rl.channel import beam_centres  # noqa: E402
 from uabs_rl.config import AreaConfig, ScenarioConfig  # noqa: E402
+from uabs_rl.masking import masks_collisions  # noqa: E402
 
 COLORS = plt.rcParams["axes.prop_cycle"].by_key()["color"]
 # a paper's single column and full text width (inches, IEEE two-column)
@@ -241,8 +242,8 @@ def return_curves_figure(curves: list[SeedCurve]):
     :func:`save_paper_figure`."""
     from matplotlib.ticker import MaxNLocator
 
-    groups = [[c for c in curves if c.mode != "penalty"],
-              [c for c in curves if c.mode == "penalty"]]
+    groups = [[c for c in curves if masks_collisions(c.mode)],
+              [c for c in curves if not masks_collisions(c.mode)]]
     groups = [g for g in groups if g]
     fig, axes = plt.subplots(1, len(groups), squeeze=False,
                              figsize=(TEXT_IN if len(groups) > 1 else COLUMN_IN, 2.4))
@@ -252,8 +253,8 @@ def return_curves_figure(curves: list[SeedCurve]):
             _draw_curve(ax, c)
         ax.set_xlabel("training episode")
         ax.xaxis.set_major_locator(MaxNLocator(integer=True))
-        ax.set_title(" and ".join(modes) + (" masking" if modes != ["penalty"] else
-                                             " (reward penalties)"))
+        masked = any(masks_collisions(m) for m in modes)
+        ax.set_title(" and ".join(modes) + (" masking" if masked else " (reward penalties)"))
         ax.grid(alpha=0.3)
     axes[0][0].set_ylabel("validation return R")
     few = len(curves) <= 3 and all(len(c.label) < 30 for c in curves)

@@ -247,7 +247,7 @@ class Population:
             log.warning(NO_REPLAY)
 
     # ------------------------------------------------------------------ loop
-    def _rounds(self) -> None:
+    def rounds(self) -> None:
         tr = self.cfg.train
         while self.episode < tr.episodes:
             per_member = self.collect()

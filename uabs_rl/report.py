@@ -51,6 +51,7 @@ from uabs_rl.baselines import BASELINES, PLANNER
 from uabs_rl.channel import beam_footprint_radius, coverage_bound
 from uabs_rl.checkpoint import CheckpointError
 from uabs_rl.config import ConfigError
+from uabs_rl.masking import PAPER_ORDER, masks_collisions, mode_phrase
 from uabs_rl.runlog import read_metrics  # noqa: F401  (the metrics reader, for callers)
 from uabs_rl.stats import bootstrap_ci, spread_name, spread_over_seeds
 from uabs_rl.sweep import (  # noqa: F401  (find_runs, Run: the runs, for callers)
@@ -200,8 +201,7 @@ def fig4(grouping: Grouping, baselines: dict[str, dict[str, dict]], path: Path,
     panels, titles = {}, {}
     for key, labels in grouping.panels().items():
         mode, _, rest = key.partition(", ")
-        where = ("penalty" if mode == "penalty" else f"{mode} masks") + (
-            f", {rest}" if rest else "")
+        where = mode_phrase(mode) + (f", {rest}" if rest else "")
         curves = []
         for label in labels:
             runs = grouping.groups[label]
@@ -512,11 +512,13 @@ def claims(by_mode: dict[str, list[Run]], tests: dict[Path, dict] | None,
     def verdict(ok: bool | None) -> str:
         return "n/a (mode missing)" if ok is None else ("supported" if ok else "NOT supported")
 
-    all3 = {"penalty", "flat", "rank"} <= set(by_mode)
+    all3 = set(PAPER_ORDER) <= set(by_mode)
+    worst, middle, top = PAPER_ORDER
     c1 = None if not all3 else (
-        r["penalty"]["train_collision_events"] > 0
+        all(r[m]["train_collision_events"] > 0 for m in PAPER_ORDER
+            if not masks_collisions(m))
         and all(r[m]["train_collision_events"] == 0 and r[m]["eval_collision_events"] == 0
-                for m in ("flat", "rank")))
+                for m in PAPER_ORDER if masks_collisions(m)))
     lines = [f"{level} Table 2: masking avoids collisions, penalties do not",
              f"**{verdict(c1)}**. "
              + "; ".join(f"{m}: {r[m]['train_collision_events']:.1f} collision events in "
@@ -524,13 +526,13 @@ def claims(by_mode: dict[str, list[Run]], tests: dict[Path, dict] | None,
                          f"{r[m]['eval_collision_events']:.1f} in evaluation "
                          f"({100 * r[m]['eval_share']:.1f} % of episodes)" for m in r)
              + ". The paper: penalty 170 (17 %) and 14 (28 %); flat and rank 0.", ""]
-    c2 = None if not all3 else final["rank"] > final["flat"] > final["penalty"]
+    c2 = None if not all3 else final[top] > final[middle] > final[worst]
     lines += [f"{level} Fig. 3: evaluation reward rank > flat > penalty", f"**{verdict(c2)}** "
               "(mean over seeds of the last 5 evaluations): "
               + ", ".join(f"{m} {final[m]:.0f}" for m in final) + "; best evaluation: "
               + ", ".join(f"{m} {best[m]:.0f}" for m in best) + ".", ""]
     c3 = None if not all3 else bool(
-        (pg["rank"] >= pg["flat"] - 1e-9).all() and (pg["flat"] > pg["penalty"]).all())
+        (pg[top] >= pg[middle] - 1e-9).all() and (pg[middle] > pg[worst]).all())
     lines += [f"{level} Fig. 4: P_g rank ≥ flat, both above penalty", f"**{verdict(c3)}** "
               f"(P_g in % for N̂_s = 1..N, {where}, mean over seeds):", ""]
     return lines + [f"- {m}: " + ", ".join(f"{100 * v:.1f}" for v in pg[m]) for m in pg]

@@ -2,11 +2,14 @@
 
 :mod:`uabs_rl.algorithms.base` defines the interface the trainer uses;
 :mod:`uabs_rl.algorithms.replay` the replay every learner samples;
-:mod:`uabs_rl.algorithms.dqn3` the paper's 3DQN (``algo=dqn3``, the default).
-Importing this package registers every algorithm module listed below.
+:mod:`uabs_rl.algorithms.dqn3` the paper's 3DQN (``algo=dqn3``, the default). Every other
+module of this package is an algorithm too, imported (and so registered) here: a new
+learner is one module in this folder and one ``conf/algo/<name>.yaml``.
 """
 
-from uabs_rl.algorithms import dqn3  # noqa: F401  (registers algo=dqn3)
+import importlib
+import pkgutil
+
 from uabs_rl.algorithms.base import (
     ALGORITHMS,
     Algorithm,
@@ -15,5 +18,9 @@ from uabs_rl.algorithms.base import (
     make_algorithm,
     register,
 )
+
+for _module in pkgutil.iter_modules(__path__):
+    if _module.name not in ("base", "replay"):
+        importlib.import_module(f"{__name__}.{_module.name}")
 
 __all__ = ["ALGORITHMS", "Algorithm", "Dims", "algorithm_class", "make_algorithm", "register"]

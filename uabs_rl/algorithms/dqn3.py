@@ -48,6 +48,13 @@ from uabs_rl.model import DuelingQNet, StackedQNet
 TARGET_WARNING = "No target network updater has been associated"
 
 
+def huber(pred: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """The mean Huber loss over the last dim: 0-d for ``[B]``, one per member for ``[P, B]``."""
+    if pred.dim() == 1:
+        return F.smooth_l1_loss(pred, y)
+    return F.smooth_l1_loss(pred, y, reduction="none").mean(-1)
+
+
 class DQN3Loss(LossModule):
     """Huber(Q(o, a), r + γ (1 − terminated) Q_target(o', argmax_{a' ∈ mask'} Q(o', a')))
     on batches of agent transitions ``[B, ...]`` (a population's ``[P, B, ...]``, one
@@ -68,18 +75,22 @@ class DQN3Loss(LossModule):
         self.gamma = gamma
 
     def forward(self, b: TensorDict) -> TensorDict:
+        q_taken, q_next = self.agent_values(b)
+        with torch.no_grad():
+            y = b.get("reward") + self.gamma * (~b.get("terminated")).float() * q_next
+        return TensorDict({"loss": huber(q_taken, y), "q_chosen": q_taken.detach().mean(-1)},
+                          batch_size=[])
+
+    def agent_values(self, b: TensorDict) -> tuple[torch.Tensor, torch.Tensor]:
+        """Q(o, a) (with gradient) and Q_target(o', argmax_{a' ∈ mask'} Q(o', a')) (without),
+        per transition: the fields' shape without the feature dim."""
         obs, next_obs = b.get("obs"), b.get("next_obs")
         q_taken = self.value_network(obs).gather(-1, b.get("action")[..., None]).squeeze(-1)
         with torch.no_grad():  # o' outside the graph: the backward pass covers o only
             best = self.value_network(next_obs).masked_fill(
                 ~b.get("next_mask"), -torch.inf).argmax(-1, keepdim=True)
             q_next = self.target_network(next_obs).gather(-1, best).squeeze(-1)
-            y = b.get("reward") + self.gamma * (~b.get("terminated")).float() * q_next
-        if q_taken.dim() == 1:
-            loss = F.smooth_l1_loss(q_taken, y)
-        else:
-            loss = F.smooth_l1_loss(q_taken, y, reduction="none").mean(-1)
-        return TensorDict({"loss": loss, "q_taken": q_taken.detach()}, batch_size=[])
+        return q_taken, q_next
 
     def target_state(self) -> dict[str, torch.Tensor]:
         return self.target_network.state_dict()
@@ -127,7 +138,7 @@ class TorchRLDQN3Loss(DQNLoss):
         loss = super().forward(batch_to_td(b))["loss"]
         with torch.no_grad():
             q_taken = self.qnet(b.get("obs")).gather(1, b.get("action")[:, None]).squeeze(1)
-        return TensorDict({"loss": loss, "q_taken": q_taken}, batch_size=[])
+        return TensorDict({"loss": loss, "q_chosen": q_taken.mean(-1)}, batch_size=[])
 
     def target_state(self) -> dict[str, torch.Tensor]:
         flat = self.target_value_network_params.flatten_keys(".")
@@ -145,6 +156,7 @@ class DQN3(Algorithm):
 
     name = "dqn3"
     acting_key = "qnet"
+    unit = "agent"  # its replay samples per-agent transitions
 
     def __init__(self, algo: AlgoConfig, dims: Dims, seeds: list[int], device: torch.device):
         super().__init__(algo, dims, seeds, device)
@@ -154,14 +166,22 @@ class DQN3(Algorithm):
             nets.append(DuelingQNet(dims.obs_dim, dims.n_actions, list(algo.hidden)))
         self.policy = (nets[0] if self.members == 1 else StackedQNet(nets)).to(device)
         gamma = float(algo.gamma) ** algo.n_step  # bootstraps n steps on
-        loss_cls = TorchRLDQN3Loss if algo.loss == LossKind.torchrl else DQN3Loss
-        self.loss_module = loss_cls(self.policy, gamma)
+        self.loss_module = self.make_loss(gamma)
         self.target_updater = PeriodicHardUpdate(self.loss_module, int(algo.target_update))
         # fused Adam: one kernel for all parameters (3x faster than foreach on CPU here)
         self.optim = torch.optim.Adam(self.policy.parameters(), lr=algo.lr, fused=True)
         self.buffer = TransitionReplay(algo.buffer_size, dims.obs_dim, dims.n_actions,
-                                       dims.n_agents, self.seeds, algo.batch_size,
-                                       unit="agent", device=device)
+                                       dims.n_agents, self.seeds, self.sample_size(),
+                                       unit=self.unit, device=device)
+
+    def make_loss(self, gamma: float) -> LossModule:
+        """The loss module on ``self.policy`` (``algo.loss`` picks the implementation)."""
+        cls = TorchRLDQN3Loss if self.algo.loss == LossKind.torchrl else DQN3Loss
+        return cls(self.policy, gamma)
+
+    def sample_size(self) -> int:
+        """Replay samples per update (``algo.batch_size`` per-agent transitions)."""
+        return int(self.algo.batch_size)
 
     @classmethod
     def acting_network(cls, algo: AlgoConfig, dims: Dims) -> nn.Module:
@@ -169,13 +189,12 @@ class DQN3(Algorithm):
 
     # ------------------------------------------------------------------ update
     def loss(self, batch: TensorDict) -> tuple[torch.Tensor, torch.Tensor]:
-        with warnings.catch_warnings():  # the updater is ours (PeriodicHardUpdate)
-            warnings.filterwarnings("ignore", message=TARGET_WARNING)
-            out = self.loss_module(batch)
-        return out.get("loss"), out.get("q_taken")
+        """(loss, mean chosen Q) of ``batch``, with gradient."""
+        out = self.loss_module(batch)
+        return out.get("loss"), out.get("q_chosen")
 
     def update(self, batch: TensorDict) -> tuple[torch.Tensor, torch.Tensor]:
-        loss, q_taken = self.loss(batch)
+        loss, q_chosen = self.loss(batch)
         self.optim.zero_grad(set_to_none=True)
         (loss if loss.dim() == 0 else loss.sum()).backward()
         if self.algo.grad_clip is not None:
@@ -184,7 +203,7 @@ class DQN3(Algorithm):
             self.optim.step()
         self.updates += 1
         self.target_updater.step()
-        return loss.detach(), q_taken.mean(-1)
+        return loss.detach(), q_chosen
 
     def clip_gradients(self) -> None:
         """Each member's gradient clipped by its own norm, as ``clip_grad_norm_`` does in

@@ -65,6 +65,10 @@ class TransitionReplay:
         self.members = len(seeds)
         # [P, S, M, ...]: the agents of a step as the last lead dim
         self.data = storage((self.members, self.slots), n_agents, obs_dim, n_actions, dev)
+        # the same memory per agent transition, [P, S·M, ...], and member 0's [S·M, ...]
+        # (a single run's sample: one index_select per field)
+        self.flat = {k: v.flatten(1, 2) for k, v in self.data.items()}
+        self.flat0 = {k: v[0] for k, v in self.flat.items()}
         self.written = 0  # env steps written per member
         self.generators = [torch.Generator(device=dev).manual_seed(s) for s in seeds]
         self.rows = torch.arange(self.members, device=dev)[:, None]
@@ -105,29 +109,37 @@ class TransitionReplay:
                             for g in self.generators])
         # the draw names a slot of a ring of `capacity` per-agent transitions (the
         # newest per-agent transition g with g = slot mod capacity); where that
-        # transition lies in the step slots
-        total = self.written * self.n_agents
+        # transition lies in the step slots: the slot itself until the ring wraps, or
+        # when the step slots are that ring (capacity a multiple of M)
+        total, ring = self.written * self.n_agents, self.slots * self.n_agents
+        if total <= self.capacity or ring == self.capacity:
+            return slot
         g = slot + self.capacity * torch.div(total - 1 - slot, self.capacity,
                                              rounding_mode="floor")
-        return g % (self.slots * self.n_agents)
+        return g % ring
 
     def gather(self, index: torch.Tensor) -> dict[str, torch.Tensor]:
-        """The transitions at ``index`` (``[P, B]``, as :meth:`draw` returns them)."""
+        """The transitions at ``index`` (``[P, B]``, as :meth:`draw` returns them):
+        fields ``[P, B, ...]``, or ``[B, ...]`` for a single run."""
         if self.unit == "step":  # with the team reward, the sum of the agents' rewards
-            out = {k: v[self.rows, index] for k, v in self.data.items()}
+            if self.members == 1:
+                out = {k: v[0].index_select(0, index[0]) for k, v in self.data.items()}
+            else:
+                out = {k: v[self.rows, index] for k, v in self.data.items()}
             return {**out, "team_reward": out["reward"].sum(-1)}
-        step, agent = index // self.n_agents, index % self.n_agents
-        return {k: v[self.rows, step, agent] for k, v in self.data.items()}
+        if self.members == 1:
+            return {k: v.index_select(0, index[0]) for k, v in self.flat0.items()}
+        return {k: v[self.rows, index] for k, v in self.flat.items()}
 
     def sample(self, batch_size: int | None = None, return_info: bool = False):
         """A batch of :data:`FIELDS` (``[B, ...]``, or ``[P, B, ...]`` for a population;
         ``unit`` step adds the agent dim), and with ``return_info`` ``{"index": ...}``."""
         index = self.draw(batch_size or self.batch_size)
-        batch = self.gather(index)
         if self.members == 1:
-            batch, index = {k: v[0] for k, v in batch.items()}, index[0]
-        lead = index.shape
-        td = TensorDict(batch, batch_size=lead, device=self.data["obs"].device)
+            batch, index = self.gather(index), index[0]
+        else:
+            batch = self.gather(index)
+        td = TensorDict(batch, batch_size=index.shape)
         return (td, {"index": index}) if return_info else td
 
     def update_priority(self, index: torch.Tensor, priority: torch.Tensor) -> None:
