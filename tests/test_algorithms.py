@@ -137,6 +137,38 @@ def test_terminal_transitions_do_not_bootstrap():
     assert loss.item() == pytest.approx(expected.item(), rel=1e-6)
 
 
+def test_vdn_loss_equals_an_independent_computation():
+    """Q_tot = Σ_i Q(o_i, a_i); y = Σ_i r_i + γ (1 − done) Σ_i Q_target(o'_i, argmax over
+    mask'_i of Q(o'_i, ·)); the mean Huber loss over the steps, written out step by step."""
+    vdn = make_algorithm(AlgoConfig(name="vdn", hidden=[16], gamma=0.9), Dims(5, 4, 3), [0],
+                         torch.device("cpu"))
+    assert vdn.buffer.unit == "step" and vdn.buffer.batch_size == 128 // 3
+    with torch.no_grad():  # a target that differs from the online net
+        for p in vdn.loss_module.target_network.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    b = steps(8, 3, seed=4, obs_dim=5)
+    b["next_mask"][..., 0] = True  # at least one legal move
+    b["terminated"][:3] = True
+    b["team_reward"] = b["reward"].sum(-1)
+    loss, _ = vdn.loss(b)
+    online, target = (DuelingQNet(5, 4, [16]) for _ in range(2))
+    online.load_state_dict(vdn.state_dict()["qnet"])
+    target.load_state_dict(vdn.state_dict()["target"])
+    terms = []
+    for j in range(8):
+        q_tot = sum(online(b["obs"][j, i])[b["action"][j, i]] for i in range(3))
+        nxt = 0.0
+        for i in range(3):
+            q = online(b["next_obs"][j, i]).detach()
+            legal = [a for a in range(4) if b["next_mask"][j, i, a]]
+            best = max(legal, key=lambda a: q[a].item())
+            nxt = nxt + target(b["next_obs"][j, i])[best].detach()
+        y = b["reward"][j].sum() + 0.9 * (0.0 if b["terminated"][j].any() else 1.0) * nxt
+        d = (q_tot - y).abs()
+        terms.append(0.5 * d ** 2 if d < 1 else d - 0.5)
+    assert loss.item() == pytest.approx(torch.stack(terms).mean().item(), rel=1e-5)
+
+
 def steps(n, agents, seed, obs_dim=2):
     """``n`` env steps of ``agents`` agents' transitions, as the collector pushes them."""
     g = torch.Generator().manual_seed(seed)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -48,6 +49,28 @@ def test_smoke_run_per_masking_mode(trace_cache, tmp_path, mode):
     assert [r["episode"] for r in recs if r["kind"] == "eval"] == [3, 6]
     if mode == "flat":
         assert sum(r["collisions"] for r in recs) == 0
+
+
+@pytest.mark.parametrize("args", [["algo=vdn", "masking=rank"],
+                                  ["algo=vdn", "masking=flat", "train.population=2"]])
+def test_vdn_trains_end_to_end_without_a_collision_or_fallback(trace_cache, tmp_path, args):
+    """algo=vdn through uabs-train's path (a single run and a population), evaluated
+    by uabs-eval from its checkpoint."""
+    run(smoke(trace_cache, *args, "train.trajectory_images=false", "train.logger=none"),
+        tmp_path)
+    dirs = sorted(tmp_path.glob("seed=*")) or [tmp_path]
+    for d in dirs:
+        recs = records(d)
+        train = [r for r in recs if r["kind"] == "train"]
+        assert train[-1]["updates"] > 0 and math.isfinite(train[-1]["loss"])
+        assert sum(r["collisions"] + r["fallbacks"] for r in recs) == 0
+        state = load_checkpoint(d / "checkpoints" / "best.pt")
+        assert state["config"]["algo"]["name"] == "vdn"
+        best = [r for r in recs if r["kind"] == "eval"
+                and r["episode"] == state["counters"]["episode"]][0]
+        ev = load_evaluation(d, "best", split="eval")
+        again, _ = ev.evaluator.evaluate(ev.greedy)
+        assert again["return"] == pytest.approx(best["return"])
 
 
 def test_smoke_run_writes_metrics_tensorboard_and_checkpoints(rank_run):
