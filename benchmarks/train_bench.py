@@ -39,7 +39,6 @@ import torch
 
 from uabs_rl.config import compose
 from uabs_rl.experiment import Experiment
-from uabs_rl.population import Population
 from uabs_rl.threads import resolve_threads, usable_cpus
 
 SPENT: dict[str, float] = defaultdict(float)
@@ -75,8 +74,7 @@ def measure(overrides: list[str], n_episodes: int) -> None:
     """Train ``n_episodes`` after filling the buffer; print the figures."""
     cfg = compose("config", ["train.progress=false", "train.logger=none", *overrides])
     _, why = resolve_threads(cfg)  # the run sets its threads (and governor) as uabs-train
-    kind = Population if cfg.train.population > 1 else Experiment
-    tr = kind(cfg, tempfile.mkdtemp(prefix="uabs_bench_"))
+    tr = Experiment(cfg, tempfile.mkdtemp(prefix="uabs_bench_"))
     wrap(tr.collector.direct, "step", "env")
     wrap(tr.collector.direct, "reset", "env")
     wrap(tr.qnet, "forward", "action selection", outside_update=True)

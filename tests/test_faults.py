@@ -18,7 +18,7 @@ import torch
 
 from tests.test_train import records, smoke
 from uabs_rl.checkpoint import CheckpointError, load_checkpoint
-from uabs_rl.population import complete_save
+from uabs_rl.members import complete_save
 from uabs_rl.runfolder import RunFolderError, RunLock
 from uabs_rl.train import prepare, run
 
@@ -215,18 +215,18 @@ def test_a_stale_lock_of_a_dead_process_is_taken_over(tmp_path):
 def test_the_final_checkpoint_is_written_while_the_run_folder_is_locked(trace_cache, tmp_path,
                                                                         monkeypatch):
     """A second writer cannot take the folder between the last round and the final save."""
-    from uabs_rl.experiment import Experiment
+    from uabs_rl.members import Checkpoints
 
-    save, free_at_save = Experiment.save, []
+    save, free_at_save = Checkpoints.save, []
 
-    def checked_save(self, name):
-        probe = RunLock(self.run_dir)
+    def checked_save(self, i, name):
+        probe = RunLock(self.exp.run_dir)
         free_at_save.append(probe.acquire())
         if free_at_save[-1]:
             probe.release()
-        return save(self, name)
+        return save(self, i, name)
 
-    monkeypatch.setattr(Experiment, "save", checked_save)
+    monkeypatch.setattr(Checkpoints, "save", checked_save)
     run(smoke(trace_cache, *QUIET, "train.episodes=3", "train.eval_every=3"), tmp_path / "run")
     assert free_at_save and not any(free_at_save)  # every save, the final one included
     assert RunLock(tmp_path / "run").acquire()  # released once the run ended
@@ -253,14 +253,14 @@ def test_a_full_disk_a_read_only_folder_and_a_removed_folder_are_one_line(
         trace_cache, tmp_path, monkeypatch):
     import errno
 
-    import uabs_rl.experiment as experiment
+    import uabs_rl.members as members
     from uabs_rl.experiment import Experiment
 
     def full(state, path):  # what torch.save raises when the disk fills mid-write
         raise RuntimeError("[enforce fail at inline_container.cc:783] . unexpected pos "
                            "9856 vs 9744")
 
-    monkeypatch.setattr(experiment, "save_checkpoint", full)
+    monkeypatch.setattr(members, "save_checkpoint", full)
     with pytest.raises(RunFolderError, match=r"no space left on the device while writing"):
         run(smoke(trace_cache, *QUIET), tmp_path / "full")
     monkeypatch.undo()

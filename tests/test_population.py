@@ -15,8 +15,8 @@ from tests.test_train import records, smoke
 from uabs_rl.checkpoint import CheckpointError, Interrupted, load_checkpoint
 from uabs_rl.config import AlgoConfig, ConfigError, validate_run
 from uabs_rl.evaluate import load_evaluation
+from uabs_rl.experiment import Experiment
 from uabs_rl.model import DuelingQNet
-from uabs_rl.population import Population
 from uabs_rl.report import find_runs
 from uabs_rl.rng import Generators, rand, randint
 from uabs_rl.train import prepare, run
@@ -152,4 +152,4 @@ def test_bad_population_settings_name_the_key(trace_cache, override, key):
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
         validate_run(cfg)
     with pytest.raises(ConfigError):
-        Population(cfg, Path("unused"))
+        Experiment(cfg, Path("unused"))

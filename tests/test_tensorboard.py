@@ -23,7 +23,7 @@ def killed_after_checkpoint(trace_cache, run_dir: Path, *extra: str) -> None:
     prepare(smoke(trace_cache, *RUN, *extra), run_dir).fit()
     again = [f"resume={run_dir}", "train.episodes=5"]
     exp = prepare(smoke(trace_cache, *again), Path("unused"), overrides=again)
-    exp.save = lambda name: None  # died before any further checkpoint
+    exp.checkpoints.save = lambda i, name: None  # died before any further checkpoint
     exp.fit()
 
 

@@ -133,7 +133,7 @@ def test_best_checkpoint_reloads_to_identical_parameters_and_figures(rank_run, t
                                                                     tmp_path):
     state = load_checkpoint(rank_run / "checkpoints" / "best.pt")
     exp = Experiment(smoke(trace_cache), tmp_path)
-    exp.load_state_dict(state, rank_run / "checkpoints" / "best.pt")
+    exp.checkpoints.resume([state], [rank_run / "checkpoints" / "best.pt"])
     for k, v in exp.qnet.state_dict().items():
         assert torch.equal(v, state["learner"]["qnet"][k])
     evals = [r for r in records(rank_run) if r["kind"] == "eval"]

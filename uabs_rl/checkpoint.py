@@ -33,7 +33,7 @@ CKPT_FORMAT = 2
 # config sections a checkpoint must agree with to be resumed or evaluated
 COMPAT_KEYS = ("scenario", "channel", "masking", "algo", "traces", "seed", "train.n_envs",
                "train.population")
-# what experiment.run_state writes, entry by entry: a nested layout, or the kind of value
+# what members.Checkpoints.state writes, entry by entry: a nested layout, or the kind of value
 TENSORS, BYTES, NUMBER, INT, DICT = ("a dict of tensors", "a uint8 tensor (an RNG state)",
                                      "a number", "an integer", "a dict")
 LAYOUT: dict[str, Any] = {
@@ -177,7 +177,7 @@ def upgrade_state(state: Any) -> Any:
 
 
 def validate_state(state: Any, path: Path) -> None:
-    """Refuse a loaded checkpoint that lacks what :func:`uabs_rl.experiment.run_state`
+    """Refuse a loaded checkpoint that lacks what :meth:`uabs_rl.members.Checkpoints.state`
     writes, holds a config uabs_rl's settings cannot take, or holds networks whose
     shapes do not fit that config; each message names the entry and the file."""
     if not isinstance(state, dict):

@@ -273,6 +273,30 @@ def env_specs(p: EnvParams, e: int, dev: torch.device) -> dict[str, Composite]:
                        shape=(e,), device=dev))
 
 
+def direct_outputs(out: dict[str, torch.Tensor]) -> Outputs:
+    """The step math's flat outputs under the env's keys (see :func:`pack_outputs`)."""
+    entries = Outputs({(AGENTS, k): out[k] for k in AGENT_OUT if k in out})
+    for k in DONE_KEYS:
+        entries[k] = out[k]
+        entries[AGENTS, k] = out[f"agent_{k}"]
+    for k in DIAG_ENTRIES:
+        entries[DIAG, k] = out[k]
+    return entries
+
+
+def pack_outputs(out: dict[str, torch.Tensor], e: int, m: int,
+                 device: torch.device) -> TensorDict:
+    """The step math's flat outputs as the env's TensorDict of ``e`` envs of ``m`` agents
+    (see the specs)."""
+    agents = {k: out[k] for k in AGENT_OUT if k in out}
+    agents.update({k: out[f"agent_{k}"] for k in DONE_KEYS})
+    return TensorDict({
+        AGENTS: TensorDict(agents, batch_size=(e, m), device=device),
+        **{k: out[k] for k in DONE_KEYS},
+        DIAG: TensorDict({k: out[k] for k in DIAG_ENTRIES}, batch_size=(e,), device=device),
+    }, batch_size=(e,), device=device)
+
+
 class UABSEnv(EnvBase):
     """M UABS over replayed vehicle traces; see the module docstring for the step order.
 
@@ -370,7 +394,8 @@ class UABSEnv(EnvBase):
         mask = None
         if tensordict is not None and "_reset" in tensordict.keys():
             mask = tensordict["_reset"].reshape(self.n_envs)
-        return self._pack(self._reset_state(mask))
+        return pack_outputs(self._reset_state(mask), self.n_envs, self.params.n_uabs,
+                            self.device)
 
     def _reset_state(self, mask: torch.Tensor | None) -> dict[str, torch.Tensor]:
         """Start a new episode in the envs of ``mask [n_envs]`` (None: all); returns the
@@ -401,24 +426,14 @@ class UABSEnv(EnvBase):
     def reset_direct(self) -> Outputs:
         """:meth:`reset` of every env, its outputs as :class:`Outputs` (no TensorDict,
         none of TorchRL's per-call work): entry for entry what ``reset()`` returns."""
-        return self._entries(self._reset_state(None))
+        return direct_outputs(self._reset_state(None))
 
     def step_direct(self, action: torch.Tensor,
                     fallback: torch.Tensor | None = None) -> Outputs:
         """One step with ``action [n_envs, M]`` (and the selector's fallback flags), its
         outputs as :class:`Outputs`: entry for entry what ``step(td)["next"]`` holds."""
-        return self._entries(self._step_math(self.state, action, self.veh_pos,
+        return direct_outputs(self._step_math(self.state, action, self.veh_pos,
                                              self.veh_present, self.rng, fallback))
-
-    def _entries(self, out: dict[str, torch.Tensor]) -> Outputs:
-        """The step math's flat outputs under the env's keys (see :meth:`_pack`)."""
-        entries = Outputs({(AGENTS, k): out[k] for k in AGENT_OUT if k in out})
-        for k in DONE_KEYS:
-            entries[k] = out[k]
-            entries[AGENTS, k] = out[f"agent_{k}"]
-        for k in DIAG_ENTRIES:
-            entries[DIAG, k] = out[k]
-        return entries
 
     # ------------------------------------------------------------------ public views
     def vehicles(self, lookahead: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
@@ -446,16 +461,4 @@ class UABSEnv(EnvBase):
         fb = tensordict.get(FALLBACK, None)
         out = self._step_math(self.state, tensordict.get(ACTION), self.veh_pos,
                               self.veh_present, self.rng, fb)
-        return self._pack(out)
-
-    def _pack(self, out: dict[str, torch.Tensor]) -> TensorDict:
-        """The step math's flat outputs as the env's TensorDict (see the specs)."""
-        e, m = self.n_envs, self.params.n_uabs
-        agents = {k: out[k] for k in AGENT_OUT if k in out}
-        agents.update({k: out[f"agent_{k}"] for k in DONE_KEYS})
-        return TensorDict({
-            AGENTS: TensorDict(agents, batch_size=(e, m), device=self.device),
-            **{k: out[k] for k in DONE_KEYS},
-            DIAG: TensorDict({k: out[k] for k in DIAG_ENTRIES}, batch_size=(e,),
-                             device=self.device),
-        }, batch_size=(e,), device=self.device)
+        return pack_outputs(out, self.n_envs, self.params.n_uabs, self.device)

@@ -396,7 +396,8 @@ def _print_table(results: dict[str, tuple[dict, Any]], nhat: int) -> None:
         print(f"{name:>8} " + " ".join(f"{c:>12}" for c in cells))
 
 
-def main(argv: list[str] | None = None) -> int:
+def parser() -> argparse.ArgumentParser:
+    """``uabs-eval``'s command line."""
     ap = argparse.ArgumentParser(
         description="Evaluate a uabs-train run on held-out traces, under its own settings "
                     "or other scenario/channel/masking/traces values.")
@@ -423,6 +424,11 @@ def main(argv: list[str] | None = None) -> int:
                          "train.eval_windows on eval)")
     ap.add_argument("--gif", action="store_true", help="also write an animation (learned)")
     ap.add_argument("--out", type=Path, help="output folder (default: <run>/evaluation)")
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = parser()
     args = ap.parse_intermixed_args(argv)
     if args.windows is not None and args.windows < 1:
         ap.error(f"--windows must be >= 1, got {args.windows}")

@@ -1,12 +1,11 @@
-"""One training run (docs/model.md §7, §8): wires the env, the Q-network, the learner, the replay
-buffer, collection, evaluation, checkpoints and the run log, and runs the fit loop."""
+"""Training (docs/model.md §7, §8): wires the env, the algorithm (networks, loss, replay),
+collection, evaluation, checkpoints and the run logs of P >= 1 members (a single run, or
+a population: :mod:`uabs_rl.members`), and runs the fit loop."""
 
 from __future__ import annotations
 
-import errno
 import logging
 import math
-import shutil
 import signal
 import sys
 import threading
@@ -18,21 +17,16 @@ import torch
 from tqdm.auto import tqdm
 
 from uabs_rl.algorithms import Dims, make_algorithm
-from uabs_rl.algorithms.replay import TransitionReplay
-from uabs_rl.checkpoint import (
-    CKPT_FORMAT,
-    Interrupted,
-    check_compatible,
-    config_dict,
-    save_checkpoint,
-)
+from uabs_rl.checkpoint import Interrupted
 from uabs_rl.config import RunConfig, TrainConfig, validate_run
 from uabs_rl.env import N_ACTIONS
 from uabs_rl.evaluation import Evaluator, greedy_policy, make_eval_env
 from uabs_rl.make import make_env, make_selector, resolve_device
+from uabs_rl.members import Checkpoints, Member, member_dir, member_seeds
+from uabs_rl.rng import make_generator
 from uabs_rl.rollout import Collector, UpdateSchedule, episode_records, epsilon
-from uabs_rl.runfolder import RunFolderError
-from uabs_rl.runlog import RunLog, check_logger
+from uabs_rl.runfolder import write_error
+from uabs_rl.runlog import check_logger
 from uabs_rl.threads import setup_threads
 from uabs_rl.traces import TraceSet
 
@@ -118,105 +112,9 @@ class Progress:
         self.bar.close()
 
 
-NO_REPLAY = ("the checkpoint holds no replay buffer (train.checkpoint_buffer=false): "
-             "learning restarts after algo.learning_starts transitions")
-
-
-def run_state(exp, cfg: RunConfig, learner: dict, best_eval: float,
-              selector_gen: torch.Generator, env_gen: torch.Generator,
-              buffer: TransitionReplay, member: int = 0) -> dict:
-    """The checkpoint of a run (or of one member of a population, ``exp`` being the
-    population): its config, the run's identity (``uabs_rl.runfolder``; None outside
-    ``uabs_rl.train.prepare``), learner state, ``exp``'s counters, the global RNG,
-    the selector's and env's generators and, with ``train.checkpoint_buffer``, the
-    replay buffer (member ``member``'s)."""
-    return {
-        "format": CKPT_FORMAT, "config": config_dict(cfg), "run": exp.identity,
-        "learner": learner,
-        "counters": {"episode": exp.episode, "env_steps": exp.collector.env_steps,
-                     "update_credit": exp.updates.credit, "best_eval": best_eval,
-                     "total_steps": exp.total_steps},
-        "rng": {"torch": torch.get_rng_state(), "selector": selector_gen.get_state(),
-                "env": env_gen.get_state()},
-        "replay": buffer.member_state_dict(member) if cfg.train.checkpoint_buffer else None,
-    }
-
-
-def restore_counters(exp, state: dict) -> None:
-    """``exp``'s episode, env-step and update counters and the global RNG from a
-    checkpoint written by :func:`run_state`."""
-    c = state["counters"]
-    exp.episode, exp.collector.env_steps = int(c["episode"]), int(c["env_steps"])
-    exp.updates.credit = float(c["update_credit"])
-    # the ε schedule as the run planned it, whatever train.episodes says now
-    planned = int(c.get("total_steps", exp.total_steps))
-    if planned != exp.total_steps:
-        log.info("train.episodes changed on resume: the ε schedule keeps the run's "
-                 "original length (%d env steps)", planned)
-    exp.total_steps = planned
-    torch.set_rng_state(state["rng"]["torch"])
-
-
-def restore_streams(state: dict, selector_gen: torch.Generator, env_gen: torch.Generator,
-                    buffer: TransitionReplay, member: int = 0) -> bool:
-    """The generators and the replay buffer (member ``member``'s) of a checkpoint written
-    by :func:`run_state`; False when it holds no buffer (``train.checkpoint_buffer=false``)."""
-    selector_gen.set_state(state["rng"]["selector"])
-    env_gen.set_state(state["rng"]["env"])
-    if state.get("replay") is None:
-        return False
-    buffer.load_member(member, state["replay"])
-    return True
-
-
-def run_rounds(exp, logs: list[RunLog], save_last) -> float:
-    """``exp.rounds()`` with its logs open, a progress bar and Ctrl-C / SIGTERM deferred
-    to the end of a round (see :meth:`Experiment.fit`), then ``save_last()``; returns the
-    minutes the rounds took. The run folder's lock (``exp.run_lock``) is released when
-    it ends, however it ends, and only after the last save."""
-    try:
-        for lg in logs:
-            lg.open(resume_episode=exp.episode if exp.episode else None)
-        exp.progress = Progress(exp.cfg.train, exp.episode)
-        t0 = time.perf_counter()
-        try:
-            with exp.interrupt:
-                exp.rounds()
-        finally:
-            exp.progress.close()
-            for lg in logs:
-                lg.close()
-        minutes = (time.perf_counter() - t0) / 60
-        save_last()
-    except OSError as e:
-        raise write_error(e, exp.run_dir) from None
-    finally:
-        if exp.run_lock is not None:
-            exp.run_lock.release()
-    return minutes
-
-
-def write_error(e: OSError | RuntimeError, run_dir: Path) -> Exception:
-    """A failed write of a run's files as one line saying why and what to do; ``e``
-    itself when it is not about the run folder."""
-    if not run_dir.is_dir():
-        return RunFolderError(f"the run folder {run_dir} was removed or moved while the "
-                              f"run was writing it: the run stopped; nothing more was "
-                              f"written.")
-    where = getattr(e, "filename", None) or run_dir
-    if getattr(e, "errno", None) == errno.ENOSPC or "unexpected pos" in str(e):
-        free = shutil.disk_usage(run_dir).free / 2**20
-        return RunFolderError(f"no space left on the device while writing {where} "
-                              f"({free:.0f} MiB free): free some space, then continue with "
-                              f"resume={run_dir} (the last complete checkpoint is kept).")
-    if getattr(e, "errno", None) in (errno.EACCES, errno.EROFS, errno.EPERM):
-        return RunFolderError(f"cannot write {where} ({e.strerror}): make the run folder "
-                              f"writable, then continue with resume={run_dir}.")
-    return e
-
-
 class Experiment:
-    """Collect / optimise / evaluate / checkpoint / log, each in its own object."""
+    """Collect / optimise / evaluate / checkpoint / log, each in its own object, for the
+    P = ``train.population`` members of a run (P = 1: a single run)."""
 
     def __init__(self, cfg: RunConfig, run_dir: Path,
                  traces: dict[str, TraceSet] | None = None):
@@ -226,108 +124,139 @@ class Experiment:
         check_logger(cfg.train.logger)
         self.cfg, self.run_dir = cfg, Path(run_dir)
         dev = self.device = resolve_device(cfg.device)
-        tr = cfg.train
+        tr, seeds = cfg.train, member_seeds(cfg)
+        self.n, self.solo = len(seeds), len(seeds) == 1
+        seed = cfg.seed if self.solo else seeds  # an int: one generator, not a list of one
         self.threads = setup_threads(cfg)
         torch.manual_seed(cfg.seed)
         traces = traces or {}
         env = make_env(cfg.scenario, cfg.channel, cfg.masking, traces.get("train", cfg.traces),
-                       "train", n_envs=tr.n_envs, device=dev, seed=cfg.seed,
+                       "train", n_envs=tr.n_envs * self.n, device=dev, seed=seed,
                        compile=tr.compile, spec_mask=False)
-        eval_env = make_eval_env(cfg, traces.get("eval"), dev)
+        eval_env = make_eval_env(cfg, traces.get("eval"), dev, members=self.n)
         self.params = p = env.base_env.params
-        self.learner = make_algorithm(cfg.algo, Dims(p.obs_dim, N_ACTIONS, p.n_uabs),
-                                      [cfg.seed], dev)
+        self.learner = make_algorithm(cfg.algo, Dims(p.obs_dim, N_ACTIONS, p.n_uabs), seeds, dev)
         self.qnet, self.buffer = self.learner.policy, self.learner.buffer
-        self.gen = torch.Generator(device=dev)
-        self.gen.manual_seed(cfg.seed)
+        self.gen = make_generator(seed, dev)
         selector = make_selector(env, cfg.masking, cfg.algo.eps_start, self.gen,
                                  compile=tr.compile)
-        self.collector = Collector(env, self.qnet, selector, self.buffer,
+        self.collector = Collector(env, self.qnet, selector, self.buffer, members=self.n,
                                    n_step=cfg.algo.n_step, gamma=cfg.algo.gamma)
         self.updates = UpdateSchedule(self.learner, cfg.algo)
         self.evaluator = Evaluator(eval_env, tr.eval_seed)
-        self.greedy = greedy_policy(self.qnet, eval_env, cfg, compile=tr.compile)
-        self.log = RunLog(cfg, self.run_dir)
+        self.greedy = greedy_policy(self.qnet, eval_env, cfg, compile=tr.compile,
+                                    members=self.n)
+        self.members = [Member(cfg, s, self.run_dir if self.solo else
+                               member_dir(self.run_dir, s)) for s in seeds]
+        self.checkpoints = Checkpoints(self)
         self.interrupt = DeferredInterrupt()
         self.total_steps = tr.episodes * p.episode_steps  # per-env steps of the protocol
-        self.episode, self.best_eval = 0, -math.inf
+        self.episode = 0  # per member
         self.identity: dict | None = None  # the run folder's (set by train.prepare)
         self.run_lock = None  # the run folder's lock, released when fit ends
 
     # ------------------------------------------------------------------ steps
-    def collect(self) -> list[dict[str, Any]]:
-        """One round of ``n_envs`` training episodes with their updates; one record each."""
+    def collect(self) -> list[list[dict[str, Any]]]:
+        """One round of ``n_envs`` training episodes per member with their updates; the
+        records of each member's episodes."""
         last, served, eps, loss, q = self.collector.round(
             lambda s: epsilon(self.cfg.algo, s, self.total_steps), self.updates)
-        records = episode_records(
-            last, served, self.params.episode_steps, self.episode + 1,
-            self.collector.env_steps,
-            {"epsilon": eps, "loss": loss.item(), "q_chosen": q.item(),
-             "updates": self.learner.updates})
-        self.episode += len(records)
-        return records
+        loss, q = loss.expand(self.n).tolist(), q.expand(self.n).tolist()
+        k = self.cfg.train.n_envs
+        out = []
+        for i in range(self.n):
+            sl = slice(i * k, (i + 1) * k)
+            out.append(episode_records(
+                last[sl], served[sl], self.params.episode_steps, self.episode + 1,
+                self.collector.env_steps,
+                {"epsilon": eps, "loss": loss[i], "q_chosen": q[i],
+                 "updates": self.learner.updates}))
+        self.episode += k
+        return out
 
-    def evaluate(self) -> float:
-        """Evaluate the greedy policy, log it with its figures, checkpoint ``best`` (by
-        evaluation return) and ``last``. Returns the evaluation return."""
-        record, td = self.evaluator.evaluate(self.greedy, self.episode,
-                                             self.collector.env_steps)
-        self.log.record(record)
-        is_best = record["return"] >= self.best_eval
-        self.log.eval_figures(record, td, self.evaluator, is_best)
-        if is_best:
-            self.best_eval = record["return"]
-            self.save("best")
-        self.save("last")
-        return record["return"]
-
-    # ------------------------------------------------------------------ checkpoint
-    def state_dict(self) -> dict:
-        return run_state(self, self.cfg, self.learner.state_dict(), self.best_eval, self.gen,
-                         self.collector.env.base_env.rng, self.buffer)
-
-    def load_state_dict(self, state: dict, source: Path) -> None:
-        """Continue from a checkpoint written under compatible settings."""
-        check_compatible(state, self.cfg, source)
-        self.learner.load_state_dict(state["learner"])
-        self.best_eval = float(state["counters"]["best_eval"])
-        restore_counters(self, state)
-        if not restore_streams(state, self.gen, self.collector.env.base_env.rng, self.buffer):
-            log.warning(NO_REPLAY)
-
-    def save(self, name: str) -> Path:
-        path = self.run_dir / "checkpoints" / f"{name}.pt"
-        try:
-            save_checkpoint(self.state_dict(), path)
-        except (OSError, RuntimeError) as e:
-            raise write_error(e, self.run_dir) from None
-        return path
-
-    def rounds(self) -> None:
-        """Collect and evaluate until ``train.episodes``, stopping early (after a whole
-        round, so the saved state is consistent) when Ctrl-C was pressed."""
-        tr = self.cfg.train
-        while self.episode < tr.episodes:
-            for rec in self.collect():
-                self.log.record(rec)
-                self.progress.update(rec)
-            self.threads.check()
-            if self.episode % tr.eval_every == 0 or self.episode >= tr.episodes:
-                self.progress.last_eval = self.evaluate()
-            if self.interrupt.requested:
-                path = self.save("last")
-                self.interrupt.stop(f"interrupted at episode {self.episode}: saved {path}; "
-                                    f"continue with resume={self.run_dir}")
+    def evaluate(self) -> list[float]:
+        """One batched evaluation of the greedy policy; each member logs its block,
+        checkpoints ``best`` (by evaluation return) and ``last``, and draws its pictures
+        (``eval/``, the logger's figures): a single run at every evaluation, a
+        population's members at a new best and at the end only (each member's pictures
+        take longer to draw than the batched rollout of all). Returns their returns."""
+        td = self.evaluator.rollout(self.greedy)
+        w = td.shape[0] // self.n
+        final = self.episode >= self.cfg.train.episodes
+        returns = []
+        for i, m in enumerate(self.members):
+            block = td[i * w:(i + 1) * w]
+            record = self.evaluator.record(block, self.episode, self.collector.env_steps)
+            m.log.record(record)
+            is_best = record["return"] >= m.best_eval
+            if self.solo or is_best or final:
+                m.log.eval_figures(record, block, self.evaluator, is_best)
+            m.last_eval = record["return"]
+            if is_best:
+                m.best_eval = record["return"]
+                self.checkpoints.save(i, "best")
+            returns.append(record["return"])
+        self.checkpoints.save_all("last")
+        return returns
 
     # ------------------------------------------------------------------ loop
+    def rounds(self) -> None:
+        """Collect and evaluate until ``train.episodes``, stopping early (after a whole
+        round, so the saved state is consistent) when Ctrl-C or SIGTERM came."""
+        tr = self.cfg.train
+        while self.episode < tr.episodes:
+            per_member = self.collect()
+            self.threads.check()
+            for member, records in zip(self.members, per_member, strict=True):
+                for rec in records:
+                    member.log.record(rec)
+            for recs in zip(*per_member, strict=True):  # the bar: one step per episode
+                self.progress.update({
+                    "return": sum(r["return"] for r in recs) / self.n,
+                    "epsilon": recs[0]["epsilon"],
+                    "collisions": sum(r["collisions"] for r in recs)})
+            if self.episode % tr.eval_every == 0 or self.episode >= tr.episodes:
+                self.progress.last_eval = sum(self.evaluate()) / self.n
+            if self.interrupt.requested:
+                path = self.checkpoints.save_all("last")
+                saved = path if self.solo else "every member's last.pt"
+                self.interrupt.stop(f"interrupted at episode {self.episode}: saved {saved}; "
+                                    f"continue with resume={self.run_dir}")
+
     def fit(self) -> dict[str, Any]:
-        """Train to ``train.episodes``, evaluating every ``train.eval_every`` episodes.
-        Ctrl-C or SIGTERM finishes the current round, saves ``last`` and raises
-        :class:`Stopped` (a second one stops at once, keeping the last checkpoint)."""
-        minutes = run_rounds(self, [self.log], lambda: self.save("last"))
+        """Train every member to ``train.episodes``, evaluating every
+        ``train.eval_every`` episodes. Ctrl-C or SIGTERM finishes the current round,
+        saves ``last`` and raises :class:`Stopped` (a second one stops at once, keeping
+        the last checkpoint). The run folder's lock (``run_lock``) is released when it
+        ends, however it ends, and only after the last save. The summary's ``members``
+        hold each member's returns; a single run's are also at its top level."""
+        try:
+            for m in self.members:
+                m.log.open(resume_episode=self.episode if self.episode else None)
+            self.progress = Progress(self.cfg.train, self.episode)
+            t0 = time.perf_counter()
+            try:
+                with self.interrupt:
+                    self.rounds()
+            finally:
+                self.progress.close()
+                for m in self.members:
+                    m.log.close()
+            minutes = (time.perf_counter() - t0) / 60
+            self.checkpoints.save_all("last")
+        except OSError as e:
+            raise write_error(e, self.run_dir) from None
+        finally:
+            if self.run_lock is not None:
+                self.run_lock.release()
+        members = [{"seed": m.seed, "run_dir": m.run_dir, "best_eval_return": m.best_eval,
+                    "last_eval_return": m.last_eval} for m in self.members]
         summary = {"episodes": self.episode, "updates": self.learner.updates,
-                   "best_eval_return": self.best_eval, "last_eval_return": self.progress.last_eval,
-                   "minutes": minutes}
-        log.info("done: %d episodes, %d updates, best validation return %.0f, %.1f min",
-                 self.episode, self.learner.updates, self.best_eval, summary["minutes"])
+                   "minutes": minutes, "members": members}
+        if self.solo:
+            summary.update({k: members[0][k] for k in ("best_eval_return",
+                                                       "last_eval_return")})
+        log.info("done: %d member(s) x %d episodes, %d updates, best validation return "
+                 "%s, %.1f min", self.n, self.episode, self.learner.updates,
+                 ", ".join(f"{m.best_eval:.0f}" for m in self.members), minutes)
         return summary

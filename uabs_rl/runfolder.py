@@ -15,10 +15,12 @@
 
 from __future__ import annotations
 
+import errno
 import fcntl
 import json
 import logging
 import os
+import shutil
 import socket
 import sys
 import time
@@ -200,3 +202,22 @@ def check_identity(state: dict, run_dir: Path, source: Path) -> None:
             f"named {state['run'].get('folder', '?')!r}), not to {run_dir} (run id "
             f"{ours[:8]}): it was copied here. Put this run's own checkpoint back, or "
             f"resume the run it belongs to.")
+
+
+def write_error(e: OSError | RuntimeError, run_dir: Path) -> Exception:
+    """A failed write of a run's files as one line saying why and what to do; ``e``
+    itself when it is not about the run folder."""
+    if not run_dir.is_dir():
+        return RunFolderError(f"the run folder {run_dir} was removed or moved while the "
+                              f"run was writing it: the run stopped; nothing more was "
+                              f"written.")
+    where = getattr(e, "filename", None) or run_dir
+    if getattr(e, "errno", None) == errno.ENOSPC or "unexpected pos" in str(e):
+        free = shutil.disk_usage(run_dir).free / 2**20
+        return RunFolderError(f"no space left on the device while writing {where} "
+                              f"({free:.0f} MiB free): free some space, then continue with "
+                              f"resume={run_dir} (the last complete checkpoint is kept).")
+    if getattr(e, "errno", None) in (errno.EACCES, errno.EROFS, errno.EPERM):
+        return RunFolderError(f"cannot write {where} ({e.strerror}): make the run folder "
+                              f"writable, then continue with resume={run_dir}.")
+    return e

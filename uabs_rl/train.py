@@ -51,7 +51,7 @@ from uabs_rl.config import (
     validate_run,
 )
 from uabs_rl.experiment import Experiment
-from uabs_rl.population import Population, complete_save, member_dir, member_seeds
+from uabs_rl.members import complete_save, member_dir, member_seeds
 from uabs_rl.runfolder import check_identity
 from uabs_rl.runlog import read_metrics
 
@@ -205,7 +205,7 @@ def requeued() -> bool:
 
 def prepare(cfg: RunConfig, run_dir: Path, overrides: list[str] | None = None,
             auto_named: bool = False, sweep_dir: Path | None = None,
-            on_move: Callable[[Path], None] | None = None) -> Experiment | Population:
+            on_move: Callable[[Path], None] | None = None) -> Experiment:
     """The experiment of one run, or of a population (``train.population`` > 1), new or
     resumed, holding its run folder's lock (released when its fit ends). With
     ``resume`` and ``overrides`` (the command line's), the run's own config is used.
@@ -240,15 +240,13 @@ def prepare(cfg: RunConfig, run_dir: Path, overrides: list[str] | None = None,
 
 
 def _prepare_locked(cfg: RunConfig, run_dir: Path,
-                    overrides: list[str] | None) -> Experiment | Population:
+                    overrides: list[str] | None) -> Experiment:
     if not cfg.resume:
         held = [d for d in [run_dir, *(member_dir(run_dir, s) for s in member_seeds(cfg))]
                 if (d / "metrics.jsonl").exists()]
         if held:
             raise ConfigError(f"{held[0]} already holds a run (metrics.jsonl): continue it "
                               f"with resume={run_dir}, or choose another hydra.run.dir.")
-        if cfg.train.population > 1:
-            return Population(cfg, run_dir)
         return Experiment(cfg, run_dir)
     saved, state = saved_config(run_dir)
     if overrides is not None:
@@ -259,23 +257,23 @@ def _prepare_locked(cfg: RunConfig, run_dir: Path,
     exp = Experiment(cfg, run_dir)
     if state is None:  # stopped before its first checkpoint: start it again, in place
         log.info("%s has no checkpoint yet: starting it again from episode 0", run_dir)
-        exp.log.truncate(0)
+        exp.members[0].log.truncate(0)
     else:
-        exp.load_state_dict(state, run_dir / "checkpoints" / "last.pt")
+        exp.checkpoints.resume([state], [run_dir / "checkpoints" / "last.pt"])
         log.info("resuming %s at episode %d", run_dir, exp.episode)
     return exp
 
 
-def _resume_population(cfg: RunConfig, run_dir: Path) -> Population:
+def _resume_population(cfg: RunConfig, run_dir: Path) -> Experiment:
     """Every member continues from its ``last.pt``; a population none of whose members
     has checkpointed yet starts again in place. A member without a checkpoint beside
     members with one is refused by name: a member cannot be restarted alone (its updates
     are batched with the others'), and no completed member is ever wiped."""
     complete_save(run_dir)  # a save_all that a kill interrupted
-    pop = Population(cfg, run_dir)
+    pop = Experiment(cfg, run_dir)
     have = [(m.run_dir / "checkpoints" / "last.pt").is_file() for m in pop.members]
     if all(have):
-        pop.load()
+        pop.checkpoints.load()
         log.info("resuming the population %s at episode %d", run_dir, pop.episode)
     elif not any(have):  # stopped before its first checkpoint: start again, in place
         log.info("%s has no checkpoint of any member yet: starting it again from "
@@ -459,7 +457,7 @@ def _run_and_report(cfg: RunConfig, run_dir: Path, overrides: list[str]) -> None
                   sweep_dir=Path(hc.sweep.dir) if multirun else None,
                   on_move=lambda folder: _write_hydra_files(cfg, folder))
     print(f"{'resuming' if cfg.resume else 'run folder:'} {exp.run_dir}", file=sys.stderr)
-    text = population_summary_text if isinstance(exp, Population) else summary_text
+    text = summary_text if exp.solo else population_summary_text
     print(text(exp.cfg, exp.fit(), exp.run_dir))
 
 
