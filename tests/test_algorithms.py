@@ -52,6 +52,9 @@ def test_registry_dispatches_algo_name_and_refuses_an_unknown_one():
     assert type(dqn3()).__name__ == "DQN3" and "dqn3" in ALGORITHMS
     with pytest.raises(ConfigError, match=r"algo.name='vdm' is not a registered.*dqn3"):
         make_algorithm(AlgoConfig(name="vdm"), Dims(18, 4, 3), [0], torch.device("cpu"))
+    from uabs_rl.config import validate_algo_name
+    with pytest.raises(ConfigError, match=r"algo.loss=torchrl .* algo=vdn has its own"):
+        validate_algo_name(AlgoConfig(name="vdn", loss="torchrl"))
 
 
 def test_fused_and_torchrl_losses_agree():

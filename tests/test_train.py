@@ -22,7 +22,7 @@ from uabs_rl.evaluate import load_evaluation
 from uabs_rl.experiment import Experiment
 from uabs_rl.make import make_selector
 from uabs_rl.traces import TraceSet
-from uabs_rl.train import run
+from uabs_rl.train import prepare, run
 
 
 def smoke(trace_cache, *extra: str):
@@ -179,13 +179,12 @@ def test_incompatible_or_damaged_checkpoint_is_refused(rank_run, trace_cache, tm
         load_checkpoint(tmp_path / "nowhere.pt")
 
 
-def test_ctrl_c_finishes_the_round_saves_last_and_stops(trace_cache, tmp_path, monkeypatch):
-    """Ctrl-C during the second episode: that episode ends, is logged and saved, and the
-    run stops with Interrupted (one line at the command line), counters consistent."""
+def ctrl_c_in_episode_2(exp: Experiment, monkeypatch) -> None:
+    """Fit ``exp`` with Ctrl-C pressed during its second episode: it must stop there
+    with Interrupted."""
     import os
     import signal
 
-    exp = Experiment(smoke(trace_cache, "train.logger=none"), tmp_path)
     real = exp.collect
 
     def interrupted():
@@ -193,12 +192,42 @@ def test_ctrl_c_finishes_the_round_saves_last_and_stops(trace_cache, tmp_path, m
             os.kill(os.getpid(), signal.SIGINT)  # as if Ctrl-C were pressed now
         return real()
 
-    monkeypatch.setattr(exp, "collect", interrupted)
-    with pytest.raises(Interrupted, match="interrupted at episode 2"):
-        exp.fit()
+    with monkeypatch.context() as m:
+        m.setattr(exp, "collect", interrupted)
+        with pytest.raises(Interrupted, match="interrupted at episode 2"):
+            exp.fit()
+
+
+def test_ctrl_c_finishes_the_round_saves_last_and_stops(trace_cache, tmp_path, monkeypatch):
+    """Ctrl-C during the second episode: that episode ends, is logged and saved, and the
+    run stops with Interrupted (one line at the command line), counters consistent."""
+    exp = Experiment(smoke(trace_cache, "train.logger=none"), tmp_path)
+    ctrl_c_in_episode_2(exp, monkeypatch)
     c = load_checkpoint(tmp_path / "checkpoints" / "last.pt")["counters"]
     assert c["episode"] == 2 and c["env_steps"] == 2 * exp.params.episode_steps
     assert [r["episode"] for r in records(tmp_path) if r["kind"] == "train"] == [1, 2]
+
+
+@pytest.mark.parametrize("extra", [[], ["train.population=2"]])
+def test_a_vdn_run_stopped_and_resumed_equals_the_uninterrupted_run(trace_cache, tmp_path,
+                                                                  monkeypatch, extra):
+    """algo=vdn stopped by Ctrl-C after episode 2 and resumed: every record and the final
+    networks as in the run that was never stopped (its replay of whole steps included)."""
+    args = ["algo=vdn", "train.checkpoint_buffer=true", "train.logger=none",
+            "train.trajectory_images=false", "train.eval_every=2", "train.threads=1", *extra]
+    run(smoke(trace_cache, *args), tmp_path / "ref")
+    ctrl_c_in_episode_2(prepare(smoke(trace_cache, *args), tmp_path / "run"), monkeypatch)
+    # the original command re-typed with resume= appended
+    again = ["experiment=smoke", f"traces.cache_dir={trace_cache}", "train.progress=false",
+             *args, f"resume={tmp_path / 'run'}"]
+    run(compose_cfg("config", again), Path("unused"), overrides=again)
+    dirs = sorted((tmp_path / "ref").glob("seed=*")) or [tmp_path / "ref"]
+    for ref in dirs:
+        got = tmp_path / "run" / ref.relative_to(tmp_path / "ref")
+        assert records(got) == records(ref)
+        a, b = (load_checkpoint(d / "checkpoints" / "last.pt")["learner"] for d in (got, ref))
+        for part in ("qnet", "target"):
+            assert all(torch.equal(a[part][k], v) for k, v in b[part].items()), part
 
 
 @pytest.mark.parametrize("override,key", [

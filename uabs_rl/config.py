@@ -321,10 +321,11 @@ def validate_run(cfg: RunConfig) -> None:
 
 
 def validate_algo_name(algo: AlgoConfig) -> None:
-    """``algo.name`` names a registered algorithm (``uabs_rl.algorithms``)."""
+    """``algo.name`` names a registered algorithm (``uabs_rl.algorithms``), and it
+    accepts the other ``algo`` settings."""
     from uabs_rl.algorithms import algorithm_class  # here: it imports this module
 
-    algorithm_class(algo.name)
+    algorithm_class(algo.name).check_config(algo)
 
 
 def _algo_checks(cfg: RunConfig) -> list[tuple[bool, str, str, Any]]:

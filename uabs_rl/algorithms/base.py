@@ -124,6 +124,13 @@ class Algorithm(ABC):
         """A single run's acting network, freshly built: ``uabs-eval`` loads the learner
         state's ``acting_key`` entry into it and flies it."""
 
+    @classmethod
+    def check_config(cls, algo: AlgoConfig) -> None:
+        """Refuse, with a :class:`ConfigError` naming the key, ``algo`` settings this
+        algorithm cannot honour (checked at start-up, before anything is built). The
+        default accepts every setting."""
+        return None
+
     def state_dict(self) -> dict:
         return self.member_state_dict(0)
 

@@ -20,6 +20,7 @@ from torchrl.objectives import LossModule
 
 from uabs_rl.algorithms.base import register
 from uabs_rl.algorithms.dqn3 import DQN3, DQN3Loss, huber
+from uabs_rl.config import AlgoConfig, ConfigError, LossKind
 
 
 class VDNLoss(DQN3Loss):
@@ -47,6 +48,12 @@ class VDN(DQN3):
 
     name = "vdn"
     unit = "step"  # its replay samples whole env steps, with the team reward
+
+    @classmethod
+    def check_config(cls, algo: AlgoConfig) -> None:
+        if algo.loss != LossKind.fused:
+            raise ConfigError(f"algo.loss={algo.loss} is the 3DQN's reference loss; "
+                              f"algo=vdn has its own loss only: drop algo.loss.")
 
     def make_loss(self, gamma: float) -> LossModule:
         return VDNLoss(self.policy, gamma, self.dims.n_agents)
