@@ -24,7 +24,6 @@ from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from uabs_rl.config import ConfigError, RunConfig
-from uabs_rl.model import DuelingQNet
 from uabs_rl.params import EnvParams
 
 # 2: the replay keeps the agent dimension (step slots of M agents); format 1's flat
@@ -284,12 +283,16 @@ def config_from_checkpoint(state: Mapping, path: Path | None = None) -> RunConfi
 
 
 def network_shapes(cfg: RunConfig) -> dict[str, torch.Size]:
-    """The parameter shapes of the Q-network ``cfg`` builds, keyed as its state dict."""
-    from uabs_rl.env import N_ACTIONS  # here: the env's imports are heavy for uabs-traces
+    """The parameter shapes of the acting network ``cfg``'s algorithm builds, keyed as
+    its state dict."""
+    # here: the env's and the algorithms' imports are heavy for uabs-traces
+    from uabs_rl.algorithms import Dims, algorithm_class
+    from uabs_rl.env import N_ACTIONS
 
-    obs_dim = EnvParams.from_config(cfg.scenario, cfg.channel).obs_dim
+    p = EnvParams.from_config(cfg.scenario, cfg.channel)
     with torch.device("meta"):  # shapes only: no memory, no initialisation
-        net = DuelingQNet(obs_dim, N_ACTIONS, list(cfg.algo.hidden))
+        net = algorithm_class(cfg.algo.name).acting_network(
+            cfg.algo, Dims(p.obs_dim, N_ACTIONS, p.n_uabs))
     return {k: v.shape for k, v in net.state_dict().items()}
 
 

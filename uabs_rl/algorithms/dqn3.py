@@ -92,8 +92,11 @@ class DQN3Loss(LossModule):
             q_next = self.target_network(next_obs).gather(-1, best).squeeze(-1)
         return q_taken, q_next
 
-    def target_state(self) -> dict[str, torch.Tensor]:
-        return self.target_network.state_dict()
+    def target_state(self, member: int | None = None) -> dict[str, torch.Tensor]:
+        """The target network's state dict, or member ``member``'s of a population."""
+        if member is None:
+            return self.target_network.state_dict()
+        return self.target_network.member_state_dict(member)
 
     def load_target_state(self, state: dict, member: int | None = None) -> None:
         if member is None:
@@ -140,7 +143,7 @@ class TorchRLDQN3Loss(DQNLoss):
             q_taken = self.qnet(b.get("obs")).gather(1, b.get("action")[:, None]).squeeze(1)
         return TensorDict({"loss": loss, "q_chosen": q_taken.mean(-1)}, batch_size=[])
 
-    def target_state(self) -> dict[str, torch.Tensor]:
+    def target_state(self, member: int | None = None) -> dict[str, torch.Tensor]:
         flat = self.target_value_network_params.flatten_keys(".")
         return {self.names[k]: flat.get(k).detach().clone() for k in self.names}
 
@@ -163,7 +166,7 @@ class DQN3(Algorithm):
         nets = []
         for s in self.seeds:  # each member's initial network is its single run's
             torch.manual_seed(s)
-            nets.append(DuelingQNet(dims.obs_dim, dims.n_actions, list(algo.hidden)))
+            nets.append(self.acting_network(algo, dims))
         self.policy = (nets[0] if self.members == 1 else StackedQNet(nets)).to(device)
         gamma = float(algo.gamma) ** algo.n_step  # bootstraps n steps on
         self.loss_module = self.make_loss(gamma)
@@ -235,7 +238,7 @@ class DQN3(Algorithm):
             optim["state"] = {i: {"step": step.clone(), "exp_avg": avg[k], "exp_avg_sq":
                                   avg_sq[k]} for i, k in enumerate(keys)}
         return {"qnet": self.policy.member_state_dict(p),
-                "target": self.loss_module.target_network.member_state_dict(p),
+                "target": self.loss_module.target_state(member=p),
                 "optim": optim, "updates": self.updates}
 
     def load_member(self, p: int, state: dict) -> None:

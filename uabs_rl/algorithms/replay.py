@@ -65,10 +65,11 @@ class TransitionReplay:
         self.members = len(seeds)
         # [P, S, M, ...]: the agents of a step as the last lead dim
         self.data = storage((self.members, self.slots), n_agents, obs_dim, n_actions, dev)
-        # the same memory per agent transition, [P, S·M, ...], and member 0's [S·M, ...]
-        # (a single run's sample: one index_select per field)
-        self.flat = {k: v.flatten(1, 2) for k, v in self.data.items()}
-        self.flat0 = {k: v[0] for k, v in self.flat.items()}
+        # what a sample indexes: per agent transition the same memory as [P, S·M, ...];
+        # and member 0's alone (a single run's sample: one index_select per field)
+        self.fields = (self.data if unit == "step" else
+                       {k: v.flatten(1, 2) for k, v in self.data.items()})
+        self.fields0 = {k: v[0] for k, v in self.fields.items()}
         self.written = 0  # env steps written per member
         self.generators = [torch.Generator(device=dev).manual_seed(s) for s in seeds]
         self.rows = torch.arange(self.members, device=dev)[:, None]
@@ -121,24 +122,21 @@ class TransitionReplay:
     def gather(self, index: torch.Tensor) -> dict[str, torch.Tensor]:
         """The transitions at ``index`` (``[P, B]``, as :meth:`draw` returns them):
         fields ``[P, B, ...]``, or ``[B, ...]`` for a single run."""
-        if self.unit == "step":  # with the team reward, the sum of the agents' rewards
-            if self.members == 1:
-                out = {k: v[0].index_select(0, index[0]) for k, v in self.data.items()}
-            else:
-                out = {k: v[self.rows, index] for k, v in self.data.items()}
-            return {**out, "team_reward": out["reward"].sum(-1)}
         if self.members == 1:
-            return {k: v.index_select(0, index[0]) for k, v in self.flat0.items()}
-        return {k: v[self.rows, index] for k, v in self.flat.items()}
+            out = {k: v.index_select(0, index[0]) for k, v in self.fields0.items()}
+        else:
+            out = {k: v[self.rows, index] for k, v in self.fields.items()}
+        if self.unit == "step":  # with the team reward, the sum of the agents' rewards
+            out["team_reward"] = out["reward"].sum(-1)
+        return out
 
     def sample(self, batch_size: int | None = None, return_info: bool = False):
         """A batch of :data:`FIELDS` (``[B, ...]``, or ``[P, B, ...]`` for a population;
         ``unit`` step adds the agent dim), and with ``return_info`` ``{"index": ...}``."""
         index = self.draw(batch_size or self.batch_size)
+        batch = self.gather(index)
         if self.members == 1:
-            batch, index = self.gather(index), index[0]
-        else:
-            batch = self.gather(index)
+            index = index[0]
         td = TensorDict(batch, batch_size=index.shape)
         return (td, {"index": index}) if return_info else td
 
