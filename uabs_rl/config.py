@@ -232,7 +232,7 @@ class AlgoConfig:
     """3DQN: shared dueling double DQN (docs/model.md §7). Defaults follow the authors' single-UABS
     3DQN where the paper is silent (see docs/configuration.md, "Learning hyper-parameters")."""
 
-    name: str = "dqn3"
+    name: str = "dqn3"  # the learner: a key of uabs_rl.algorithms.ALGORITHMS (dqn3, vdn)
     hidden: list[int] = field(default_factory=lambda: [256, 256])  # MLP trunk widths
     lr: float = 1e-4  # Adam learning rate
     gamma: float = 0.8  # discount γ
