@@ -73,7 +73,7 @@ def bench_mode(mode: str, n_envs: int, episodes: int, scenario, channel, traces,
     """Agent-steps/s of decide (masked selector) + step for one masking mode."""
     mk = MaskingConfig(mode=mode, recoverable=recoverable)
     env = make_env(scenario, channel, mk, traces, n_envs=n_envs, seed=0)
-    sel = make_selector(env, mk, eps=0.1, generator=torch.Generator().manual_seed(0))
+    sel = make_selector(env, eps=0.1, generator=torch.Generator().manual_seed(0))
     steps, m = scenario.episode_steps, scenario.n_uabs
     q = torch.randn(steps, n_envs, m, 4)
 

@@ -50,7 +50,7 @@ def evaluate(mode: str, m: int, horizons: list[int], beam: int, rounds: int,
     runs += [("planner", h) for h in horizons]
     rows = []
     for name, h in runs:
-        selector = make_selector(env, cfg.masking)
+        selector = make_selector(env)
         if name == "planner":  # as baseline_policy builds it, with this beam and rounds
             gen = torch.Generator().manual_seed(0)
             policy = TensorDictSequential(PlannerScore(env.base_env, h, gen, beam, rounds),

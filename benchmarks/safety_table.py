@@ -29,7 +29,7 @@ def run(m: int, mode: str, recoverable: bool, envs: int, steps: int,
                        n_envs=envs, seed=seed)
     except ConfigError as e:
         return f"refused: {e}"
-    policy = make_selector(env, cfg.masking, eps=1.0,
+    policy = make_selector(env, eps=1.0,
                            generator=torch.Generator().manual_seed(seed))
     td = env.rollout(steps, policy, break_when_any_done=False)
     d = td["next", "diagnostics"]

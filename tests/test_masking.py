@@ -175,7 +175,7 @@ def random_rollout(small_traces_cfg, train, mode, steps=160, n_envs=32, recovera
     mk = MaskingConfig(mode=mode, recoverable=recoverable)
     env = make_env(sc or scenario(small_traces_cfg), ChannelConfig(), mk, train,
                    n_envs=n_envs, seed=seed)
-    sel = make_selector(env, mk, eps=eps, generator=torch.Generator().manual_seed(seed))
+    sel = make_selector(env, eps=eps, generator=torch.Generator().manual_seed(seed))
     env.set_seed(seed)
     return env.rollout(steps, policy=sel, break_when_any_done=False), env.base_env.params
 
@@ -313,7 +313,7 @@ def test_compiled_env_and_selector_match_eager(small_traces_cfg, train):
         mk = MaskingConfig(mode="rank")
         env = make_env(scenario(small_traces_cfg), ChannelConfig(), mk, train, n_envs=4,
                        seed=0, compile=comp)
-        sel = make_selector(env, mk, eps=0.3, generator=torch.Generator().manual_seed(0),
+        sel = make_selector(env, eps=0.3, generator=torch.Generator().manual_seed(0),
                             compile=comp)
         env.set_seed(0)
         q = torch.randn(4, 3, 4, generator=torch.Generator().manual_seed(1))
@@ -340,7 +340,7 @@ def test_direct_env_equals_the_torchrl_env_entry_for_entry(small_traces_cfg, tra
     mk = MaskingConfig(mode=mode, recoverable=recoverable)
     envs = [make_env(scenario(small_traces_cfg), ChannelConfig(), mk, train, n_envs=4,
                      seed=0, spec_mask=False) for _ in range(2)]
-    sels = [make_selector(env, mk, eps=0.5, generator=torch.Generator().manual_seed(0))
+    sels = [make_selector(env, eps=0.5, generator=torch.Generator().manual_seed(0))
             for env in envs]
     direct = DirectEnv(envs[1])
     qs = torch.randn(2, 20, 4, 3, 4, generator=torch.Generator().manual_seed(1))

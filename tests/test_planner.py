@@ -39,7 +39,7 @@ def eval_env(trace_cache, *overrides: str, windows: int = 4):
 
 
 def rollout(cfg, env, name: str, horizon: int = 1):
-    policy = baseline_policy(name, env, make_selector(env, cfg.masking), seed=0,
+    policy = baseline_policy(name, env, make_selector(env), seed=0,
                              horizon=horizon, sites=junction_sites(cfg, env.base_env))
     return Evaluator(env, cfg.train.eval_seed).evaluate(policy)
 
@@ -110,7 +110,7 @@ def test_a_longer_horizon_takes_the_detour_to_a_queue(trace_cache):
                    seed=0, spec_mask=False)
     returns, first = {}, {}
     for h in (1, 5):
-        policy = baseline_policy("planner", env, make_selector(env, cfg.masking), horizon=h)
+        policy = baseline_policy("planner", env, make_selector(env), horizon=h)
         env.set_seed(0)
         td = env.reset()
         env.base_env.state["pos"][:] = start  # the UABS starts between the two

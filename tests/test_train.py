@@ -316,7 +316,7 @@ def test_greedy_policy_beats_a_random_one_after_training(trace_cache, tmp_path):
         tr.collect()
     greedy, _ = tr.evaluator.evaluate(tr.greedy)
     eval_env = tr.evaluator.env
-    rand_sel = make_selector(eval_env, cfg.masking, 1.0, torch.Generator().manual_seed(1))
+    rand_sel = make_selector(eval_env, 1.0, torch.Generator().manual_seed(1))
     eval_env.set_seed(cfg.train.eval_seed)
     td = eval_env.rollout(20, rand_sel, break_when_any_done=False)
     random_return = td["next", "diagnostics", "ep_return"][:, -1].mean().item()

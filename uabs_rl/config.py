@@ -304,13 +304,21 @@ class TracesAppConfig(RunConfig):
     split: str = "all"  # which traces to build: train, eval, test or all (uabs-traces split=test)
 
 
+def validate_world(cfg: RunConfig) -> None:
+    """The start-up checks of the world a policy acts in (scenario, traces, channel,
+    masking), each naming the key: what ``uabs-eval`` checks, and part of
+    :func:`validate_run`. (:class:`~uabs_rl.params.EnvParams` checks the env settings
+    again, so an env built from the library is guarded too.)"""
+    validate_scenario_traces(cfg.scenario, cfg.traces)
+    validate_env(cfg.scenario, cfg.channel)
+    validate_masking(cfg.masking)
+
+
 def validate_run(cfg: RunConfig) -> None:
     """Every start-up check of ``uabs-train``, each naming the offending key: nothing is
     built or written before they pass."""
     check_finite(cfg)
-    validate_scenario_traces(cfg.scenario, cfg.traces)
-    validate_env(cfg.scenario, cfg.channel)
-    validate_masking(cfg.masking)
+    validate_world(cfg)
     validate_algo_name(cfg.algo)
     enum_value(LossKind, cfg.algo.loss, "algo.loss")
     enum_value(LoggerKind, cfg.train.logger, "train.logger")

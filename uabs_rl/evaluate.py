@@ -67,9 +67,7 @@ from uabs_rl.config import (
     ConfigError,
     RunConfig,
     to_container,
-    validate_env,
-    validate_masking,
-    validate_scenario_traces,
+    validate_world,
 )
 from uabs_rl.env import N_ACTIONS
 from uabs_rl.evaluation import Evaluator, greedy_policy, make_eval_env
@@ -150,16 +148,8 @@ def with_overrides(cfg: RunConfig, overrides: list[str],
         raise ConfigError(f"override: {str(e).splitlines()[0]} (check the key's spelling "
                           f"and type in uabs_rl/config.py)") from None
     new = to_container(conf)
-    validate_eval_config(new)
+    validate_world(new)
     return new
-
-
-def validate_eval_config(cfg: RunConfig) -> None:
-    """The start-up checks of the settings evaluation uses (the world, not the
-    training), each naming the key."""
-    validate_scenario_traces(cfg.scenario, cfg.traces)
-    validate_env(cfg.scenario, cfg.channel)
-    validate_masking(cfg.masking)
 
 
 def _obs_values(cfg: RunConfig) -> dict[str, Any]:
@@ -236,7 +226,7 @@ def load_evaluation(path: Path, which: str = "best", windows: int | None = None,
         if trained.device != cfg.device:
             device = resolve_device(cfg.device)
     else:
-        validate_eval_config(cfg)
+        validate_world(cfg)
     # a few rollouts: compiling would cost more than it saves
     env = make_eval_env(cfg, windows=windows, compile=False, split=split, device=device,
                         windows_name=windows_name)
@@ -298,7 +288,7 @@ def evaluate_policies(ev: Evaluation, policies: tuple[str, ...], seed: int = 0,
             policy = ev.greedy
         else:
             sites = junction_sites(ev.cfg, env.base_env) if name == "junctions" else None
-            policy = baseline_policy(name, env, make_selector(env, ev.cfg.masking), seed,
+            policy = baseline_policy(name, env, make_selector(env), seed,
                                      horizon=horizon, sites=sites)
         t0 = time.perf_counter()
         results[name] = ev.evaluator.evaluate(policy, ev.episode, ev.env_steps)

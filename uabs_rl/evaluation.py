@@ -29,7 +29,7 @@ def greedy_policy(qnet: nn.Module, env: TransformedEnv, cfg: RunConfig,
     gen = make_generator([cfg.train.eval_seed] * members if members > 1
                          else cfg.train.eval_seed, env.base_env.device)
     qmod = TensorDictModule(qnet, in_keys=[OBS], out_keys=[ACTION_VALUE])
-    return TensorDictSequential(qmod, make_selector(env, cfg.masking, 0.0, gen, compile=compile))
+    return TensorDictSequential(qmod, make_selector(env, 0.0, gen, compile=compile))
 
 
 def make_eval_env(cfg: RunConfig, traces: TraceSet | None = None,

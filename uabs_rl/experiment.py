@@ -138,7 +138,7 @@ class Experiment:
         self.learner = make_algorithm(cfg.algo, Dims(p.obs_dim, N_ACTIONS, p.n_uabs), seeds, dev)
         self.qnet, self.buffer = self.learner.policy, self.learner.buffer
         self.gen = make_generator(seed, dev)
-        selector = make_selector(env, cfg.masking, cfg.algo.eps_start, self.gen,
+        selector = make_selector(env, cfg.algo.eps_start, self.gen,
                                  compile=tr.compile)
         self.collector = Collector(env, self.qnet, selector, self.buffer, members=self.n,
                                    n_step=cfg.algo.n_step, gamma=cfg.algo.gamma)

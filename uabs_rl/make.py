@@ -17,7 +17,7 @@ from uabs_rl.config import (
     TracesConfig,
 )
 from uabs_rl.env import ACTION, MASK, UABSEnv
-from uabs_rl.masking import MaskedActionSelector, SafetyTransform, make_rule
+from uabs_rl.masking import MaskedActionSelector, SafetyTransform, env_rule, make_rule
 from uabs_rl.traces import TraceSet, get_traces
 
 log = logging.getLogger(__name__)
@@ -46,14 +46,13 @@ def make_env(scenario: ScenarioConfig, channel: ChannelConfig, masking: MaskingC
                           else safety)
 
 
-def make_selector(env: TransformedEnv, masking: MaskingConfig, eps: float = 0.0,
+def make_selector(env: TransformedEnv, eps: float = 0.0,
                   generator: torch.Generator | None = None,
                   compile: bool = False) -> MaskedActionSelector:
-    """The ε-greedy masked selector of ``masking``'s rule for ``env``."""
-    base = env.base_env
-    rule = make_rule(masking, base.params).to(base.device)
-    return MaskedActionSelector(rule, eps=eps, generator=generator, compile=compile).to(
-        base.device)
+    """The ε-greedy masked selector of ``env``'s masking rule: the rule :func:`make_env`
+    built once for the env, handed on (not built again from the config)."""
+    return MaskedActionSelector(env_rule(env), eps=eps, generator=generator,
+                                compile=compile).to(env.base_env.device)
 
 
 def resolve_device(name: str) -> torch.device:

@@ -427,6 +427,17 @@ class SafetyTransform(Transform):
         return observation_spec
 
 
+def env_rule(env: TransformedEnv) -> MaskingRule:
+    """The masking rule of an env built by :func:`uabs_rl.make.make_env`: the rule of its
+    :class:`SafetyTransform`, which the selector and the learner's target mask share."""
+    transforms = getattr(env.transform, "transforms", [env.transform])
+    for t in transforms:
+        if isinstance(t, SafetyTransform):
+            return t.rule
+    raise TypeError(f"no SafetyTransform in {env.transform!r}: build the env with "
+                    f"uabs_rl.make.make_env, which adds the masking rule's transform")
+
+
 class DirectEnv:
     """The training env without TensorDicts: ``reset()`` and ``step(td)`` of the
     ``TransformedEnv(UABSEnv, SafetyTransform)`` that :func:`uabs_rl.make.make_env`
