@@ -23,7 +23,7 @@ import time
 import torch
 
 from uabs_rl.algorithms.base import flush_denormals
-from uabs_rl.model import DuelingQNet
+from uabs_rl.algorithms.model import DuelingQNet
 
 
 def denormal_share(checkpoint: str) -> None:

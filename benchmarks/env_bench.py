@@ -20,10 +20,10 @@ import time
 import torch
 
 from uabs_rl.config import ChannelConfig, MaskingConfig, ScenarioConfig, TracesConfig
-from uabs_rl.env import ACTION, UABSEnv
-from uabs_rl.make import make_env, make_selector
-from uabs_rl.masking import ACTION_VALUE
-from uabs_rl.traces import get_traces
+from uabs_rl.env.uabs_env import ACTION, UABSEnv
+from uabs_rl.safety.make import make_env, make_selector
+from uabs_rl.safety.masking import ACTION_VALUE
+from uabs_rl.traces.store import get_traces
 
 
 def _time(fn, steps: int, episodes: int) -> float:

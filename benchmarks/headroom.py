@@ -26,11 +26,11 @@ from pathlib import Path
 import torch
 from tensordict.nn import TensorDictSequential
 
-from uabs_rl.baselines import baseline_policy
 from uabs_rl.config import compose
-from uabs_rl.evaluation import Evaluator, make_eval_env
-from uabs_rl.make import make_selector
-from uabs_rl.planner import PlannerScore, junction_sites, scale_to_gap
+from uabs_rl.evaluation.baselines import baseline_policy
+from uabs_rl.evaluation.evaluator import Evaluator, make_eval_env
+from uabs_rl.evaluation.planner import PlannerScore, junction_sites, scale_to_gap
+from uabs_rl.safety.make import make_selector
 
 RESULTS = Path(__file__).resolve().parents[1] / "docs" / "results"
 # where the learned runs' baselines of each fleet size were written

@@ -24,8 +24,8 @@ sys.path.insert(0, str(Path(__file__).parent))
 from env_bench import bench  # noqa: E402
 
 from uabs_rl.config import ChannelConfig, ScenarioConfig, TracesConfig, compose  # noqa: E402
-from uabs_rl.env import UABSEnv  # noqa: E402
-from uabs_rl.traces import TraceSet, get_traces  # noqa: E402
+from uabs_rl.env.uabs_env import UABSEnv  # noqa: E402
+from uabs_rl.traces.store import TraceSet, get_traces  # noqa: E402
 
 
 def synthetic_traces(n_vehicles: int, steps: int, width: float, height: float) -> TraceSet:
@@ -60,7 +60,7 @@ def step_cost(m: int, n_vehicles: int, n_envs: int, device: str, reps: int = 3) 
 
 def training_rate(n_envs: int, device: str, rounds: int) -> tuple[float, float]:
     """(env steps/s, updates/s) of the trainer with n_envs parallel episodes."""
-    from uabs_rl.experiment import Experiment
+    from uabs_rl.training.experiment import Experiment
 
     cfg = compose("config", [f"train.n_envs={n_envs}", f"train.episodes={n_envs * 100}",
                              "train.progress=false", "train.logger=none",
@@ -134,7 +134,7 @@ def _plot_law(grid: dict[int, list[float]], vehicles: list[int], path: Path) -> 
     import matplotlib.pyplot as plt
     import numpy as np
 
-    from uabs_rl.plots import COLUMN_IN, PAPER_RC, save_figure
+    from uabs_rl.evaluation.plots import COLUMN_IN, PAPER_RC, save_figure
 
     with plt.rc_context(PAPER_RC):
         fig, ax = plt.subplots(figsize=(COLUMN_IN, 2.6))

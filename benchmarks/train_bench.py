@@ -16,7 +16,7 @@ and ms per member env step, so they compare with a solo run's directly.
     python benchmarks/train_bench.py --threads        # default vs train.threads=1, 2
     python benchmarks/train_bench.py --busy --turns 2 # the same beside a busy core
 
-``--threads`` measures the default thread count (``uabs_rl.threads``: resolve_threads and
+``--threads`` measures the default thread count (``uabs_rl.training.threads``: resolve_threads and
 the ThreadGovernor that takes it down beside busy CPUs) and
 ``train.threads=1``, ``2`` (and all CPUs, if more), each in its own process, in turn,
 and prints ms per env step with the ratio to the best; ``--busy`` does it beside one
@@ -38,8 +38,8 @@ from contextlib import contextmanager
 import torch
 
 from uabs_rl.config import compose
-from uabs_rl.experiment import Experiment
-from uabs_rl.threads import resolve_threads, usable_cpus
+from uabs_rl.training.experiment import Experiment
+from uabs_rl.training.threads import resolve_threads, usable_cpus
 
 SPENT: dict[str, float] = defaultdict(float)
 

@@ -11,9 +11,9 @@ import torch
 
 from uabs_rl.algorithms import ALGORITHMS, Dims, make_algorithm
 from uabs_rl.algorithms import dqn3 as dqn3_module
+from uabs_rl.algorithms.model import DuelingQNet
 from uabs_rl.algorithms.replay import TransitionReplay, upgrade_flat_replay
 from uabs_rl.config import AlgoConfig, ConfigError
-from uabs_rl.model import DuelingQNet
 
 
 def dqn3(algo: AlgoConfig | None = None, obs_dim: int = 18, seeds=(0,), agents: int = 3):
@@ -294,7 +294,7 @@ def test_n_step_transitions_sum_the_next_rewards(trace_cache, tmp_path, mode):
     at the episode's end, where the transition is terminal), beside the one-step
     transitions of the same episodes."""
     from tests.test_train import smoke
-    from uabs_rl.experiment import Experiment
+    from uabs_rl.training.experiment import Experiment
 
     args = [f"masking={mode}", "algo.learning_starts=100000", "algo.buffer_size=100000",
             "train.logger=none"]

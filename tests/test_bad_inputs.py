@@ -13,18 +13,18 @@ from omegaconf.errors import ValidationError
 
 from tests.conftest import SMALL_TRACES, compose_cfg
 from tests.test_train import records, smoke
-from uabs_rl.checkpoint import CheckpointError, load_checkpoint
+from uabs_rl.cli.evaluate import main as eval_main
+from uabs_rl.cli.report import read_metrics
+from uabs_rl.cli.train import run
 from uabs_rl.config import ConfigError, validate_run
-from uabs_rl.evaluate import main as eval_main
-from uabs_rl.make import resolve_device
-from uabs_rl.report import read_metrics
-from uabs_rl.train import run
+from uabs_rl.safety.make import resolve_device
+from uabs_rl.training.checkpoint import CheckpointError, load_checkpoint
 
 
 def test_malformed_network_file_names_the_key(tmp_path, trace_cache):
     bad = tmp_path / "bad.net.xml"
     bad.write_text('<net version="1.20"><location netOffset="0,0"/><edge id="e"/></net>')
-    from uabs_rl.traces import get_traces
+    from uabs_rl.traces.store import get_traces
 
     cfg = compose_cfg("build_traces", SMALL_TRACES + [f"traces.cache_dir={trace_cache}",
                                                       f"scenario.sumo.net_file={bad}"])
@@ -33,7 +33,7 @@ def test_malformed_network_file_names_the_key(tmp_path, trace_cache):
 
 
 def test_uabs_traces_config_error_is_one_line(trace_cache):
-    proc = subprocess.run([sys.executable, "-m", "uabs_rl.traces", "scenario.dt=-1",
+    proc = subprocess.run([sys.executable, "-m", "uabs_rl.cli.traces", "scenario.dt=-1",
                            f"traces.cache_dir={trace_cache}"], capture_output=True, text=True,
                           timeout=120)
     assert proc.returncode == 2

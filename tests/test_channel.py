@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from uabs_rl import channel as ch
+from uabs_rl.env import channel as ch
 
 T = torch.tensor
 
@@ -147,8 +147,8 @@ def test_channel_name_dispatches_through_the_registry(monkeypatch, trace_cache):
 
     from tests.test_train import smoke
     from uabs_rl.config import ConfigError
-    from uabs_rl.links import LinkModel
-    from uabs_rl.params import EnvParams
+    from uabs_rl.env.links import LinkModel
+    from uabs_rl.env.params import EnvParams
 
     class Walled(ch.UMa):  # UMa behind 200 dB of walls: no link reaches SNR_th
         def pathloss_los(self, d2d, d3d):

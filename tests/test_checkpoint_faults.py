@@ -16,13 +16,13 @@ import pytest
 import torch
 
 from tests.test_train import smoke
-from uabs_rl import evaluate
-from uabs_rl.checkpoint import CheckpointError, load_checkpoint, load_into
+from uabs_rl.algorithms.model import DuelingQNet
+from uabs_rl.cli import evaluate
+from uabs_rl.cli.evaluate import main as eval_main
+from uabs_rl.cli.train import run
 from uabs_rl.config import ConfigError
-from uabs_rl.evaluate import main as eval_main
-from uabs_rl.model import DuelingQNet
-from uabs_rl.traces import get_traces
-from uabs_rl.train import run
+from uabs_rl.traces.store import get_traces
+from uabs_rl.training.checkpoint import CheckpointError, load_checkpoint, load_into
 
 
 @pytest.fixture(scope="module")

@@ -84,7 +84,7 @@ def test_every_setting_named_exists(page):
     assert not missing, f"{page.name} names settings RunConfig does not have: {missing}"
 
 
-COMMANDS = {"uabs-eval": "uabs_rl/evaluate.py", "uabs-report": "uabs_rl/report.py"}
+COMMANDS = {"uabs-eval": "uabs_rl/cli/evaluate.py", "uabs-report": "uabs_rl/cli/report.py"}
 
 
 @pytest.mark.parametrize("page", PAGES, ids=lambda p: p.name)
@@ -102,7 +102,7 @@ def test_commands_and_their_flags_exist(page):
 
 
 def render_help(*overrides: str) -> str:
-    out = subprocess.run([sys.executable, "-m", "uabs_rl.train", *overrides,
+    out = subprocess.run([sys.executable, "-m", "uabs_rl.cli.train", *overrides,
                           "hydra/help=uabs_train", "--help"], capture_output=True, text=True,
                          timeout=120, cwd=PROJECT_ROOT)
     assert out.returncode == 0, out.stderr[-2000:]

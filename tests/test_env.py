@@ -8,11 +8,11 @@ import pytest
 import torch
 from torchrl.envs.utils import check_env_specs
 
-from uabs_rl import service
-from uabs_rl.channel import los_probability
 from uabs_rl.config import ChannelConfig, ConfigError, ScenarioConfig
-from uabs_rl.env import ACTION, DIAG, MASK, POSITION, REWARD, StepMath, UABSEnv
-from uabs_rl.params import EnvParams
+from uabs_rl.env import service
+from uabs_rl.env.channel import los_probability
+from uabs_rl.env.params import EnvParams
+from uabs_rl.env.uabs_env import ACTION, DIAG, MASK, POSITION, REWARD, StepMath, UABSEnv
 
 EP = 20  # episode length for the small traces (60 s)
 
@@ -281,7 +281,7 @@ def test_sampled_los_draws_only_where_they_matter(small_traces_cfg):
 def test_lookahead_observation_scores_each_candidate_move(small_traces_cfg):
     """scenario.lookahead_obs: one vehicle 40 m east of the UABS is under its footprints
     after a move right (20 m off) and after two (0 m), and nowhere else."""
-    from uabs_rl.traces import TraceSet
+    from uabs_rl.traces.store import TraceSet
 
     steps = 30
     pos = torch.zeros(1, steps, 1, 2)
@@ -307,7 +307,7 @@ def test_motion_observation_scores_moves_at_extrapolated_positions(small_traces_
     where it will be if it keeps moving (40 m east of the UABS: only the move right
     reaches it), while the plain lookahead scores it where it is (under the UABS: every
     move reaches it). At the window's first step there is no last move."""
-    from uabs_rl.traces import TraceSet
+    from uabs_rl.traces.store import TraceSet
 
     steps = 30
     pos = torch.zeros(1, steps, 1, 2)

@@ -17,17 +17,17 @@ import pytest
 import torch
 
 from tests.test_train import records, smoke
-from uabs_rl.checkpoint import CheckpointError, load_checkpoint
-from uabs_rl.members import complete_save
-from uabs_rl.runfolder import RunFolderError, RunLock
-from uabs_rl.train import prepare, run
+from uabs_rl.cli.train import prepare, run
+from uabs_rl.training.checkpoint import CheckpointError, load_checkpoint
+from uabs_rl.training.members import complete_save
+from uabs_rl.training.runfolder import RunFolderError, RunLock
 
 QUIET = ["train.trajectory_images=false", "train.logger=none", "train.threads=1"]
 
 
 def uabs_train(cwd: Path, *args: str, env: dict | None = None) -> subprocess.Popen:
     flags = [a for a in args if a.startswith("-")]  # Hydra's flags before the overrides
-    return subprocess.Popen([sys.executable, "-m", "uabs_rl.train", *flags,
+    return subprocess.Popen([sys.executable, "-m", "uabs_rl.cli.train", *flags,
                              "train.progress=false", *(a for a in args if a not in flags)],
                             cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, env=None if env is None else {**os.environ, **env})
@@ -149,7 +149,7 @@ def test_a_checkpoint_of_another_run_is_refused(trace_cache, tmp_path):
     torch.save(state, rank / "checkpoints" / "last.pt")
     from omegaconf import OmegaConf
 
-    from uabs_rl.checkpoint import config_dict
+    from uabs_rl.training.checkpoint import config_dict
     (rank / ".hydra").mkdir()
     OmegaConf.save(OmegaConf.create(config_dict(smoke(trace_cache, *QUIET,
                                                       "train.episodes=3"))),
@@ -199,7 +199,7 @@ def test_a_population_save_cut_between_members_is_completed_or_dropped(trace_cac
 
 def test_a_stale_lock_of_a_dead_process_is_taken_over(tmp_path):
     child = subprocess.Popen([sys.executable, "-c", (
-        "import sys, time; from uabs_rl.runfolder import RunLock; "
+        "import sys, time; from uabs_rl.training.runfolder import RunLock; "
         f"lock = RunLock({str(tmp_path)!r}); assert lock.acquire(); print('held', flush=True); "
         "time.sleep(60)")], stdout=subprocess.PIPE, text=True)
     assert child.stdout.readline().strip() == "held"
@@ -215,7 +215,7 @@ def test_a_stale_lock_of_a_dead_process_is_taken_over(tmp_path):
 def test_the_final_checkpoint_is_written_while_the_run_folder_is_locked(trace_cache, tmp_path,
                                                                         monkeypatch):
     """A second writer cannot take the folder between the last round and the final save."""
-    from uabs_rl.members import Checkpoints
+    from uabs_rl.training.members import Checkpoints
 
     save, free_at_save = Checkpoints.save, []
 
@@ -253,8 +253,8 @@ def test_a_full_disk_a_read_only_folder_and_a_removed_folder_are_one_line(
         trace_cache, tmp_path, monkeypatch):
     import errno
 
-    import uabs_rl.members as members
-    from uabs_rl.experiment import Experiment
+    import uabs_rl.training.members as members
+    from uabs_rl.training.experiment import Experiment
 
     def full(state, path):  # what torch.save raises when the disk fills mid-write
         raise RuntimeError("[enforce fail at inline_container.cc:783] . unexpected pos "
@@ -369,7 +369,7 @@ def test_a_damaged_line_before_the_last_is_refused_on_resume(trace_cache, tmp_pa
 
 
 def test_a_failed_checkpoint_write_leaves_the_old_file_and_no_temporary(tmp_path, monkeypatch):
-    from uabs_rl import checkpoint
+    from uabs_rl.training import checkpoint
 
     path = tmp_path / "checkpoints" / "last.pt"
     checkpoint.save_checkpoint({"format": 1, "x": torch.ones(3)}, path)

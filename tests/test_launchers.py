@@ -16,7 +16,7 @@ from uabs_rl.config import CONF_DIR, register_configs
 
 def test_two_job_local_parallel_multirun(trace_cache, tmp_path):
     proc = subprocess.run(
-        [sys.executable, "-m", "uabs_rl.train", "-m", "hydra/launcher=local_parallel",
+        [sys.executable, "-m", "uabs_rl.cli.train", "-m", "hydra/launcher=local_parallel",
          "hydra.launcher.n_jobs=2", "experiment=smoke", "train.threads=1",
          "train.logger=none", "train.trajectory_images=false",
          f"traces.cache_dir={trace_cache}", "train.progress=false", "seed=0,1",
@@ -47,7 +47,7 @@ def test_submitit_local_multirun(trace_cache, tmp_path):
     (``hydra/launcher=submitit_local``) submits, runs and collects two jobs; SLURM
     (``hydra/launcher=slurm``) differs from it only by the executor."""
     proc = subprocess.run(
-        [sys.executable, "-m", "uabs_rl.train", "-m", "hydra/launcher=submitit_local",
+        [sys.executable, "-m", "uabs_rl.cli.train", "-m", "hydra/launcher=submitit_local",
          "hydra.launcher.timeout_min=10", "hydra.launcher.cpus_per_task=1",
          "experiment=smoke", "train.threads=1", "train.logger=none",
          "train.trajectory_images=false", f"traces.cache_dir={trace_cache}",

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 import torch
 
-from uabs_rl.channel import assign_beams, beam_footprint_radius
 from uabs_rl.config import ChannelConfig, ScenarioConfig
-from uabs_rl.links import LinkModel, footprint_reach
-from uabs_rl.params import EnvParams
+from uabs_rl.env.channel import assign_beams, beam_footprint_radius
+from uabs_rl.env.links import LinkModel, footprint_reach
+from uabs_rl.env.params import EnvParams
 
 H, H_UT, FC = 100.0, 1.5, 30.0
 

@@ -12,9 +12,10 @@ from hypothesis import strategies as st
 from tensordict import TensorDict
 
 from uabs_rl.config import ChannelConfig, ConfigError, MaskingConfig, MaskingMode, ScenarioConfig
-from uabs_rl.env import ACTION, BEAM_PRIORITY, DIAG, FALLBACK, MASK, POSITION, StepMath
-from uabs_rl.make import make_env, make_selector
-from uabs_rl.masking import (
+from uabs_rl.env.params import EnvParams
+from uabs_rl.env.uabs_env import ACTION, BEAM_PRIORITY, DIAG, FALLBACK, MASK, POSITION, StepMath
+from uabs_rl.safety.make import make_env, make_selector
+from uabs_rl.safety.masking import (
     ACTION_VALUE,
     COLLIDERS,
     RANK_ORDER,
@@ -30,7 +31,6 @@ from uabs_rl.masking import (
     rank_select,
     uniforms,
 )
-from uabs_rl.params import EnvParams
 
 E = 64  # random states per hypothesis example
 
@@ -204,7 +204,7 @@ def test_recoverable_masks_keep_every_pair_apart(small_traces_cfg, train, mode, 
     sc.area.width, sc.area.height = area
     sc.lattice = lattice
     max_m = EnvParams.from_config(sc, ChannelConfig())  # the fleet the area holds
-    from uabs_rl.geometry import Geometry
+    from uabs_rl.env.geometry import Geometry
     fits = Geometry(max_m, torch.device("cpu")).packing(max_m.d_th + 2 * max_m.step_m).shape[0]
     sc.n_uabs = max(2, fits - crowd)
     td, p = random_rollout(small_traces_cfg, train, mode, steps=60, n_envs=8, sc=sc, eps=eps,

@@ -11,15 +11,15 @@ import pytest
 import torch
 
 from tests.test_train import smoke
-from uabs_rl.baselines import baseline_policy
+from uabs_rl.cli.evaluate import main as eval_main
+from uabs_rl.cli.train import run
 from uabs_rl.config import ConfigError
-from uabs_rl.env import ACTION, MASK, POSITION
-from uabs_rl.evaluate import main as eval_main
-from uabs_rl.evaluation import Evaluator, make_eval_env
-from uabs_rl.geometry import Geometry
-from uabs_rl.make import make_env, make_selector
-from uabs_rl.params import EnvParams
-from uabs_rl.planner import (
+from uabs_rl.env.geometry import Geometry
+from uabs_rl.env.params import EnvParams
+from uabs_rl.env.uabs_env import ACTION, MASK, POSITION
+from uabs_rl.evaluation.baselines import baseline_policy
+from uabs_rl.evaluation.evaluator import Evaluator, make_eval_env
+from uabs_rl.evaluation.planner import (
     busiest_sites,
     gap_share,
     junction_sites,
@@ -29,8 +29,8 @@ from uabs_rl.planner import (
     scale_to_gap,
     weighted_kmeans,
 )
-from uabs_rl.traces import TraceSet
-from uabs_rl.train import run
+from uabs_rl.safety.make import make_env, make_selector
+from uabs_rl.traces.store import TraceSet
 
 
 def eval_env(trace_cache, *overrides: str, windows: int = 4):

@@ -12,14 +12,14 @@ import torch
 
 from tests.test_algorithms import batch, dqn3
 from tests.test_train import records, smoke
-from uabs_rl.checkpoint import CheckpointError, Interrupted, load_checkpoint
+from uabs_rl.algorithms.model import DuelingQNet
+from uabs_rl.cli.evaluate import load_evaluation
+from uabs_rl.cli.report import find_runs
+from uabs_rl.cli.train import prepare, run
 from uabs_rl.config import AlgoConfig, ConfigError, validate_run
-from uabs_rl.evaluate import load_evaluation
-from uabs_rl.experiment import Experiment
-from uabs_rl.model import DuelingQNet
-from uabs_rl.report import find_runs
 from uabs_rl.rng import Generators, rand, randint
-from uabs_rl.train import prepare, run
+from uabs_rl.training.checkpoint import CheckpointError, Interrupted, load_checkpoint
+from uabs_rl.training.experiment import Experiment
 
 QUIET = ["train.trajectory_images=false", "train.logger=none"]
 

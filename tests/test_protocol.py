@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from tests.test_train import smoke
-from uabs_rl import traces as traces_mod
+from uabs_rl.cli.train import run
 from uabs_rl.config import ConfigError, validate_run
-from uabs_rl.stats import bootstrap_ci, iqm, paired_difference
-from uabs_rl.train import run
+from uabs_rl.evaluation.stats import bootstrap_ci, iqm, paired_difference
+from uabs_rl.traces import store as traces_mod
 
 
 @pytest.mark.parametrize("override,split", [
@@ -34,12 +34,12 @@ def test_training_and_checkpoint_selection_never_read_test_traces(trace_cache, t
         asked.append(split)
         return real(scenario, traces_cfg, split, verbose)
 
-    for mod in ("uabs_rl.traces", "uabs_rl.make", "uabs_rl.evaluation"):
+    for mod in ("uabs_rl.traces.store", "uabs_rl.safety.make", "uabs_rl.evaluation.evaluator"):
         monkeypatch.setattr(f"{mod}.get_traces", spy)
     run(smoke(trace_cache, "train.logger=none", "train.trajectory_images=false"),
         tmp_path / "run")
     assert "test" not in asked and {"train", "eval"} <= set(asked)
-    from uabs_rl.evaluate import main as eval_main
+    from uabs_rl.cli.evaluate import main as eval_main
     assert eval_main([str(tmp_path / "run")]) == 0
     assert asked[-1] == "test"
 

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from tests.test_train import records, smoke
-from uabs_rl.evaluate import main as eval_main
-from uabs_rl.report import build_report, find_runs, group_runs
-from uabs_rl.report import main as report_main
-from uabs_rl.train import run
+from uabs_rl.cli.evaluate import main as eval_main
+from uabs_rl.cli.report import build_report, find_runs, group_runs
+from uabs_rl.cli.report import main as report_main
+from uabs_rl.cli.train import run
 
 QUIET = ("train.logger=none", "train.trajectory_images=false", "scenario.n_uabs=4")
 
@@ -82,8 +82,8 @@ def test_figures_have_panels_and_no_figure_numbers(sweep, report, tmp_path, monk
     evaluations are drawn with markers; the band of 2 seeds is called their range."""
     import matplotlib
 
-    from uabs_rl.plots import MODE_COLORS
-    from uabs_rl.report import best_pg, fig3, fig4
+    from uabs_rl.cli.report import best_pg, fig3, fig4
+    from uabs_rl.evaluation.plots import MODE_COLORS
 
     grouping = group_runs(find_runs(sweep))
     assert list(grouping.groups) == ["penalty", "rank"] and grouping.by_mode_only
@@ -191,7 +191,7 @@ def test_planner_places_each_group_on_the_greedy_to_planner_scale(sweep, tmp_pat
     and each group's greedy rows hold (learned − greedy) / (planner − greedy) with the
     interval of learned − greedy divided by the same gap; its value equals the planner
     of ``uabs-eval`` on the panel's run."""
-    from uabs_rl.evaluate import evaluate_policies, load_evaluation
+    from uabs_rl.cli.evaluate import evaluate_policies, load_evaluation
 
     out = tmp_path / "report"
     assert report_main([str(sweep), "--out", str(out), "--planner", "2"]) == 0
@@ -257,7 +257,7 @@ def test_runs_of_other_settings_are_grouped_not_refused(sweep, tmp_path):
      {}, "lookahead algo.{hidden=[32, 32], batch_size=32, target_update=50}"),
 ])
 def test_run_labels_name_the_observation_and_learning_settings(scenario, algo, train, label):
-    from uabs_rl.report import Run
+    from uabs_rl.cli.report import Run
 
     cfg = {"scenario": scenario, "channel": {}, "masking": {"recoverable": True}, "algo": algo,
            "train": train, "traces": {}, "seed": 0}
@@ -265,7 +265,7 @@ def test_run_labels_name_the_observation_and_learning_settings(scenario, algo, t
 
 
 def test_runs_written_before_recoverable_masks_are_literal():
-    from uabs_rl.report import Run
+    from uabs_rl.cli.report import Run
 
     cfg = {"scenario": {}, "channel": {}, "masking": {"mode": "rank"}, "algo": {}, "train": {},
            "traces": {}, "seed": 0}
@@ -406,8 +406,8 @@ def test_bands_are_drawn_and_named_only_where_there_are_seeds():
     import matplotlib.pyplot as plt
     from matplotlib.collections import PolyCollection
 
-    from uabs_rl.plots import SeedCurve, band_label, return_curves_figure
-    from uabs_rl.stats import bootstrap_ci, spread_over_seeds
+    from uabs_rl.evaluation.plots import SeedCurve, band_label, return_curves_figure
+    from uabs_rl.evaluation.stats import bootstrap_ci, spread_over_seeds
 
     vals = np.array([[1.0, 4.0], [3.0, 0.0], [2.0, 2.0]])
     m, lo, hi = spread_over_seeds(vals[:1])
@@ -442,7 +442,7 @@ def test_trajectory_picture_is_cropped_to_the_area_and_tracks_are_not_lanes():
     from matplotlib.collections import LineCollection, PathCollection
 
     from uabs_rl.config import AreaConfig
-    from uabs_rl.plots import trajectory_figure
+    from uabs_rl.evaluation.plots import trajectory_figure
 
     area = AreaConfig(width=350.0, height=170.0)
     gen = torch.Generator().manual_seed(0)
@@ -468,7 +468,7 @@ def test_trajectory_picture_is_cropped_to_the_area_and_tracks_are_not_lanes():
 
 
 def test_several_folders_report_into_their_common_folder(tmp_path):
-    from uabs_rl.report import default_out
+    from uabs_rl.cli.report import default_out
 
     assert default_out([tmp_path / "a"]) == tmp_path / "a" / "report"
     assert default_out([tmp_path / "runs" / "a", tmp_path / "runs" / "b"]) == (

@@ -18,8 +18,8 @@ import pytest
 import torch
 
 from tests.test_train import records, smoke
-from uabs_rl.checkpoint import CheckpointError, load_checkpoint
-from uabs_rl.train import prepare, run, summary_text
+from uabs_rl.cli.train import prepare, run, summary_text
+from uabs_rl.training.checkpoint import CheckpointError, load_checkpoint
 
 RUN = ["experiment=smoke", "train.episodes=60", "train.eval_every=5",
        "train.checkpoint_buffer=true", "train.logger=none",
@@ -27,7 +27,7 @@ RUN = ["experiment=smoke", "train.episodes=60", "train.eval_every=5",
 
 
 def train_cmd(*args: str) -> list[str]:
-    return [sys.executable, "-m", "uabs_rl.train", "train.progress=false", *args]
+    return [sys.executable, "-m", "uabs_rl.cli.train", "train.progress=false", *args]
 
 
 def test_kill_9_and_resume_gives_the_uninterrupted_run(trace_cache, tmp_path):
@@ -100,7 +100,7 @@ def test_a_run_killed_before_its_first_checkpoint_restarts_in_place(trace_cache,
         (stuck / ".hydra").mkdir(parents=True)
     from omegaconf import OmegaConf
 
-    from uabs_rl.checkpoint import config_dict
+    from uabs_rl.training.checkpoint import config_dict
     cfg = smoke(trace_cache, "train.trajectory_images=false")
     OmegaConf.save(OmegaConf.create(config_dict(cfg)), stuck / ".hydra" / "config.yaml")
     (stuck / "metrics.jsonl").write_text(

@@ -11,8 +11,8 @@ from tensorboard.compat.proto.event_pb2 import Event
 from tensorboard.compat.proto.summary_pb2 import Summary
 
 from tests.test_train import records, smoke
-from uabs_rl.runlog import curves, events_up_to, truncate_csv
-from uabs_rl.train import prepare
+from uabs_rl.cli.train import prepare
+from uabs_rl.training.runlog import curves, events_up_to, truncate_csv
 
 RUN = ["train.episodes=3", "train.eval_every=3", "train.threads=1"]
 

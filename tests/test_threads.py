@@ -12,8 +12,8 @@ import pytest
 import torch
 
 from tests.test_train import smoke
-from uabs_rl.make import resolve_device
-from uabs_rl.threads import (
+from uabs_rl.safety.make import resolve_device
+from uabs_rl.training.threads import (
     WORK_PER_THREAD,
     ThreadGovernor,
     cgroup_cpus,
@@ -84,7 +84,7 @@ def test_usable_cpus_is_the_least_limit_and_names_it(tmp_path, eight_cores):
 
 def test_default_threads_follow_the_network_size(trace_cache, monkeypatch, eight_cores):
     env = {}
-    monkeypatch.setattr("uabs_rl.threads.cgroup_cpus", lambda *a: None)
+    monkeypatch.setattr("uabs_rl.training.threads.cgroup_cpus", lambda *a: None)
     paper = smoke(trace_cache, "algo.hidden=[256,256]", "algo.batch_size=128")
     assert update_work(paper) == 128 * 3 * (18 * 256 + 256 * 256 + 256 * 5)
     assert resolve_threads(paper, env) == (
@@ -108,7 +108,7 @@ def test_default_threads_follow_the_network_size(trace_cache, monkeypatch, eight
 
 
 def test_device_auto_says_what_it_chose(monkeypatch, caplog):
-    caplog.set_level(logging.INFO, logger="uabs_rl.make")
+    caplog.set_level(logging.INFO, logger="uabs_rl.safety.make")
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     assert resolve_device("auto") == torch.device("cpu")
     assert "device=auto: using cpu (no CUDA)" in caplog.messages
@@ -149,11 +149,11 @@ def test_governor_uses_the_cpus_others_leave_free(tmp_path, monkeypatch):
     assert gov.others(before, (1.0, 1.0, 1.2)) == 0.0  # never negative
     # check() through the file: ticks of busy time, this process's CPU time faked
     # (children's CPU time counts as this process's: torch.compile's workers are not others)
-    monkeypatch.setattr("uabs_rl.threads._children_cpu", lambda: 0.0)
+    monkeypatch.setattr("uabs_rl.training.threads._children_cpu", lambda: 0.0)
     own = iter([0.0, 0.1, 0.2, 0.3, 1.3, 2.3, 3.3])
-    monkeypatch.setattr("uabs_rl.threads.time.process_time", lambda: next(own))
+    monkeypatch.setattr("uabs_rl.training.threads.time.process_time", lambda: next(own))
     clock = iter(range(10))
-    monkeypatch.setattr("uabs_rl.threads.time.monotonic", lambda: float(next(clock)))
+    monkeypatch.setattr("uabs_rl.training.threads.time.monotonic", lambda: float(next(clock)))
     gov = ThreadGovernor(2, fixed=False, period_s=0.5, stat=tmp_path / "stat")
     t = round(1 / tick)
     # busy CPU-seconds of both CPUs so far, and the thread count after each look
@@ -176,7 +176,7 @@ def test_governor_is_off_with_a_fixed_count_one_thread_or_no_proc_stat(tmp_path)
 
 def test_a_run_logs_its_threads_and_why(trace_cache, caplog, monkeypatch):
     monkeypatch.setattr(torch, "set_num_threads", lambda n: None)
-    caplog.set_level(logging.INFO, logger="uabs_rl.threads")
+    caplog.set_level(logging.INFO, logger="uabs_rl.training.threads")
     gov = setup_threads(smoke(trace_cache, "train.threads=3"))
     assert not gov.active and gov.n == 3
     assert caplog.messages[-1].startswith("threads: 3 (train.threads; ")

@@ -19,9 +19,9 @@ import pytest
 import torch
 
 from tests.conftest import SMALL_TRACES, compose_cfg
-from uabs_rl import traces as traces_mod
 from uabs_rl.config import PROJECT_ROOT, ConfigError
-from uabs_rl.traces import (
+from uabs_rl.traces import store as traces_mod
+from uabs_rl.traces.store import (
     TracesInterrupted,
     build_split,
     cache_path,
@@ -68,7 +68,7 @@ def test_a_cache_file_of_another_split_is_rebuilt(trace_cache, tmp_path, train, 
     eval_path = cache_path(cfg.scenario, cfg.traces, "eval")
     train_path = cache_path(cfg.scenario, cfg.traces, "train")
     shutil.copy(eval_path, train_path)  # the validation file under the training name
-    with caplog.at_level(logging.WARNING, logger="uabs_rl.traces"):
+    with caplog.at_level(logging.WARNING, logger="uabs_rl.traces.store"):
         ts = get_traces(cfg.scenario, cfg.traces, "train")
     assert ts.source == "built" and ts.meta["split"] == "train"
     assert ts.meta["cache_key"] == train_path.stem
@@ -102,7 +102,7 @@ def test_a_cache_file_saved_without_its_key_is_checked_on_its_parameters(
         kept = get_traces(cfg.scenario, cfg.traces, "train")
     assert kept.source == "cache" and "cache_key" not in kept.meta
     without_key(eval_path, train_path)
-    with caplog.at_level(logging.WARNING, logger="uabs_rl.traces"):
+    with caplog.at_level(logging.WARNING, logger="uabs_rl.traces.store"):
         rebuilt = get_traces(cfg.scenario, cfg.traces, "train")
     assert rebuilt.source == "built" and torch.equal(rebuilt.positions, train.positions)
     [warning] = warnings_of(caplog)
@@ -117,7 +117,7 @@ def test_a_damaged_cache_warning_gives_no_unsafe_advice(trace_cache, tmp_path, t
     cfg = private_copy(trace_cache, tmp_path)
     path = cache_path(cfg.scenario, cfg.traces, "train")
     torch.save({"positions": Evil()}, path, pickle_module=pickle)
-    with caplog.at_level(logging.WARNING, logger="uabs_rl.traces"):
+    with caplog.at_level(logging.WARNING, logger="uabs_rl.traces.store"):
         ts = get_traces(cfg.scenario, cfg.traces, "train")
     assert ts.source == "built" and torch.equal(ts.positions, train.positions)
     [warning] = warnings_of(caplog)
@@ -233,7 +233,8 @@ def test_an_input_sumo_refuses_is_one_line_naming_the_key(trace_cache, bad_input
 
 def test_uabs_traces_prints_a_refused_argument_as_one_line(trace_cache):
     proc = subprocess.run(
-        [sys.executable, "-m", "uabs_rl.traces", "split=train", f"traces.cache_dir={trace_cache}",
+        [sys.executable, "-m", "uabs_rl.cli.traces", "split=train",
+         f"traces.cache_dir={trace_cache}",
          "scenario.sumo.fleet_size=3", "traces.train.n_sims=1", "traces.train.duration_s=5",
          "traces.train.warmup_s=0", "traces.workers=1",
          "scenario.sumo.extra_args=[--no-such-option]"],
@@ -303,7 +304,7 @@ def test_the_cache_key_never_hashes_a_non_finite_number(attr, value, key):
 
 # ----------------------------------------------------------------------------- processes
 def sumo_workers() -> dict[int, int]:
-    """Live ``uabs_rl.sumo_sim`` worker processes: pid -> parent pid (zombies skipped)."""
+    """Live ``uabs_rl.traces.sumo_sim`` worker processes: pid -> parent pid (zombies skipped)."""
     found = {}
     for d in Path("/proc").iterdir():
         if not d.name.isdigit():
@@ -313,7 +314,7 @@ def sumo_workers() -> dict[int, int]:
             state, ppid = (d / "stat").read_text().rsplit(")", 1)[1].split()[:2]
         except (OSError, IndexError):
             continue
-        if b"uabs_rl.sumo_sim" in cmd and state != "Z":
+        if b"uabs_rl.traces.sumo_sim" in cmd and state != "Z":
             found[int(d.name)] = int(ppid)
     return found
 
@@ -323,7 +324,7 @@ def start_long_build(cache: Path, tmp: Path) -> tuple[subprocess.Popen, set[int]
     returns once both workers run."""
     tmp.mkdir(exist_ok=True)
     proc = subprocess.Popen(
-        [sys.executable, "-m", "uabs_rl.traces", "split=train", f"traces.cache_dir={cache}",
+        [sys.executable, "-m", "uabs_rl.cli.traces", "split=train", f"traces.cache_dir={cache}",
          "traces.workers=2", "traces.train.n_sims=4", "traces.train.duration_s=1000000",
          "traces.train.warmup_s=0", "scenario.sumo.fleet_size=20"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
@@ -415,7 +416,7 @@ def test_an_interrupted_in_process_build_names_the_traces(tmp_path, monkeypatch)
 def test_sumo_failures_are_attributed_to_the_input_at_fault(tmp_path):
     """The network when the fleet finds no route; the routes when SUMO names no file; a
     crashed worker (SUMO said nothing) stays a SumoRunError."""
-    from uabs_rl.sumo_sim import SumoRunError
+    from uabs_rl.traces.sumo_sim import SumoRunError
 
     cfg = tiny(tmp_path, "scenario.sumo.route_files=[a.rou.xml,b.rou.xml]")
     files = {"sumocfg": None, "net_file": MANHATTAN,

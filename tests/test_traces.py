@@ -12,9 +12,9 @@ from hydra.errors import ConfigCompositionException
 from omegaconf.errors import ConfigKeyError, ValidationError
 
 from tests.conftest import SMALL_TRACES, compose_cfg
-from uabs_rl import traces as traces_mod
 from uabs_rl.config import ConfigError, resolve_path
-from uabs_rl.traces import build_split, cache_path, get_traces
+from uabs_rl.traces import store as traces_mod
+from uabs_rl.traces.store import build_split, cache_path, get_traces
 
 
 def test_shapes_and_dtypes(train, held_out):
@@ -109,7 +109,7 @@ def test_corrupt_cache_is_detected_and_rebuilt(small_traces_cfg, held_out, damag
         blob = torch.load(path, weights_only=True)
         blob["positions"][0, 5, 3, 0] += 1.0
         torch.save(blob, path)
-    with caplog.at_level(logging.WARNING, logger="uabs_rl.traces"):
+    with caplog.at_level(logging.WARNING, logger="uabs_rl.traces.store"):
         rebuilt = get_traces(small_traces_cfg.scenario, small_traces_cfg.traces, "eval")
     assert rebuilt.source == "built"
     assert "damaged" in caplog.text and str(path) in caplog.text
@@ -182,7 +182,7 @@ def test_user_scenario_with_route_file(tmp_path, trace_cache):
 def test_net_file_is_built_from_its_netgcfg(tmp_path, monkeypatch):
     """A network kept in the repository as its netgenerate config (sumo/city) is built
     on first use, next to the config, and then found as any network."""
-    from uabs_rl.traces import net_file
+    from uabs_rl.traces.store import net_file
 
     monkeypatch.chdir(tmp_path)
     (tmp_path / "g").mkdir()
@@ -206,15 +206,15 @@ def test_net_file_is_built_from_its_netgcfg(tmp_path, monkeypatch):
 def test_city_scenario_holds_its_fleet():
     """scenario=city: 2 km x 1 km, 2000 vehicles, 25 UABS, traces sized for it; the
     recoverable masks' start spacing fits 30 UABS and more."""
-    from uabs_rl.geometry import lattice_packing
-    from uabs_rl.params import EnvParams
+    from uabs_rl.env.geometry import lattice_packing
+    from uabs_rl.env.params import EnvParams
 
     cfg = compose_cfg("config", ["scenario=city"])
     sc = cfg.scenario
     assert (sc.name, sc.n_uabs, sc.sumo.fleet_size) == ("city", 25, 2000)
     assert (sc.area.width, sc.area.height) == (2004, 1004)
     assert cfg.traces.train.n_sims == 2 and cfg.traces.train.duration_s == 900
-    from uabs_rl.env import window_count
+    from uabs_rl.env.uabs_env import window_count
 
     ev = cfg.traces.eval
     steps = int(ev.duration_s / sc.dt)

@@ -16,13 +16,13 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 
 from tests.conftest import compose_cfg
 from uabs_rl.algorithms import Dims, make_algorithm
-from uabs_rl.checkpoint import CheckpointError, Interrupted, load_checkpoint
+from uabs_rl.cli.evaluate import load_evaluation
+from uabs_rl.cli.train import prepare, run
 from uabs_rl.config import ConfigError, validate_run
-from uabs_rl.evaluate import load_evaluation
-from uabs_rl.experiment import Experiment
-from uabs_rl.make import make_selector
-from uabs_rl.traces import TraceSet
-from uabs_rl.train import prepare, run
+from uabs_rl.safety.make import make_selector
+from uabs_rl.traces.store import TraceSet
+from uabs_rl.training.checkpoint import CheckpointError, Interrupted, load_checkpoint
+from uabs_rl.training.experiment import Experiment
 
 
 def smoke(trace_cache, *extra: str):
@@ -275,7 +275,7 @@ def test_cli_entry_point(trace_cache, tmp_path):
     """``uabs-train experiment=smoke`` through Hydra: output folder, config, metrics."""
     out = tmp_path / "run"
     proc = subprocess.run(
-        [sys.executable, "-m", "uabs_rl.train", "experiment=smoke", "masking=flat",
+        [sys.executable, "-m", "uabs_rl.cli.train", "experiment=smoke", "masking=flat",
          f"traces.cache_dir={trace_cache}", "train.progress=false",
          f"hydra.run.dir={out}"], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
@@ -283,7 +283,7 @@ def test_cli_entry_point(trace_cache, tmp_path):
     assert len(records(out)) == 8
     # the end of a run: its folder and the next commands, ready to copy
     assert f"run folder: {out}" in proc.stdout and f"uabs-eval {out} --policy all" in proc.stdout
-    bad = subprocess.run([sys.executable, "-m", "uabs_rl.train", "experiment=smoke",
+    bad = subprocess.run([sys.executable, "-m", "uabs_rl.cli.train", "experiment=smoke",
                           "scenario.n_uabs=0", f"traces.cache_dir={trace_cache}",
                           f"hydra.run.dir={tmp_path / 'bad'}"],
                          capture_output=True, text=True, timeout=300)

@@ -13,9 +13,9 @@ import pytest
 import yaml
 
 from tests.test_train import smoke
-from uabs_rl.evaluate import main as eval_main
-from uabs_rl.traces import netgenerate_path
-from uabs_rl.train import run
+from uabs_rl.cli.evaluate import main as eval_main
+from uabs_rl.cli.train import run
+from uabs_rl.traces.store import netgenerate_path
 
 
 def _netgenerate() -> str:
@@ -46,7 +46,7 @@ def user_dir(tmp_path_factory) -> Path:
 
 def _composed(*args: str) -> dict:
     """The job config ``uabs-train`` composes for ``args`` (``--cfg job``: nothing runs)."""
-    proc = subprocess.run([sys.executable, "-m", "uabs_rl.train", *args, "--cfg", "job"],
+    proc = subprocess.run([sys.executable, "-m", "uabs_rl.cli.train", *args, "--cfg", "job"],
                           capture_output=True, text=True, check=True)
     return yaml.safe_load(proc.stdout)
 
@@ -69,7 +69,7 @@ def test_user_config_folder_composes_and_preset_keeps_user_values(user_dir):
 
 def test_uabs_traces_accepts_the_training_groups(user_dir, tmp_path):
     proc = subprocess.run(
-        [sys.executable, "-m", "uabs_rl.traces", "--config-dir", str(user_dir),
+        [sys.executable, "-m", "uabs_rl.cli.traces", "--config-dir", str(user_dir),
          "scenario=grid4", "experiment=smoke", "masking=flat", "split=eval",
          f"traces.cache_dir={tmp_path}"], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr

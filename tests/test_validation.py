@@ -34,8 +34,8 @@ from uabs_rl.config import (
     validate_run,
     validate_scenario_traces,
 )
-from uabs_rl.env import N_ACTIONS, empty_state
-from uabs_rl.params import EnvParams
+from uabs_rl.env.params import EnvParams
+from uabs_rl.env.uabs_env import N_ACTIONS, empty_state
 
 BAD = [  # (override on the smoke preset, the setting its message must name)
     ("algo.lr=inf", "algo.lr"),
@@ -261,7 +261,7 @@ def test_a_cuda_device_is_checked_against_its_free_memory(monkeypatch):
 # ----------------------------------------------------------------------------- commands
 def test_uabs_train_refuses_an_infinite_learning_rate_in_one_line(tmp_path):
     proc = subprocess.run(
-        [sys.executable, "-m", "uabs_rl.train", "experiment=smoke", "algo.lr=inf",
+        [sys.executable, "-m", "uabs_rl.cli.train", "experiment=smoke", "algo.lr=inf",
          "train.threads=1", f"traces.cache_dir={tmp_path / 'cache'}",
          f"hydra.run.dir={tmp_path / 'run'}"],
         cwd=tmp_path, capture_output=True, text=True, timeout=300)
@@ -273,7 +273,7 @@ def test_uabs_train_refuses_an_infinite_learning_rate_in_one_line(tmp_path):
 
 
 def test_uabs_traces_blames_a_nan_step_length_on_it(tmp_path):
-    proc = subprocess.run([sys.executable, "-m", "uabs_rl.traces", "scenario.dt=nan",
+    proc = subprocess.run([sys.executable, "-m", "uabs_rl.cli.traces", "scenario.dt=nan",
                            f"traces.cache_dir={tmp_path / 'cache'}"],
                           cwd=tmp_path, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 2

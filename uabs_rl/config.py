@@ -32,14 +32,15 @@ SEED_MIN, SEED_END = -(2 ** 63), 2 ** 64
 # SUMO seeds (traces.<split>.first_seed + i): SUMO's --seed is a 32-bit signed integer
 # and numpy's default_rng (the fleet's routes) refuses negative seeds
 SUMO_SEED_MAX = 2 ** 31 - 1
-N_MOVES = 4  # the actions: up, right, down, left (uabs_rl.env.N_ACTIONS)
+N_MOVES = 4  # the actions: up, right, down, left (uabs_rl.env.uabs_env.N_ACTIONS)
 
 
 # Closed sets. Member names equal their values because OmegaConf converts yaml strings
 # to members by name: ``masking.mode: flat`` -> ``MaskingMode.flat``; Hydra rejects
 # any other value when the config is composed.
 class MaskingMode(StrEnum):
-    """The anti-collision mechanism (docs/model.md §6); its rules live in ``uabs_rl.masking``."""
+    """The anti-collision mechanism (docs/model.md §6); its rules live in
+    ``uabs_rl.safety.masking``."""
 
     penalty = "penalty"
     flat = "flat"
@@ -47,7 +48,7 @@ class MaskingMode(StrEnum):
 
 
 class RankNextMask(StrEnum):
-    """Rank mode's double-DQN target mask at s' (see ``uabs_rl.masking.RankRule``)."""
+    """Rank mode's double-DQN target mask at s' (see ``uabs_rl.safety.masking.RankRule``)."""
 
     greedy = "greedy"
     boundary = "boundary"
@@ -182,7 +183,7 @@ class ScenarioConfig:
 class ChannelConfig:
     """3GPP TR 38.901 UMa uplink, GUE to UABS, with a k×k beam grid (docs/model.md §3)."""
 
-    name: str = "uma"  # the channel model: a key of uabs_rl.channel.CHANNELS
+    name: str = "uma"  # the channel model: a key of uabs_rl.env.channel.CHANNELS
     carrier_ghz: float = 30.0  # f_c
     ue_height: float = 1.5  # h_UT (m)
     tx_power_dbm: float = 14.0  # P_tx
@@ -276,7 +277,7 @@ class TrainConfig:
     # compile (eager if compilation fails)
     compile: bool = True
     # torch CPU threads; null = by the update's size, at most the CPUs this process may use,
-    # fewer while other processes keep them busy (uabs_rl/threads.py); set it for runs
+    # fewer while other processes keep them busy (uabs_rl/training/threads.py); set it for runs
     # that must be bit-reproducible whatever the load, and to cores / n_jobs in sweeps
     threads: int | None = None
 
@@ -307,7 +308,7 @@ class TracesAppConfig(RunConfig):
 def validate_world(cfg: RunConfig) -> None:
     """The start-up checks of the world a policy acts in (scenario, traces, channel,
     masking), each naming the key: what ``uabs-eval`` checks, and part of
-    :func:`validate_run`. (:class:`~uabs_rl.params.EnvParams` checks the env settings
+    :func:`validate_run`. (:class:`~uabs_rl.env.params.EnvParams` checks the env settings
     again, so an env built from the library is guarded too.)"""
     validate_scenario_traces(cfg.scenario, cfg.traces)
     validate_env(cfg.scenario, cfg.channel)
@@ -559,11 +560,11 @@ def validate_env(scenario: ScenarioConfig, channel: ChannelConfig) -> None:
     ]
     _raise_first(checks)
     enum_value(LosMode, channel.los_mode, "channel.los_mode")
-    from uabs_rl.channel import CHANNELS
+    from uabs_rl.env.channel import CHANNELS
 
     if channel.name not in CHANNELS:
         raise ConfigError(f"channel.name={channel.name!r} is not a channel model: use one of "
-                          f"{', '.join(sorted(CHANNELS))} (uabs_rl.channel.CHANNELS).")
+                          f"{', '.join(sorted(CHANNELS))} (uabs_rl.env.channel.CHANNELS).")
 
 
 def check_finite(obj: Any, prefix: str = "") -> None:
@@ -591,7 +592,7 @@ def _raise_first(checks: list[tuple[bool, str, str, Any]]) -> None:
 
 # ----------------------------------------------------------------------------- memory
 def observation_size(scenario: ScenarioConfig, channel: ChannelConfig) -> int:
-    """Features of one agent's observation (``uabs_rl.params.EnvParams.obs_dim``)."""
+    """Features of one agent's observation (``uabs_rl.env.params.EnvParams.obs_dim``)."""
     look = (8 + 4 * scenario.motion_obs) if scenario.lookahead_obs else 0
     return 3 + 2 * scenario.n_uabs + channel.n_beams + look
 
@@ -605,8 +606,8 @@ def transition_bytes(obs_dim: int) -> int:
 
 def env_bytes(scenario: ScenarioConfig, channel: ChannelConfig) -> int:
     """A lower bound on one training env's memory: its episode state
-    (``uabs_rl.env.empty_state``) over the fleet's vehicles only, plus one step's two
-    float32 beam-grid coordinates per UABS-vehicle link (``uabs_rl.links``)."""
+    (``uabs_rl.env.uabs_env.empty_state``) over the fleet's vehicles only, plus one step's two
+    float32 beam-grid coordinates per UABS-vehicle link (``uabs_rl.env.links``)."""
     m, v, b = scenario.n_uabs, scenario.sumo.fleet_size, channel.n_beams
     look = observation_size(scenario, channel) - (3 + 2 * m + b)
     # priority, served_count, window_full, prev_present, n_windows, ns_hist [N + 1]
@@ -617,7 +618,7 @@ def env_bytes(scenario: ScenarioConfig, channel: ChannelConfig) -> int:
 
 
 def trace_bytes(scenario: ScenarioConfig, split: SplitConfig) -> int:
-    """A lower bound on one split's traces (``uabs_rl.traces.TraceSet``: float32 x, y
+    """A lower bound on one split's traces (``uabs_rl.traces.store.TraceSet``: float32 x, y
     and a bool per vehicle slot and step), counting the fleet's vehicles only."""
     steps = int(split.duration_s // scenario.dt)
     return split.n_sims * steps * scenario.sumo.fleet_size * (2 * 4 + 1)
@@ -625,7 +626,7 @@ def trace_bytes(scenario: ScenarioConfig, split: SplitConfig) -> int:
 
 def network_bytes(obs_dim: int, hidden: list[int]) -> int:
     """One member's Q-network in training: parameters, target copy, gradients and
-    Adam's two moments, float32 (``uabs_rl.model.DuelingQNet``)."""
+    Adam's two moments, float32 (``uabs_rl.algorithms.model.DuelingQNet``)."""
     widths = [obs_dim, *hidden]
     params = sum((i + 1) * o for i, o in zip(widths, widths[1:], strict=False))
     params += (widths[-1] + 1) * (1 + N_MOVES)  # value and advantage heads

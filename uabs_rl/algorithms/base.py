@@ -15,9 +15,9 @@ P > 1 a population, ``train.population``):
 * its checkpoint state per member (:meth:`member_state_dict`, :meth:`load_member`), in
   the format of a single run, so a member's checkpoint is a run's checkpoint.
 
-The trainer (:class:`uabs_rl.experiment.Experiment`, one class for any P) owns the env, the masking
-rule's selector, collection, evaluation, checkpoints and logs, and talks to learners
-through this interface only. A new learner is one module that subclasses
+The trainer (:class:`uabs_rl.training.experiment.Experiment`, one class for any P) owns
+the env, the masking rule's selector, collection, evaluation, checkpoints and logs, and
+talks to learners through this interface only. A new learner is one module that subclasses
 :class:`Algorithm` with ``@register``, and one ``conf/algo/<name>.yaml`` (see
 docs/code.md, "Adding an algorithm").
 """

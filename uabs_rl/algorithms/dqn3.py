@@ -41,9 +41,9 @@ from uabs_rl.algorithms.base import (
     flush_denormals,
     register,
 )
+from uabs_rl.algorithms.model import DuelingQNet, StackedQNet
 from uabs_rl.algorithms.replay import TransitionReplay
 from uabs_rl.config import AlgoConfig, LossKind
-from uabs_rl.model import DuelingQNet, StackedQNet
 
 TARGET_WARNING = "No target network updater has been associated"
 

@@ -1,0 +1,501 @@
+"""``uabs-eval``: evaluate a trained run (and the baselines) on the held-out traces.
+
+    uabs-eval outputs/runs/<run dir>                 # best checkpoint, test traces
+    uabs-eval outputs/runs/<run dir> --policy all    # + random, greedy, oracle baselines
+    uabs-eval outputs/runs/<run dir> --policy all --policy planner --horizon 10
+    uabs-eval path/to/last.pt --split eval --windows 20 --gif
+    uabs-eval outputs/runs/<run dir> scenario.sumo.fleet_size=120 channel.los_mode=los
+    uabs-eval outputs/runs/<run dir> --config-dir myconf scenario=grid6   # another city
+
+Evaluates on the test traces by default (``traces.test``: SUMO seeds that neither
+training nor checkpoint selection ever read; every window of them), ``--split eval`` on
+the validation traces that training evaluated on. Prints a table (returns as whole
+numbers, fractions as percentages, their differences in percentage points) and writes
+``eval.json`` (fractions as fractions): the split, per policy R, collisions, proximity
+events, fallbacks, served fraction, P_g at N̂_s, the whole P_g(N̂_s) curve and the
+per-window values, and with baselines the paired differences learned − baseline
+(same windows, same masks) with bootstrap 95 % confidence intervals. ``--policy`` may
+be given more than once; beyond ``all`` (learned, random, greedy, oracle) it takes the
+``kmeans`` and ``junctions`` heuristics and ``planner``, a receding-horizon plan over
+the vehicles' true future positions ``--horizon`` steps ahead (an upper reference, not
+a deployable policy; its cost per window is printed). With learned, greedy and planner
+together it also prints the learned policy's share of the greedy-to-planner gap. Also a
+trajectory picture per policy and, with ``--gif``, an animation of one episode of the
+learned policy, into ``<run dir>/evaluation/`` (or ``--out``, checked before anything
+is evaluated).
+
+Overrides after the path evaluate the checkpoint under other settings: the run's own
+config with ``scenario``, ``channel``, ``masking`` and ``traces`` changed as on the
+``uabs-train`` command line (``group=option`` takes a config file of that group, from
+``conf/`` or a folder given with ``--config-dir``; ``group.key=value`` sets one value).
+The network fixes the observation size, so ``scenario.n_uabs``, ``channel.n_beams``
+and ``scenario.lookahead_obs`` must stay as trained; ``algo`` and ``train`` define the
+network and its training and cannot change. Results then go to
+``<run dir>/evaluation/<overrides>/``.
+
+Evaluation needs only the held-out env, the Q-network and the masking rule
+(:mod:`uabs_rl.evaluation.evaluator`): no training traces, replay buffer or optimiser are built.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any
+
+import torch
+from omegaconf import OmegaConf
+from omegaconf.errors import OmegaConfBaseException
+from tensordict.nn import TensorDictModuleBase
+
+from uabs_rl.algorithms import Dims, algorithm_class
+from uabs_rl.config import (
+    CONF_DIR,
+    ConfigError,
+    RunConfig,
+    to_container,
+    validate_world,
+)
+from uabs_rl.env.params import EnvParams
+from uabs_rl.env.uabs_env import N_ACTIONS
+from uabs_rl.evaluation.baselines import BASELINES, HEURISTICS, PLANNER, baseline_policy
+from uabs_rl.evaluation.evaluator import Evaluator, greedy_policy, make_eval_env
+from uabs_rl.evaluation.planner import gap_share, junction_sites
+from uabs_rl.evaluation.stats import paired_difference
+from uabs_rl.safety.make import make_selector, resolve_device
+from uabs_rl.training.checkpoint import (
+    CheckpointError,
+    check_finite,
+    config_from_checkpoint,
+    load_checkpoint,
+    load_into,
+)
+
+POLICIES = ("learned", *BASELINES)  # --policy all
+CHOICES = (*POLICIES, *HEURISTICS, PLANNER)  # every --policy
+
+
+@dataclass
+class Evaluation:
+    """What evaluating a checkpoint needs: its config, the held-out env's evaluator, the
+    greedy learned policy and the counters the checkpoint was written at."""
+
+    cfg: RunConfig
+    evaluator: Evaluator
+    greedy: TensorDictModuleBase
+    episode: int
+    env_steps: int
+
+
+# what uabs-eval may change: the world the policy is put in, not the policy
+EVAL_GROUPS = ("scenario", "channel", "masking", "traces")
+# the settings that fix the network's input size (EnvParams.obs_dim)
+OBS_KEYS = ("scenario.n_uabs", "channel.n_beams", "scenario.lookahead_obs",
+            "scenario.motion_obs")
+
+
+def _group_file(group: str, option: str, config_dirs: list[Path]) -> Path:
+    for d in (*config_dirs, CONF_DIR):
+        f = Path(d) / group / f"{option}.yaml"
+        if f.is_file():
+            return f
+    looked = ", ".join(str(Path(d) / group) for d in (*config_dirs, CONF_DIR))
+    raise ConfigError(f"{group}={option}: no {option}.yaml in {looked}. Give the folder "
+                      f"that holds {group}/{option}.yaml with --config-dir.")
+
+
+def with_overrides(cfg: RunConfig, overrides: list[str],
+                   config_dirs: list[Path] | None = None) -> RunConfig:
+    """``cfg`` (a run's own config) with command-line style ``overrides`` of the
+    ``EVAL_GROUPS`` sections: ``group=option`` replaces the section by that config file
+    (the schema's defaults plus the file, as ``uabs-train`` composes it), ``key=value``
+    sets one value. Anything else is refused, naming the key."""
+    conf = OmegaConf.structured(cfg)
+    section_types = {f.name: type(getattr(cfg, f.name)) for f in fields(cfg)}
+    dotted = []
+    for o in overrides:
+        key, sep, value = o.partition("=")
+        key = key.lstrip("+")
+        top = key.split(".", 1)[0]
+        if not sep or not value and "." not in key:
+            raise ConfigError(f"override {o!r}: expected group=option or key=value.")
+        if top == "experiment":
+            raise ConfigError(f"override {o!r}: presets change how a policy is trained; "
+                              f"set the scenario, channel, masking or traces values "
+                              f"instead.")
+        if top not in EVAL_GROUPS and key != "device":
+            raise ConfigError(
+                f"override {o!r}: uabs-eval changes only {', '.join(EVAL_GROUPS)} (and "
+                f"device); {top} belongs to the trained policy. Train a new run to change it.")
+        if "." in key or key == "device":
+            dotted.append(f"{key}={value}")
+            continue
+        body = OmegaConf.load(_group_file(key, value, list(config_dirs or [])))
+        if "defaults" in body:  # a schema reference: the section starts from it anyway
+            body.pop("defaults")
+        try:
+            conf[key] = OmegaConf.merge(OmegaConf.structured(section_types[key]), body)
+        except OmegaConfBaseException as e:
+            raise ConfigError(f"{key}={value}: {str(e).splitlines()[0]}") from None
+    try:
+        conf = OmegaConf.merge(conf, OmegaConf.from_dotlist(dotted))
+    except OmegaConfBaseException as e:
+        raise ConfigError(f"override: {str(e).splitlines()[0]} (check the key's spelling "
+                          f"and type in uabs_rl/config.py)") from None
+    new = to_container(conf)
+    validate_world(new)
+    return new
+
+
+def _obs_values(cfg: RunConfig) -> dict[str, Any]:
+    return {k: OmegaConf.select(OmegaConf.structured(cfg), k) for k in OBS_KEYS}
+
+
+def check_network_fits(trained: RunConfig, cfg: RunConfig) -> None:
+    """Refuse settings under which the trained network's input size would change."""
+    a = EnvParams.from_config(trained.scenario, trained.channel).obs_dim
+    b = EnvParams.from_config(cfg.scenario, cfg.channel).obs_dim
+    if a != b:
+        before, now = _obs_values(trained), _obs_values(cfg)
+        changed = ", ".join(f"{k}={now[k]}" for k in OBS_KEYS if before[k] != now[k])
+        trained_as = ", ".join(f"{k}={before[k]}" for k in OBS_KEYS)
+        raise ConfigError(
+            f"the network was trained on observations of size {a} ({trained_as}); with "
+            f"{changed} they would have size {b}. These settings cannot change at "
+            f"evaluation: keep them as trained (or train a run with them).")
+
+
+def find_checkpoint(path: Path, which: str = "best") -> Path:
+    """The checkpoint ``uabs-eval PATH --checkpoint which`` means: ``path`` itself, or
+    ``<run>/checkpoints/<which>.pt`` of a run folder. A folder that holds none says
+    what was looked for, and what to pass instead."""
+    if path.is_file():
+        return path
+    if not path.exists():
+        raise CheckpointError(f"no checkpoint at {path}: no such file or folder. Pass a run "
+                              f"folder (it holds checkpoints/best.pt and last.pt) or a .pt "
+                              f"file written by uabs-train.")
+    ckpt = path / "checkpoints" / f"{which}.pt"
+    if ckpt.is_file():
+        return ckpt
+    held = sorted(p.name for p in (path / "checkpoints").glob("*.pt"))
+    members = sorted({p.parent.parent.name for p in path.glob("seed=*/checkpoints/*.pt")},
+                     key=lambda name: (len(name), name))
+    if not held and members:
+        raise CheckpointError(f"{path} is a population: evaluate one member, e.g. uabs-eval "
+                              f"{path / members[0]}, or report all with uabs-report {path}.")
+    if held:
+        other = "last" if which == "best" else "best"
+        hint = (f"evaluate it with --checkpoint {other}" if f"{other}.pt" in held else
+                f"pass one of them as the path, e.g. uabs-eval {path / 'checkpoints' / held[0]}")
+        raise CheckpointError(f"no checkpoint at {ckpt}: {path / 'checkpoints'} holds only "
+                              f"{', '.join(held)}; {hint}.")
+    if path.name == "checkpoints" and (path / f"{which}.pt").is_file():
+        raise CheckpointError(f"{path} is a run's checkpoints folder: pass the run folder, "
+                              f"uabs-eval {path.parent}, or the file {path / f'{which}.pt'}.")
+    if (path / "checkpoints").is_dir() or (path / "metrics.jsonl").is_file():
+        raise CheckpointError(f"no checkpoint at {ckpt}: the run in {path} stopped before its "
+                              f"first evaluation (train.eval_every) wrote one; continue it "
+                              f"with uabs-train resume={path}.")
+    raise CheckpointError(f"no checkpoint at {ckpt}: {path} is not a uabs-train run folder "
+                          f"(it has no checkpoints/); pass a run folder or a .pt file written "
+                          f"by uabs-train.")
+
+
+def load_evaluation(path: Path, which: str = "best", windows: int | None = None,
+                    split: str = "test", overrides: list[str] | None = None,
+                    config_dirs: list[Path] | None = None,
+                    windows_name: str = "windows") -> Evaluation:
+    """The learned policy of a run directory or checkpoint on the fixed windows of
+    ``split`` ("test" or "eval", the validation traces), under the run's own config
+    or that config with ``overrides`` (:func:`with_overrides`). A network with NaN or
+    infinite weights is refused."""
+    ckpt = find_checkpoint(path, which)
+    state = load_checkpoint(ckpt)
+    check_finite(state["learner"]["qnet"], ckpt, "learner.qnet")
+    cfg = config_from_checkpoint(state, ckpt)
+    device = "cpu"  # where the run trained does not matter here, unless device= is given
+    if overrides:
+        trained, cfg = cfg, with_overrides(cfg, overrides, config_dirs)
+        check_network_fits(trained, cfg)
+        if trained.device != cfg.device:
+            device = resolve_device(cfg.device)
+    else:
+        validate_world(cfg)
+    # a few rollouts: compiling would cost more than it saves
+    env = make_eval_env(cfg, windows=windows, compile=False, split=split, device=device,
+                        windows_name=windows_name)
+    p = env.base_env.params
+    algorithm = algorithm_class(cfg.algo.name)
+    qnet = algorithm.acting_network(cfg.algo, Dims(p.obs_dim, N_ACTIONS, p.n_uabs))
+    key = algorithm.acting_key
+    load_into(qnet, state["learner"][key], ckpt, f"learner.{key}")
+    qnet.to(env.base_env.device)
+    c = state["counters"]
+    return Evaluation(cfg, Evaluator(env, cfg.train.eval_seed), greedy_policy(qnet, env, cfg),
+                      int(c["episode"]), int(c["env_steps"]))
+
+
+def default_out_dir(path: Path, overrides: list[str] | None = None) -> Path:
+    """``<run>/evaluation``, or ``<run>/evaluation/<overrides>`` under overrides; beside
+    a checkpoint file that is not in a run's ``checkpoints/``."""
+    if path.is_dir():
+        run = path
+    else:
+        run = path.parent.parent if path.parent.name == "checkpoints" else path.parent
+    out = run / "evaluation"
+    return out / ",".join(o.replace("/", "_") for o in overrides) if overrides else out
+
+
+def check_out_dir(out: Path, given: bool) -> None:
+    """Refuse an output folder that cannot be made or written before anything is
+    evaluated: ``out`` or its nearest existing parent must be a writable folder."""
+    name = f"--out {out}" if given else f"the output folder {out}"
+    fix = "pass a folder you can write with --out"
+    p = out
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    if p.exists() and not p.is_dir():
+        what = "is a file" if p == out else f"cannot be made: {p} is a file"
+        raise ConfigError(f"{name} {what}, not a folder: {fix}.")
+    if not os.access(p, os.W_OK | os.X_OK):
+        raise ConfigError(f"{name} cannot be written: {p} is not writable here; {fix}.")
+
+
+def make_out_dir(out: Path, given: bool) -> None:
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        name = f"--out {out}" if given else f"the output folder {out}"
+        raise ConfigError(f"{name} cannot be made ({e.strerror or type(e).__name__}): pass "
+                          f"a folder you can write with --out.") from None
+
+
+def evaluate_policies(ev: Evaluation, policies: tuple[str, ...], seed: int = 0,
+                      horizon: int = 1) -> dict[str, tuple[dict[str, Any], Any]]:
+    """Records and rollouts of each policy on the same held-out windows and masks
+    (``horizon``: the planner's). The planner's record holds its ``horizon`` and
+    ``seconds``, the wall time of its rollout of all the windows side by side."""
+    results = {}
+    env = ev.evaluator.env
+    for name in policies:
+        if name == "learned":
+            policy = ev.greedy
+        else:
+            sites = junction_sites(ev.cfg, env.base_env) if name == "junctions" else None
+            policy = baseline_policy(name, env, make_selector(env), seed,
+                                     horizon=horizon, sites=sites)
+        t0 = time.perf_counter()
+        results[name] = ev.evaluator.evaluate(policy, ev.episode, ev.env_steps)
+        results[name][0]["policy"] = name
+        if name == PLANNER:
+            results[name][0].update(horizon=horizon, seconds=time.perf_counter() - t0)
+    return results
+
+
+def gap_shares(results: dict[str, tuple[dict, Any]]) -> dict[str, dict]:
+    """The learned policy's share of the greedy-to-planner gap per metric (served
+    fraction, P_g), per window paired, with bootstrap CIs; {} unless all three ran."""
+    if not {"learned", "greedy", PLANNER} <= set(results):
+        return {}
+    recs = {k: results[k][0] for k in ("learned", "greedy", PLANNER)}
+    return {m: gap_share(*(r[METRICS[m]] for r in recs.values()))
+            for m in ("served_fraction", "pg")}
+
+
+METRICS = {"return": "returns", "served_fraction": "served_fractions", "pg": "pgs"}
+
+
+def differences(results: dict[str, tuple[dict, Any]]) -> dict[str, dict[str, dict]]:
+    """Paired differences learned − baseline per window, with bootstrap 95 % CIs, for
+    R, the served fraction and P_g at N̂_s: ``{baseline: {metric: {diff, ci_low,
+    ci_high, n}}}``."""
+    if "learned" not in results:
+        return {}
+    learned = results["learned"][0]
+    return {name: {m: paired_difference(learned[k], rec[k]) for m, k in METRICS.items()}
+            for name, (rec, _) in results.items() if name != "learned"}
+
+
+def percent(x: float) -> str:
+    """A fraction as a percentage, one decimal: ``12.3 %``."""
+    return f"{round(100 * x, 1) + 0.0:.1f} %"  # + 0.0: never "-0.0"
+
+
+def points(d: dict[str, float]) -> str:
+    """A paired difference of fractions in percentage points with its CI:
+    ``+1.2 pt [-0.3, +2.7]``."""
+    lo, mid, hi = (round(100 * d[k], 1) + 0.0 for k in ("ci_low", "diff", "ci_high"))
+    return f"{mid:+.1f} pt [{lo:+.1f}, {hi:+.1f}]"
+
+
+def whole(x: float, sign: bool = False) -> str:
+    """A return (or count) as an integer, ``+`` signed with ``sign``."""
+    return f"{int(round(x)):{'+' if sign else ''}d}"
+
+
+def return_difference(d: dict[str, float]) -> str:
+    """A paired difference of returns with its CI, as integers: ``+46 [+7, +82]``."""
+    return (f"{whole(d['diff'], True)} [{whole(d['ci_low'], True)}, "
+            f"{whole(d['ci_high'], True)}]")
+
+
+DIFF_FORMATS = {"return": ("R", return_difference), "served_fraction": ("served", points),
+                "pg": ("P_g", points)}
+
+
+def _print_differences(diffs: dict[str, dict[str, dict]]) -> None:
+    if not diffs:
+        return
+    print("\nlearned − baseline, per window (mean [95 % bootstrap CI]; fractions in "
+          "percentage points):")
+    for name, per in diffs.items():
+        print(f"{name:>8}  " + "   ".join(
+            f"{DIFF_FORMATS[m][0]}: {DIFF_FORMATS[m][1](d):<24}" for m, d in per.items())
+            .rstrip())
+
+
+def _print_planner(results: dict[str, tuple[dict, Any]], shares: dict[str, dict]) -> None:
+    if PLANNER not in results:
+        return
+    rec = results[PLANNER][0]
+    print(f"\nplanner: horizon {rec['horizon']}, {rec['seconds'] / rec['windows']:.2f} s per "
+          f"window ({rec['windows']} windows side by side, {rec['seconds']:.1f} s, "
+          f"{torch.get_num_threads()} torch thread(s)); it knows the vehicles' future "
+          f"positions: an upper reference, not a deployable policy")
+    for m, d in shares.items():
+        name = DIFF_FORMATS[m][0]
+        print(f"learned share of the greedy-to-planner gap, {name}: {100 * d['share']:.0f} % "
+              f"[{100 * d['ci_low']:.0f}, {100 * d['ci_high']:.0f}] (95 % bootstrap CI "
+              f"over windows)")
+
+
+def _print_table(results: dict[str, tuple[dict, Any]], nhat: int) -> None:
+    heads = ("R", "R std", "collisions", "proximity", "fallbacks", "served",
+             f"P_g(N̂s={nhat})")
+    print(f"{'policy':>8} " + " ".join(f"{h:>12}" for h in heads))
+    for name, (rec, _) in results.items():
+        cells = (whole(rec["return"]), whole(rec["return_std"]), whole(rec["collisions"]),
+                 whole(rec["proximity"]), whole(rec["fallbacks"]),
+                 percent(rec["served_fraction"]), percent(rec["pg"]))
+        print(f"{name:>8} " + " ".join(f"{c:>12}" for c in cells))
+
+
+def parser() -> argparse.ArgumentParser:
+    """``uabs-eval``'s command line."""
+    ap = argparse.ArgumentParser(
+        description="Evaluate a uabs-train run on held-out traces, under its own settings "
+                    "or other scenario/channel/masking/traces values.")
+    ap.add_argument("path", type=Path, help="a run directory or a checkpoint (.pt)")
+    ap.add_argument("overrides", nargs="*", metavar="override",
+                    help="group=option or key=value for scenario, channel, masking, traces "
+                         "(and device), as on the uabs-train command line")
+    ap.add_argument("--config-dir", type=Path, action="append", default=[],
+                    help="a folder of your own configs (scenario/<name>.yaml, ...), searched "
+                         "before the package's conf/; may be repeated")
+    ap.add_argument("--checkpoint", choices=("best", "last"), default="best",
+                    help="which checkpoint of a run directory (default: best)")
+    ap.add_argument("--policy", choices=(*CHOICES, "all"), action="append",
+                    help="what to evaluate, may be repeated: learned (default), the "
+                         "random, greedy and oracle baselines, all (these four), the "
+                         "kmeans and junctions heuristics, planner (see --horizon)")
+    ap.add_argument("--horizon", type=int, default=10,
+                    help="the planner's horizon in steps (default 10; 1 = the oracle)")
+    ap.add_argument("--split", choices=("test", "eval"), default="test",
+                    help="test traces (default; never seen by training or selection) or "
+                         "eval, the validation traces training evaluated on")
+    ap.add_argument("--windows", type=int,
+                    help="windows to evaluate (default: every test window, or the run's "
+                         "train.eval_windows on eval)")
+    ap.add_argument("--gif", action="store_true", help="also write an animation (learned)")
+    ap.add_argument("--out", type=Path, help="output folder (default: <run>/evaluation)")
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = parser()
+    args = ap.parse_intermixed_args(argv)
+    if args.windows is not None and args.windows < 1:
+        ap.error(f"--windows must be >= 1, got {args.windows}")
+    if args.horizon < 1:
+        ap.error(f"--horizon must be >= 1, got {args.horizon}")
+    out = args.out or default_out_dir(args.path, args.overrides)
+    try:  # the output folder is checked before anything is evaluated
+        find_checkpoint(args.path, args.checkpoint)
+        check_out_dir(out, args.out is not None)
+        ev = load_evaluation(args.path, args.checkpoint, args.windows, args.split,
+                             args.overrides, args.config_dir, windows_name="--windows")
+        make_out_dir(out, args.out is not None)
+    except (CheckpointError, ConfigError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    policies = tuple(dict.fromkeys(
+        q for p in args.policy or ["learned"] for q in (POLICIES if p == "all" else [p])))
+    try:
+        results = evaluate_policies(ev, policies, horizon=args.horizon)
+    except ConfigError as e:  # a baseline this scenario cannot hold (junctions)
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    n = ev.evaluator.env.base_env.n_envs
+    tc = getattr(ev.cfg.traces, args.split)
+    print(f"split: {args.split} (traces.{args.split}: SUMO seeds {tc.first_seed}.."
+          f"{tc.first_seed + tc.n_sims - 1}), {n} windows of "
+          f"{ev.cfg.scenario.episode_steps} steps, {args.checkpoint} checkpoint"
+          + (f", scenario {ev.cfg.scenario.name}, overrides: {' '.join(args.overrides)}"
+             if args.overrides else ""))
+    _print_table(results, ev.evaluator.params.nhat_s)
+    diffs = differences(results)
+    _print_differences(diffs)
+    shares = gap_shares(results)
+    _print_planner(results, shares)
+    (out / "eval.json").write_text(json.dumps(
+        {"split": args.split, "windows": n, "checkpoint": args.checkpoint,
+         "overrides": args.overrides, "scenario": ev.cfg.scenario.name,
+         "policies": {k: r for k, (r, _) in results.items()}, "differences": diffs,
+         **({"gap_share": shares} if shares else {})},
+        indent=1))
+    _write_pictures(ev, results, out, args.gif, args.split)
+    print(f"wrote {out / 'eval.json'} and pictures under {out}")
+    return 0
+
+
+def _write_pictures(ev: Evaluation, results: dict, out: Path, gif: bool, split: str) -> None:
+    import matplotlib.pyplot as plt
+    import torch.nn.functional as F
+
+    from uabs_rl.env.uabs_env import DIAG
+    from uabs_rl.evaluation.plots import (
+        animate_episode,
+        save_figure,
+        scenario_lanes,
+        trajectory_figure,
+    )
+
+    a, p = ev.cfg.scenario.area, ev.evaluator.params
+    lanes = scenario_lanes(ev.cfg.scenario)
+    for name, (rec, td) in results.items():
+        fig = trajectory_figure(a, *ev.evaluator.trajectory_of(td), p.r_b, p.n_beams, lanes,
+                                title=f"{name} ({ev.cfg.masking.mode} masking), {split} "
+                                      f"window 0: R = {rec['returns'][0]:.0f}")
+        save_figure(fig, out / f"trajectories_{name}.png")
+        plt.close(fig)
+    if gif and "learned" in results:
+        td = results["learned"][1]
+        after = td["next", DIAG, "ep_return"][0]  # the return after each step
+        animate_episode(a, *ev.evaluator.trajectory_of(td), p.r_b, p.n_beams, lanes,
+                        out / "episode_learned.gif", returns=F.pad(after, (1, 0)),  # R = 0 at t = 0
+                        title=f"learned policy, {ev.cfg.masking.mode} masking, {split} "
+                              f"window 0")
+
+
+def run_main() -> None:
+    sys.exit(main())
+
+
+if __name__ == "__main__":
+    run_main()

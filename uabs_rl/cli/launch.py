@@ -1,0 +1,32 @@
+"""Console entry points (``uabs-train``, ``uabs-traces``, ``uabs-eval``,
+``uabs-report``). Each imports its command inside a guard, so Ctrl-C while torch and
+Hydra load (a few seconds) is one line and exit status 130, not a traceback."""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+
+def _run(module: str, func: str) -> None:
+    try:
+        getattr(importlib.import_module(module), func)()
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        sys.exit(130)
+
+
+def train() -> None:
+    _run("uabs_rl.cli.train", "main")
+
+
+def traces() -> None:
+    _run("uabs_rl.cli.traces", "main")
+
+
+def evaluate() -> None:
+    _run("uabs_rl.cli.evaluate", "run_main")
+
+
+def report() -> None:
+    _run("uabs_rl.cli.report", "run_main")

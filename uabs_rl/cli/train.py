@@ -1,0 +1,484 @@
+"""``uabs-train``: 3DQN training with periodic held-out evaluation (docs/model.md §7, §8).
+
+    uabs-train                                    # paper protocol, masking=rank
+    uabs-train masking=flat seed=3
+    uabs-train -m masking=penalty,flat,rank seed=0,1,2
+    uabs-train experiment=smoke                   # the whole pipeline in seconds
+    uabs-train resume=outputs/runs/<run dir>      # continue a stopped run
+
+Every run writes under its Hydra output directory: ``metrics.jsonl`` (one line per
+training episode and per evaluation), ``tb/`` (TensorBoard; ``train.logger`` picks
+another TorchRL logger), ``checkpoints/last.pt``
+and ``checkpoints/best.pt`` (by evaluation return), ``eval/*.png``. The run itself is
+:class:`uabs_rl.training.experiment.Experiment`.
+
+``resume=<run dir>`` takes the run's own configuration (from its last checkpoint, or
+from its ``.hydra/config.yaml`` if it stopped before one) and writes into that folder;
+overrides typed beside it may change only what does not change results
+(``train.episodes``, ``device``, ``train.progress``, ...).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shlex
+import shutil
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from omegaconf import OmegaConf
+
+from uabs_rl.cli.hydra import hydra_main
+from uabs_rl.config import (
+    ConfigError,
+    LoggerKind,
+    RunConfig,
+    compose,
+    to_container,
+    validate_run,
+)
+from uabs_rl.training import runfolder
+from uabs_rl.training.checkpoint import (
+    CheckpointError,
+    config_dict,
+    config_differences,
+    config_from_checkpoint,
+    flatten,
+    load_checkpoint,
+    upgrade_config,
+)
+from uabs_rl.training.experiment import Experiment
+from uabs_rl.training.members import complete_save, member_dir, member_seeds
+from uabs_rl.training.runfolder import check_identity
+from uabs_rl.training.runlog import read_metrics
+
+log = logging.getLogger(__name__)
+
+
+def _load_hydra_config(run_dir: Path) -> dict | None:
+    """The run's ``.hydra/config.yaml`` in today's keys, or None when it has none."""
+    path = run_dir / ".hydra" / "config.yaml"
+    if not path.is_file():
+        return None
+    try:
+        stored = OmegaConf.to_container(OmegaConf.load(path))
+        merged = OmegaConf.merge(OmegaConf.structured(RunConfig), upgrade_config(stored))
+    except Exception as e:  # yaml, type and key errors all mean: not this run's config
+        first = (str(e).strip().splitlines() or [type(e).__name__])[0][:160]
+        raise CheckpointError(f"{path} is damaged ({first}): restore it from a copy, or "
+                              f"remove it to resume from the checkpoint's own config.") from None
+    return config_dict(to_container(merged))
+
+
+def saved_config(run_dir: Path) -> tuple[RunConfig, dict | None]:
+    """The configuration a run was started with, and its last checkpoint if it has one.
+    A checkpoint must be this run's own: its run id (``run.json``) and its settings
+    (``.hydra/config.yaml``) are checked."""
+    ckpt = run_dir / "checkpoints" / "last.pt"
+    if ckpt.is_file():
+        state = load_checkpoint(ckpt)
+        if "population" in state:
+            raise CheckpointError(f"{run_dir} is one member of a population trained "
+                                  f"together: resume the population, "
+                                  f"resume={run_dir.parent}.")
+        check_own(state, run_dir, ckpt)
+        return config_from_checkpoint(state), state
+    if list(run_dir.glob("seed=*/checkpoints/last.pt")):  # a population
+        return population_config(run_dir), None
+    hydra_cfg = _load_hydra_config(run_dir)
+    if hydra_cfg is None:
+        raise CheckpointError(f"resume={run_dir}: no checkpoints/last.pt and no "
+                              f".hydra/config.yaml there: pass the folder of a uabs-train "
+                              f"run (the one printed when it started).")
+    return to_container(OmegaConf.merge(OmegaConf.structured(RunConfig), hydra_cfg)), None
+
+
+def check_own(state: dict, run_dir: Path, source: Path) -> None:
+    """Refuse a checkpoint that another run wrote: another run id, or other
+    result-changing settings than the run folder's own ``.hydra/config.yaml``."""
+    check_identity(state, run_dir, source)
+    started = _load_hydra_config(run_dir)
+    if started is None:
+        return
+    diffs = config_differences(upgrade_config(state["config"]), started)
+    if diffs:
+        raise CheckpointError(f"{source} does not belong to the run in {run_dir}: its "
+                              f"settings differ from the run's own .hydra/config.yaml ("
+                              + "; ".join(diffs[:3]) + (" ..." if len(diffs) > 3 else "")
+                              + "). Put this run's own checkpoint back, or resume the run "
+                              "it came from.")
+
+
+def population_config(run_dir: Path) -> RunConfig:
+    """The config of the population in ``run_dir``, from a member's checkpoint (the
+    population's seed is its first member's)."""
+    for member in sorted(run_dir.glob("seed=*/checkpoints/last.pt")):
+        state = load_checkpoint(member)
+        if "population" in state:
+            cfg = config_from_checkpoint(state)
+            cfg.seed = int(state["population"]["seeds"][0])
+            return cfg
+    raise CheckpointError(f"{run_dir} holds seed=*/ folders whose checkpoints are not a "
+                          f"population's: resume each run folder on its own.")
+
+
+def _flat_config(cfg: RunConfig) -> dict[str, Any]:
+    return flatten(config_dict(cfg))
+
+
+def _composer():
+    """``compose(overrides) -> RunConfig`` as ``uabs-train`` composes its command line:
+    inside the running app (so ``--config-dir`` and the app's search path apply), else
+    from the package's ``conf/``."""
+    from hydra.core.global_hydra import GlobalHydra
+
+    gh = GlobalHydra.instance()
+    if not gh.is_initialized():
+        return lambda ovs: compose("config", ovs)
+    from hydra.types import RunMode
+    from omegaconf import open_dict
+
+    def comp(ovs: list[str]) -> RunConfig:
+        c = gh.hydra.compose_config("config", ovs, run_mode=RunMode.RUN)
+        with open_dict(c):
+            del c["hydra"]
+        return to_container(c)
+    return comp
+
+
+def typed_settings(overrides: list[str]) -> tuple[dict[str, Any], set[str]]:
+    """What the command line sets: the flat config it composes to, and the keys its
+    overrides touch (those they change from the defaults, and every key under a group or
+    key they name, so ``masking=rank`` speaks for all of ``masking`` even where rank is
+    the default)."""
+    comp = _composer()
+    base = _flat_config(comp([]))
+    typed = _flat_config(comp(overrides)) if overrides else base
+    touched: set[str] = set()
+    for o in overrides:
+        alone = _flat_config(comp([o]))
+        touched |= {k for k in alone if alone[k] != base.get(k)}
+        name = o.split("=", 1)[0].lstrip("+~").split("@", 1)[0].replace("/", ".")
+        touched |= {k for k in typed if k == name or k.startswith(name + ".")}
+    return typed, touched
+
+
+def resumed_config(saved: RunConfig, overrides: list[str]) -> RunConfig:
+    """``saved`` with what the command line sets, refused if that would change results.
+    The command line may be the run's original command with ``resume=`` appended:
+    group choices, presets and settings equal to the run's own are accepted."""
+    keep = [o for o in overrides if not o.split("=", 1)[0].lstrip("+~").startswith(
+        ("resume", "hydra"))]
+    try:
+        typed, touched = typed_settings(keep)
+    except Exception as e:  # Hydra's own composition errors: one line
+        if isinstance(e, ConfigError):
+            raise
+        first = (str(e).strip().splitlines() or [type(e).__name__])[0]
+        raise ConfigError(f"resume: the overrides typed beside it do not compose: "
+                          f"{first}") from None
+    own = _flat_config(saved)
+    changed = {k: typed[k] for k in touched if k in typed and typed[k] != own.get(k)}
+    diffs = config_differences({k: own.get(k, "<absent>") for k in changed}, changed)
+    if diffs:
+        raise CheckpointError("resume continues a run with its own settings; these "
+                              "overrides would change its results:\n  " + "\n  ".join(diffs)
+                              + "\nStart a new run to use them.")
+    nested: dict[str, Any] = {}
+    for key, value in changed.items():  # what may change: train.episodes, device, ...
+        *path, leaf = key.split(".")
+        node = nested
+        for part in path:
+            node = node.setdefault(part, {})
+        node[leaf] = value
+    return to_container(OmegaConf.merge(OmegaConf.structured(saved), nested))
+
+
+def requeued() -> bool:
+    """True in a SLURM job that the scheduler requeued (after a preemption or a
+    time-out, e.g. by the submitit launcher's ``max_num_timeout``)."""
+    return int(os.environ.get("SLURM_RESTART_COUNT", "0") or 0) > 0
+
+
+def prepare(cfg: RunConfig, run_dir: Path, overrides: list[str] | None = None,
+            auto_named: bool = False, sweep_dir: Path | None = None,
+            on_move: Callable[[Path], None] | None = None) -> Experiment:
+    """The experiment of one run, or of a population (``train.population`` > 1), new or
+    resumed, holding its run folder's lock (released when its fit ends). With
+    ``resume`` and ``overrides`` (the command line's), the run's own config is used.
+    A new run whose automatically named folder another process took writes beside it
+    (:func:`uabs_rl.training.runfolder.claim`, which ``auto_named``, ``sweep_dir`` and
+    ``on_move`` are passed to)."""
+    if not cfg.resume:
+        validate_run(cfg)  # before anything is sized from it (member folders, ...)
+    if not cfg.resume and requeued() and runfolder.holds_run(Path(run_dir)):
+        log.info("SLURM requeued this job: continuing the run in %s", run_dir)
+        cfg.resume = str(run_dir)
+    if cfg.resume:
+        run_dir = Path(cfg.resume)
+        if run_dir.suffix == ".pt" or run_dir.is_file():
+            raise ConfigError(f"resume={cfg.resume} is a file: pass the run folder that "
+                              f"holds checkpoints/last.pt, e.g. "
+                              f"resume={run_dir.parent.parent}.")
+        if not run_dir.is_dir():
+            raise ConfigError(f"resume={cfg.resume}: no such folder. Pass the folder of a "
+                              f"uabs-train run (the one printed when it started).")
+        lk = runfolder.lock(run_dir)
+    else:
+        run_dir, lk = runfolder.claim(Path(run_dir), auto_named, sweep_dir, on_move)
+    try:
+        exp = _prepare_locked(cfg, run_dir, overrides)
+        exp.identity = dict(runfolder.identity(run_dir), folder=run_dir.name)
+    except BaseException:
+        lk.release()
+        raise
+    exp.run_lock = lk
+    return exp
+
+
+def _prepare_locked(cfg: RunConfig, run_dir: Path,
+                    overrides: list[str] | None) -> Experiment:
+    if not cfg.resume:
+        held = [d for d in [run_dir, *(member_dir(run_dir, s) for s in member_seeds(cfg))]
+                if (d / "metrics.jsonl").exists()]
+        if held:
+            raise ConfigError(f"{held[0]} already holds a run (metrics.jsonl): continue it "
+                              f"with resume={run_dir}, or choose another hydra.run.dir.")
+        return Experiment(cfg, run_dir)
+    saved, state = saved_config(run_dir)
+    if overrides is not None:
+        cfg = resumed_config(saved, overrides)
+    cfg.resume = str(run_dir)
+    if cfg.train.population > 1:
+        return _resume_population(cfg, run_dir)
+    exp = Experiment(cfg, run_dir)
+    if state is None:  # stopped before its first checkpoint: start it again, in place
+        log.info("%s has no checkpoint yet: starting it again from episode 0", run_dir)
+        exp.members[0].log.truncate(0)
+    else:
+        exp.checkpoints.resume([state], [run_dir / "checkpoints" / "last.pt"])
+        log.info("resuming %s at episode %d", run_dir, exp.episode)
+    return exp
+
+
+def _resume_population(cfg: RunConfig, run_dir: Path) -> Experiment:
+    """Every member continues from its ``last.pt``; a population none of whose members
+    has checkpointed yet starts again in place. A member without a checkpoint beside
+    members with one is refused by name: a member cannot be restarted alone (its updates
+    are batched with the others'), and no completed member is ever wiped."""
+    complete_save(run_dir)  # a save_all that a kill interrupted
+    pop = Experiment(cfg, run_dir)
+    have = [(m.run_dir / "checkpoints" / "last.pt").is_file() for m in pop.members]
+    if all(have):
+        pop.checkpoints.load()
+        log.info("resuming the population %s at episode %d", run_dir, pop.episode)
+    elif not any(have):  # stopped before its first checkpoint: start again, in place
+        log.info("%s has no checkpoint of any member yet: starting it again from "
+                 "episode 0", run_dir)
+        for m in pop.members:
+            m.log.truncate(0)
+    else:
+        missing = [m.run_dir.name for m, h in zip(pop.members, have, strict=True) if not h]
+        present = [m.run_dir.name for m, h in zip(pop.members, have, strict=True) if h]
+        raise CheckpointError(
+            f"the population in {run_dir} cannot continue: member {', '.join(missing)} has "
+            f"no checkpoints/last.pt while {', '.join(present)} have theirs (members train "
+            f"together, so one cannot restart alone). Put its last.pt back (nothing was "
+            f"changed), or start a new population.")
+    return pop
+
+
+def run(cfg: RunConfig, run_dir: Path, overrides: list[str] | None = None) -> dict[str, Any]:
+    """Train (or resume) one run to its end; returns the fit's summary."""
+    return prepare(cfg, run_dir, overrides).fit()
+
+
+def command(name: str) -> str:
+    """How to call one of this installation's commands from the shell it was started
+    in: the bare name when that is what the PATH finds, else its full path (a virtual
+    environment that was not activated)."""
+    here = Path(sys.executable).parent / name
+    found = shutil.which(name)
+    if here.is_file() and (found is None or Path(found).resolve() != here.resolve()):
+        return shlex.quote(str(here))
+    return name
+
+
+def summary_text(cfg: RunConfig, summary: dict[str, Any], run_dir: Path) -> str:
+    """The end of a run: where it is, a table of its headline figures (from its whole
+    ``metrics.jsonl``, so a resumed run counts every episode), and the next commands,
+    ready to copy."""
+    metrics = run_dir / "metrics.jsonl"
+    recs = read_metrics(metrics) if metrics.is_file() else []
+    train = [r for r in recs if r["kind"] == "train"]
+    evals = [r for r in recs if r["kind"] == "eval"]
+    steps = train[-1]["env_steps"] if train else 0
+    lines = [f"\nrun folder: {run_dir}",
+             f"  {summary['episodes']} episodes, {steps} env steps, {summary['updates']} "
+             f"updates; this session {summary['minutes']:.1f} min"]
+    if evals:
+        best = max(evals, key=lambda r: r["return"])  # the checkpoint best.pt holds
+        last = evals[-1]
+        nhat = cfg.scenario.nhat_s
+        rows = [("return R", "{:.0f}", "return"),
+                ("served fraction", "{:.1%}", "served_fraction"),
+                (f"P_g(N̂s={nhat})", "{:.1%}", "pg"),
+                ("collisions", "{:.0f}", "collisions"),
+                ("proximity events", "{:.0f}", "proximity"),
+                ("mask fallbacks", "{:.0f}", "fallbacks")]
+        head_b, head_l = f"best (ep {best['episode']})", f"last (ep {last['episode']})"
+        title = f"validation ({best['windows']} windows)"
+        lines.append(f"  {title:<24} {head_b:>16} {head_l:>16}")
+        for name, fmt, key in rows:
+            lines.append(f"  {name:<24} {fmt.format(best[key]):>16} {fmt.format(last[key]):>16}")
+    if train:
+        lines.append("  training: " + ", ".join(
+            f"{sum(r[k] for r in train):.0f} {name}" for k, name in (
+                ("collisions", "collisions"), ("proximity", "proximity events"),
+                ("fallbacks", "mask fallbacks"))) + f" in {len(train)} episodes")
+    q = shlex.quote(str(run_dir))
+    # a sweep's job: the report over the whole sweep (it groups the sweep's settings)
+    sweep = run_dir.parent if (run_dir.parent / "multirun.yaml").is_file() else run_dir
+    report_dir = shlex.quote(str(sweep))
+    lines += ["next:",
+              f"  {command('uabs-eval')} {q} --policy all   # test traces, beside the "
+              f"baselines, with CIs",
+              f"  {command('uabs-report')} {report_dir}   # tables and figures of "
+              f"the runs in that folder"]
+    logger = LoggerKind(cfg.train.logger)
+    if logger is LoggerKind.tensorboard:
+        lines.append(f"  {command('tensorboard')} --logdir {shlex.quote(str(run_dir / 'tb'))}")
+    elif logger is LoggerKind.csv:
+        lines.append(f"  ls {shlex.quote(str(run_dir / 'csv' / 'scalars'))}   # one CSV per "
+                     f"curve")
+    return "\n".join(lines)
+
+
+def population_summary_text(cfg: RunConfig, summary: dict[str, Any], run_dir: Path) -> str:
+    """The end of a population: one row per member (validation R at its best and last
+    evaluation, served fraction and P_g at its best, training collisions), then the
+    next commands."""
+    nhat = cfg.scenario.nhat_s
+    lines = [f"\npopulation folder: {run_dir}",
+             f"  {len(summary['members'])} members x {summary['episodes']} episodes, "
+             f"{summary['updates']} batched updates; this session {summary['minutes']:.1f} min",
+             f"  {'member':<22} {'best R (ep)':>14} {'last R':>8} {'served':>8} "
+             f"{f'P_g({nhat})':>8} {'train coll.':>11}"]
+    for m in summary["members"]:
+        path = Path(m["run_dir"]) / "metrics.jsonl"
+        recs = read_metrics(path) if path.is_file() else []
+        evals = [r for r in recs if r["kind"] == "eval"]
+        coll = sum(r["collisions"] for r in recs if r["kind"] == "train")
+        if evals:
+            best = max(evals, key=lambda r: r["return"])
+            lines.append(f"  {Path(m['run_dir']).name:<22} "
+                         f"{best['return']:>8.0f} ({best['episode']:>3}) "
+                         f"{evals[-1]['return']:>8.0f} {best['served_fraction']:>8.1%} "
+                         f"{best['pg']:>8.1%} {coll:>11.0f}")
+    q = shlex.quote(str(run_dir))
+    first = shlex.quote(str(summary["members"][0]["run_dir"]))
+    lines += ["next:",
+              f"  {command('uabs-eval')} {first} --policy all   # a member on the test "
+              f"traces, beside the baselines",
+              f"  {command('uabs-report')} {q}   # tables and figures over the members"]
+    if LoggerKind(cfg.train.logger) is LoggerKind.tensorboard:
+        lines.append(f"  {command('tensorboard')} --logdir {q}")
+    return "\n".join(lines)
+
+
+def _quote_resume(argv: list[str]) -> list[str]:
+    """``resume=<dir>`` as Hydra would not parse it: a run folder named after overrides
+    holds '=' and ','. Quote it, and make the resumed job log into that folder without
+    writing a new .hydra/ there. With ``-m`` (a sweep re-typed with ``resume=<sweep
+    folder>`` appended), every job continues its own folder under that sweep."""
+    multirun = any(a in ("-m", "--multirun") for a in argv)
+    out = []
+    for a in argv:
+        if a.startswith("resume=") and a[7:] and a[7] not in "'\"":
+            path = a[7:].replace("\\", "\\\\").replace("'", "\\'")
+            where = "hydra.sweep.dir" if multirun else "hydra.run.dir"
+            out += [f"resume='{path}'", f"{where}='{path}'", "hydra.output_subdir=null"]
+        else:
+            out.append(a)
+    return out
+
+
+def _check_paths(argv: list[str]) -> None:
+    """Refuse, before Hydra makes any folder, a ``resume=`` that names no run and a run
+    folder (``hydra.run.dir`` / ``hydra.sweep.dir``) that cannot be one."""
+    multirun = any(a in ("-m", "--multirun") for a in argv)
+    for a in argv:
+        key, _, value = a.partition("=")
+        path = Path(value.strip("'\""))
+        if key == "resume" and value:
+            if not path.exists():
+                raise ConfigError(f"resume={path}: no such folder. Pass the folder of a "
+                                  f"uabs-train run (the one printed when it started).")
+            if multirun and not (path / "multirun.yaml").is_file():
+                raise ConfigError(f"resume={path} with -m: pass the sweep's folder (the "
+                                  f"one holding multirun.yaml) with the sweep's own "
+                                  f"command, or drop -m to resume this one run.")
+        elif key in ("hydra.run.dir", "hydra.sweep.dir") and value:
+            blocking = next((p for p in (path, *path.parents) if p.exists()), None)
+            if blocking is not None and not blocking.is_dir():
+                raise ConfigError(f"{key}={value}: {blocking} is a file, not a folder: "
+                                  f"name a folder for the run.")
+
+
+def _write_hydra_files(cfg: RunConfig, folder: Path) -> None:
+    """The Hydra record of this job (config, overrides, Hydra's config) in ``folder``:
+    for a run that moved to another folder than the one Hydra wrote them in."""
+    from hydra.core.hydra_config import HydraConfig
+
+    hc = HydraConfig.get()
+    out = folder / ".hydra"
+    out.mkdir(parents=True, exist_ok=True)
+    OmegaConf.save(OmegaConf.structured(cfg), out / "config.yaml")
+    OmegaConf.save(OmegaConf.create(list(hc.overrides.task)), out / "overrides.yaml")
+    OmegaConf.save(OmegaConf.create({"hydra": hc}), out / "hydra.yaml")
+
+
+def _run_and_report(cfg: RunConfig, run_dir: Path, overrides: list[str]) -> None:
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    hc = HydraConfig.get()
+    multirun = hc.mode == RunMode.MULTIRUN
+    if cfg.resume and multirun:  # a re-typed sweep: this job's own folder under it
+        if runfolder.holds_run(run_dir) or (run_dir / ".hydra" / "config.yaml").is_file():
+            cfg.resume = str(run_dir)
+        else:  # a job the stopped sweep never reached: it starts now, in its folder
+            cfg.resume = None
+            _write_hydra_files(cfg, run_dir)
+    exp = prepare(cfg, run_dir, overrides, auto_named=not os.environ.get(_TYPED_DIR),
+                  sweep_dir=Path(hc.sweep.dir) if multirun else None,
+                  on_move=lambda folder: _write_hydra_files(cfg, folder))
+    print(f"{'resuming' if cfg.resume else 'run folder:'} {exp.run_dir}", file=sys.stderr)
+    text = summary_text if exp.solo else population_summary_text
+    print(text(exp.cfg, exp.fit(), exp.run_dir))
+
+
+# set (for the jobs of a sweep too) when the command line names the run folder: a name
+# the user typed is theirs, one made from the clock (the default, ${now:...}) is not
+_TYPED_DIR = "UABS_RL_TYPED_RUN_DIR"
+
+
+def main() -> None:
+    """Entry point of ``uabs-train``."""
+    try:
+        _check_paths(sys.argv[1:])
+    except ConfigError as e:
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(2)
+    if any(a.split("=", 1)[0] in ("hydra.run.dir", "hydra.sweep.dir", "hydra.sweep.subdir")
+           and "${now:" not in a for a in sys.argv[1:]):
+        os.environ[_TYPED_DIR] = "1"
+    sys.argv = [sys.argv[0], *_quote_resume(sys.argv[1:])]
+    hydra_main("config", _run_and_report, pass_overrides=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,86 @@
+"""``EnvParams``: every number the environment's physics needs, derived once from the
+scenario and channel configs (docs/model.md §1, §3-§5)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from uabs_rl.config import ChannelConfig, LosMode, ScenarioConfig, validate_env
+from uabs_rl.env import channel as ch
+
+
+@dataclass(frozen=True)
+class EnvParams:
+    """Every number the step math needs, derived once from the configs."""
+
+    n_uabs: int
+    width: float
+    height: float
+    dt: float
+    step_m: float  # v·δt
+    altitude: float
+    episode_steps: int
+    window_steps: int
+    nhat_s: int
+    lambda_s: float
+    lambda_c: float
+    collision_distance: float
+    d_th: float
+    lattice: bool
+    safe_start: bool
+    obs_scale: float
+    lookahead_obs: bool
+    motion_obs: bool
+    time_is_terminal: bool
+    # channel
+    fc_ghz: float
+    h_ut: float
+    tx_dbm: float
+    tx_gain_db: float
+    noise_dbm: float
+    snr_th_db: float
+    n_beams: int
+    r_b: float
+    gain_db: float
+    outside_gain_db: float | None
+    los_mode: LosMode
+    shadow: bool
+    sigma_los: float
+    sigma_nlos: float
+    channel: str  # channel.name: the model of uabs_rl.env.channel.CHANNELS
+
+    @classmethod
+    def from_config(cls, scenario: ScenarioConfig, channel: ChannelConfig) -> EnvParams:
+        validate_env(scenario, channel)
+        d_th = scenario.safety_distance
+        if d_th is None:
+            d_th = ch.safety_distance(scenario.altitude, channel.fov_deg)
+        return cls(
+            n_uabs=scenario.n_uabs, width=scenario.area.width, height=scenario.area.height,
+            dt=scenario.dt, step_m=scenario.speed * scenario.dt, altitude=scenario.altitude,
+            episode_steps=scenario.episode_steps, window_steps=scenario.window_steps,
+            nhat_s=scenario.nhat_s, lambda_s=scenario.lambda_s, lambda_c=scenario.lambda_c,
+            collision_distance=scenario.collision_distance, d_th=float(d_th),
+            lattice=scenario.lattice, safe_start=scenario.safe_start,
+            obs_scale=scenario.priority_obs_scale, lookahead_obs=scenario.lookahead_obs,
+            motion_obs=scenario.motion_obs,
+            time_is_terminal=scenario.time_is_terminal,
+            fc_ghz=channel.carrier_ghz, h_ut=channel.ue_height, tx_dbm=channel.tx_power_dbm,
+            tx_gain_db=channel.tx_gain_db, noise_dbm=channel.noise_dbm,
+            snr_th_db=channel.snr_threshold_db, n_beams=channel.n_beams,
+            r_b=ch.beam_footprint_radius(scenario.altitude, channel.fov_deg, channel.n_beams),
+            gain_db=ch.beam_gain_db(channel.fov_deg, channel.n_beams),
+            outside_gain_db=channel.outside_beam_gain_db, los_mode=LosMode(channel.los_mode),
+            shadow=channel.shadow_fading, sigma_los=channel.shadow_sigma_los_db,
+            sigma_nlos=channel.shadow_sigma_nlos_db, channel=channel.name,
+        )
+
+    @property
+    def obs_dim(self) -> int:
+        return 3 + 2 * self.n_uabs + self.n_beams + self.n_lookahead
+
+    @property
+    def n_lookahead(self) -> int:
+        """Lookahead features per agent: 4 moves and 4 double moves (and 4 moves at
+        the extrapolated vehicle positions with ``motion_obs``), or none."""
+        return (8 + 4 * self.motion_obs) if self.lookahead_obs else 0

@@ -1,0 +1,85 @@
+"""Service bookkeeping (docs/model.md §4): which trace rows an env replays, priorities, per-beam
+priority sums, service windows and P_g. Plain functions on batched tensors; the state
+``st`` is the env's dict of ``[E, ...]`` tensors, updated in place."""
+
+from __future__ import annotations
+
+import torch
+
+from uabs_rl.env.channel import assign_beams
+
+
+def vehicles_at(st: dict[str, torch.Tensor], veh_pos: torch.Tensor,
+                veh_present: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Vehicle positions [E, 2, V] (planar) and presence [E, V] at each env's step."""
+    s, steps = veh_pos.shape[:2]
+    # a window holds T + 1 steps; an env stepped past its end without a reset (TorchRL
+    # expects a reset) sees its vehicles frozen at the window's last step
+    t = st["t"].clamp_max(steps - 1 - st["start"])
+    row = st["sim"] * steps + st["start"] + t  # flat row: index_select beats fancy indexing
+    return (veh_pos.view(s * steps, *veh_pos.shape[2:]).index_select(0, row),
+            veh_present.view(s * steps, -1).index_select(0, row))
+
+
+def extrapolated(st: dict[str, torch.Tensor], veh: torch.Tensor, present: torch.Tensor,
+                 veh_pos: torch.Tensor, veh_present: torch.Tensor) -> torch.Tensor:
+    """Vehicle positions [E, 2, V] one step ahead of ``veh`` (those at step ``st["t"]``),
+    extrapolated from their last move: x_t + (x_t − x_{t−1}); a vehicle not present at
+    t − 1 (or at the window's first step) stays where it is. Past positions only."""
+    prev, prev_present = vehicles_at(dict(st, t=(st["t"] - 1).clamp_min(0)), veh_pos,
+                                     veh_present)
+    moving = (present & prev_present)[:, None, :]
+    return torch.where(moving, 2 * veh - prev, veh)
+
+
+def beam_sums(inside: torch.Tensor, beam: torch.Tensor, priority: torch.Tensor,
+              n_beams: int) -> torch.Tensor:
+    """b: [E, M, B] sum of the priorities of the vehicles under each beam
+    (``beam`` indexes all agents' beams at once, as ``LinkModel.links`` returns it)."""
+    e, m, v = inside.shape
+    idx = beam.reshape(e, m * v)
+    src = torch.where(inside, priority[:, None, :], 0.0).reshape(e, m * v)
+    b = torch.zeros(e, m * n_beams, device=priority.device, dtype=priority.dtype)
+    return b.scatter_add_(1, idx, src).view(e, m, n_beams)
+
+
+def update_service(st: dict[str, torch.Tensor], served: torch.Tensor, present: torch.Tensor,
+                   window_steps: int) -> None:
+    """Priorities, per-window served counts and the P_g tallies (docs/model.md §4), in place.
+    ``st["t"]`` is the step the flags belong to."""
+    n = window_steps
+    t = st["t"]
+    start = (t % n == 0)[:, None]  # a window starts: p = 1, counts restart
+    arrived = present & ~st["prev_present"]  # a vehicle (re)appears: p = 1
+    served_f = served.float()
+    p_new = (st["priority"] + served_f).masked_fill_(start | arrived, 1.0)
+    st["priority"] = p_new.masked_fill_(~present, 0.0)
+    count = served.long()
+    st["served_count"] = torch.where(start, count, st["served_count"] + count)
+    st["window_full"] = torch.where(start, present, st["window_full"] & present)
+    st["prev_present"] = present
+    ended = (st["window_full"] & (t % n == n - 1)[:, None]).float()  # [E, V]
+    st["n_windows"] += ended
+    st["ns_hist"].scatter_add_(2, st["served_count"][..., None], ended[..., None])
+
+
+def pg_curve(n_windows: torch.Tensor, ns_hist: torch.Tensor) -> torch.Tensor:
+    """P_g(N̂_s) for N̂_s = 1..N, [E, N]: mean over GUEs with a counted window of the
+    share of their windows with N_s ≥ N̂_s."""
+    counted = n_windows > 0
+    inv = torch.where(counted, 1.0 / n_windows.clamp_min(1.0), torch.zeros_like(n_windows))
+    per_ns = torch.bmm(inv[:, None, :], ns_hist).squeeze(1)  # [E, N+1] Σ_g share(N_s = j)
+    at_least = per_ns.flip(-1).cumsum(-1).flip(-1)[:, 1:]  # Σ_g share(N_s ≥ k), k = 1..N
+    return at_least / counted.sum(-1, keepdim=True).clamp_min(1)
+
+
+def move_scores(cand: torch.Tensor, veh: torch.Tensor, present: torch.Tensor,
+                priority: torch.Tensor, r_b: float, n_beams: int) -> torch.Tensor:
+    """[E, M, K] priority under the footprints of a UABS at each candidate position
+    ``cand [E, M, K, 2]``, for vehicles ``veh [E, 2, V]`` with ``priority [E, V]`` (every
+    present vehicle counts at least 1, so a fresh one is worth approaching)."""
+    dx = veh[:, None, None, 0, :] - cand[..., 0:1]  # [E, M, K, V]
+    dy = veh[:, None, None, 1, :] - cand[..., 1:2]
+    inside, _ = assign_beams(dx, dy, r_b, n_beams)
+    weight = torch.where(present, priority.clamp_min(1.0), 0.0)
+    return (inside * weight[:, None, None, :]).sum(-1)

@@ -1,0 +1,81 @@
+"""Baselines beyond the paper (SPEC §9), acting through the same masked selector.
+
+Each heuristic writes Q-like scores into ``("agents", "action_value")``; the masking
+mode's :class:`~uabs_rl.safety.masking.MaskedActionSelector` (ε = 0) then picks the best legal
+action, so baselines obey exactly the masks the learned policy obeys.
+
+* ``random``: a uniformly random legal action (the selector with ε = 1).
+* ``greedy``: the move that maximises the priority the UABS would cover at the next
+  step, given the vehicles' current positions and priorities.
+* ``oracle``: the same with the vehicles' true next positions: an optimistic reference
+  no deployable policy can see.
+* the coverage bound min(1, M·B·π·r_b² / (W·H)) is :func:`uabs_rl.env.channel.coverage_bound`.
+
+Beyond these (:mod:`uabs_rl.evaluation.planner`): the ``kmeans`` and ``junctions`` heuristics and
+the ``planner``, a receding-horizon plan over the vehicles' true future positions.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase, TensorDictSequential
+from torchrl.envs import TransformedEnv
+
+from uabs_rl.env.service import move_scores
+from uabs_rl.env.uabs_env import POSITION, UABSEnv
+from uabs_rl.safety.masking import ACTION_VALUE, MaskedActionSelector
+
+BASELINES = ("random", "greedy", "oracle")
+HEURISTICS = ("kmeans", "junctions")  # classic heuristics (uabs_rl.evaluation.planner)
+PLANNER = "planner"  # the receding-horizon planning reference (uabs_rl.evaluation.planner)
+
+
+class CoverageScore(TensorDictModuleBase):
+    """Scores each move by the priority under the UABS's footprints after it, with a
+    tiny seeded jitter that breaks ties at random (no drift towards action 0)."""
+
+    def __init__(self, env: UABSEnv, lookahead: int, generator: torch.Generator):
+        super().__init__()
+        self.env, self.lookahead, self.generator = env, lookahead, generator
+        self.in_keys, self.out_keys = [POSITION], [ACTION_VALUE]
+
+    def forward(self, td: TensorDictBase) -> TensorDictBase:
+        env, p = self.env, self.env.params
+        veh, present = env.vehicles(self.lookahead)  # [E, 2, V], [E, V]
+        cand = td.get(POSITION)[:, :, None, :] + env.math.moves  # [E, M, 4, 2]
+        score = move_scores(cand, veh, present, env.priority, p.r_b, p.n_beams)
+        jitter = torch.rand(score.shape, generator=self.generator, device=score.device)
+        td.set(ACTION_VALUE, score + 1e-3 * jitter)
+        return td
+
+
+def baseline_policy(name: str, env: TransformedEnv, selector: MaskedActionSelector,
+                    seed: int = 0, horizon: int = 1,
+                    sites: torch.Tensor | None = None) -> TensorDictModuleBase:
+    """The baseline ``name`` (one of BASELINES, HEURISTICS or PLANNER) as a policy for
+    ``env`` (a transformed UABS env). ``horizon``: the planner's; ``sites [M, 2]``: the
+    junctions heuristic's sites (:func:`uabs_rl.evaluation.planner.junction_sites`)."""
+    from uabs_rl.evaluation.planner import ClusterScore, PlannerScore, SiteScore
+
+    names = (*BASELINES, *HEURISTICS, PLANNER)
+    if name not in names:
+        raise ValueError(f"unknown baseline {name!r}: choose from {names}")
+    if name == "junctions" and sites is None:
+        raise ValueError("the junctions baseline needs its sites (planner.junction_sites)")
+    gen = torch.Generator(device=env.base_env.device)
+    gen.manual_seed(seed)
+    if name == "random":
+        selector.eps.fill_(1.0)
+        selector.generator = gen
+        return selector
+    base = env.base_env
+    if name == PLANNER:
+        score = PlannerScore(base, horizon, gen)
+    elif name == "kmeans":
+        score = ClusterScore(base, gen)
+    elif name == "junctions":
+        score = SiteScore(base, gen, sites)
+    else:
+        score = CoverageScore(base, lookahead=1 if name == "oracle" else 0, generator=gen)
+    return TensorDictSequential(score, selector)

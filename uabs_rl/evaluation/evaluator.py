@@ -1,0 +1,137 @@
+"""Greedy evaluation on fixed held-out windows (docs/model.md §8): needs only an eval env and a
+policy (a Q-network with the masking rule's selector, or a baseline); no trainer,
+replay buffer or optimiser."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModule, TensorDictModuleBase, TensorDictSequential
+from torch import nn
+from torchrl.envs import TransformedEnv
+
+from uabs_rl.config import ConfigError, RunConfig
+from uabs_rl.env.channel import coverage_fraction
+from uabs_rl.env.uabs_env import DIAG, OBS, POSITION, window_count
+from uabs_rl.rng import make_generator
+from uabs_rl.safety.make import make_env, make_selector
+from uabs_rl.safety.masking import ACTION_VALUE
+from uabs_rl.traces.store import TraceSet, get_traces
+
+
+def greedy_policy(qnet: nn.Module, env: TransformedEnv, cfg: RunConfig,
+                  compile: bool = False, members: int = 1) -> TensorDictSequential:
+    """The greedy learned policy: Q-values, then the masking rule's choice with ε = 0.
+    Its generator (one per population member) is seeded with ``train.eval_seed``: no
+    draw decides anything when greedy, but evaluation stays off the global RNG."""
+    gen = make_generator([cfg.train.eval_seed] * members if members > 1
+                         else cfg.train.eval_seed, env.base_env.device)
+    qmod = TensorDictModule(qnet, in_keys=[OBS], out_keys=[ACTION_VALUE])
+    return TensorDictSequential(qmod, make_selector(env, 0.0, gen, compile=compile))
+
+
+def make_eval_env(cfg: RunConfig, traces: TraceSet | None = None,
+                  device: str | torch.device = "cpu", windows: int | None = None,
+                  compile: bool | None = None, split: str = "eval",
+                  members: int = 1, windows_name: str = "windows") -> TransformedEnv:
+    """The held-out env of ``split`` ("eval": the validation traces that training
+    evaluates on; "test": the traces every reported figure comes from) with ``windows``
+    fixed windows, one env each (default: ``train.eval_windows`` for validation, every
+    window of the test traces for test); compiled as ``train.compile`` unless
+    ``compile`` says otherwise. With ``members`` > 1, the windows once per member of a
+    population, side by side, each block with its own generator seeded alike.
+    ``windows_name`` is how the caller's user gave ``windows`` (``--windows``)."""
+    tr = cfg.train
+    traces = get_traces(cfg.scenario, cfg.traces, split) if traces is None else traces
+    n = eval_window_count(cfg, traces, split, windows, windows_name)
+    seed = [tr.eval_seed] * members if members > 1 else tr.eval_seed
+    return make_env(cfg.scenario, cfg.channel, cfg.masking, traces, split,
+                    n_envs=n * members, device=device, n_eval_windows=n, seed=seed,
+                    compile=tr.compile if compile is None else compile, spec_mask=False)
+
+
+def eval_window_count(cfg: RunConfig, traces: TraceSet, split: str,
+                      windows: int | None = None, windows_name: str = "windows") -> int:
+    """How many fixed windows ``make_eval_env`` evaluates: ``windows``, else
+    ``train.eval_windows`` on "eval", else every window of ``traces``. Refuses
+    (naming the setting to change) traces too short for one episode and more windows
+    than they hold."""
+    t, key = cfg.scenario.episode_steps, f"traces.{split}"
+    most = window_count(traces.n_sims, traces.steps, t)
+    if most == 0:
+        raise ConfigError(
+            f"scenario.episode_steps={t} needs windows of {t + 1} steps but the {split} "
+            f"traces hold {traces.steps} steps ({key}.duration_s="
+            f"{getattr(cfg.traces, split).duration_s:g} s at scenario.dt={cfg.scenario.dt:g} s): "
+            f"lower scenario.episode_steps or raise {key}.duration_s.")
+    if windows is not None:
+        n, setting = windows, windows_name
+    elif split == "eval":
+        n, setting = cfg.train.eval_windows, "train.eval_windows"
+    else:
+        return most
+    if not 1 <= n <= most:
+        given = f"{setting} {n}" if setting.startswith("--") else f"{setting}={n}"
+        raise ConfigError(
+            f"{given} but the {split} traces hold {most} non-overlapping windows of {t + 1} "
+            f"steps ({traces.n_sims} x {traces.steps} steps): lower {setting} or "
+            f"raise {key}.n_sims / {key}.duration_s.")
+    return n
+
+
+class Evaluator:
+    """Runs a policy on every fixed held-out window of ``env``, seeded with ``seed`` so
+    every call sees the same episodes and start positions."""
+
+    def __init__(self, env: TransformedEnv, seed: int):
+        self.env, self.seed = env, seed
+        self.params = env.base_env.params
+
+    @torch.no_grad()
+    def evaluate(self, policy: TensorDictModuleBase, episode: int = 0,
+                 env_steps: int = 0) -> tuple[dict[str, Any], TensorDictBase]:
+        """The record (R, safety counters, served fraction, P_g and its curve, closest
+        approach, coverage) and the rollout of ``policy``."""
+        td = self.rollout(policy)
+        return self.record(td, episode, env_steps), td
+
+    @torch.no_grad()
+    def rollout(self, policy: TensorDictModuleBase) -> TensorDictBase:
+        """One seeded episode of ``policy`` in every env: ``[E, T]``."""
+        self.env.set_seed(self.seed)
+        return self.env.rollout(self.params.episode_steps, policy, break_when_any_done=False)
+
+    def record(self, td: TensorDictBase, episode: int = 0, env_steps: int = 0) -> dict[str, Any]:
+        """The evaluation record of the rollout ``td`` (or of a block of its envs: a
+        population member's)."""
+        last = td["next", DIAG][:, -1]
+        ret = last["ep_return"]
+        return {
+            "kind": "eval", "episode": episode, "env_steps": env_steps,
+            "return": ret.mean().item(),
+            "return_std": ret.std().item() if ret.numel() > 1 else 0.0,
+            "returns": ret.tolist(),
+            "collisions": last["ep_collisions"].sum().item(),
+            "episodes_with_collision": int((last["ep_collisions"] > 0).sum().item()),
+            "proximity": last["ep_proximity"].sum().item(),
+            "fallbacks": last["ep_fallbacks"].sum().item(),
+            "served_fraction": td["next", DIAG, "served_fraction"].mean().item(),
+            "served_fractions": td["next", DIAG, "served_fraction"].mean(-1).tolist(),
+            "pg": last["pg"].mean().item(),
+            "pgs": last["pg"].tolist(),
+            "pg_curve": last["pg_curve"].mean(0).tolist(),
+            "closest_approach": td["next", DIAG, "closest_approach"].min().item(),
+            "coverage": self.coverage(td["next", POSITION]),
+            "windows": int(ret.numel())}
+
+    def coverage(self, pos: torch.Tensor) -> float:
+        """Mean share of the area under footprints over the evaluated steps (10 m grid)."""
+        p = self.params
+        return coverage_fraction(pos, p.r_b, p.n_beams, p.width, p.height, 10.0).mean().item()
+
+    def trajectory_of(self, td: TensorDictBase, window: int = 0):
+        """UABS path [T+1, M, 2], vehicles [T+1, 2, V] and presence of one eval window."""
+        path = torch.cat([td[POSITION][window, :1], td["next", POSITION][window]])
+        return (path, *self.env.base_env.window_trace(window))

@@ -1,0 +1,392 @@
+"""A planning reference and two classic heuristics, acting through the masked selector.
+
+Like :mod:`uabs_rl.evaluation.baselines`, each writes scores into ``("agents", "action_value")``
+and the masking mode's :class:`~uabs_rl.safety.masking.MaskedActionSelector` (ε = 0) picks the
+best legal action, so every one of them obeys the masks the learned policy obeys.
+
+* :class:`PlannerScore` (``uabs-eval --policy planner --horizon H``): a centralised
+  receding-horizon planner that knows the vehicles' true future positions: an upper
+  reference, not a deployable policy. See its docstring.
+* :class:`ClusterScore` (``kmeans``): each UABS flies towards the weighted centroid of
+  its cluster of a k-means of the vehicles' current positions, weighted by priority.
+* :class:`SiteScore` (``junctions``): each UABS flies to one of the M busiest junctions
+  of the street network (busiest on the validation traces) and hovers over it.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+
+from uabs_rl.env.channel import assign_beams
+from uabs_rl.env.service import move_scores
+from uabs_rl.env.uabs_env import BEAM_PRIORITY, MASK, POSITION, UABSEnv
+from uabs_rl.safety.masking import ACTION_VALUE, rank_order
+
+JITTER = 1e-3  # the baselines' seeded tie-break, scaled as in baselines.CoverageScore
+
+
+def footprint(cand: torch.Tensor, veh: torch.Tensor, r_b: float,
+              n_beams: int) -> torch.Tensor:
+    """[E, *K, V] True where vehicle ``veh [E, 2, V]`` lies in a footprint of a UABS at
+    ``cand [E, *K, 2]``."""
+    lead = (slice(None),) + (None,) * (cand.dim() - 2)
+    dx = veh[lead + (0, slice(None))] - cand[..., 0:1]
+    dy = veh[lead + (1, slice(None))] - cand[..., 1:2]
+    return assign_beams(dx, dy, r_b, n_beams)[0]
+
+
+def footprint_path(path: torch.Tensor, veh: torch.Tensor, r_b: float,
+                   n_beams: int) -> torch.Tensor:
+    """[E, H, V] True where vehicle v at step k (``veh [H, E, 2, V]``) lies in a
+    footprint of a UABS at ``path [E, H, 2]``."""
+    h, e = veh.shape[:2]
+    inside = footprint(path.transpose(0, 1).reshape(h * e, 1, 2),
+                       veh.reshape(h * e, *veh.shape[2:]), r_b, n_beams)
+    return inside.reshape(h, e, -1).transpose(0, 1)
+
+
+def next_priority(p: torch.Tensor, served: torch.Tensor, present: torch.Tensor,
+                  prev_present: torch.Tensor, start: torch.Tensor) -> torch.Tensor:
+    """Priorities one step on (docs/model.md §4, as ``service.update_service``): + 1
+    where served, 1 at a window's start ``start [E]`` and for a vehicle that appears,
+    0 where absent. ``p``, ``served`` broadcast against ``present [E, V]``."""
+    lead = (slice(None),) + (None,) * (p.dim() - 2)
+    present, prev_present = present[lead], prev_present[lead]
+    reset = start[lead + (None,)] | (present & ~prev_present)
+    return (p + served.float()).masked_fill(reset, 1.0).masked_fill(~present, 0.0)
+
+
+class PlannerScore(TensorDictModuleBase):
+    """Receding-horizon planner over the vehicles' true positions ``horizon`` steps ahead.
+
+    The score of move a of UABS u is the oracle's (the priority under u's footprints
+    after a, at the vehicles' next positions and current priorities) plus the best
+    value of steps 2..H over the paths that start with a (the first step is scored
+    alone, as the oracle scores it: the others' first moves are settled only when the
+    masked selector runs, in rank order under rank masks). Step k of a path earns the
+    priority (at least 1 per present vehicle) of the vehicles under its footprints that
+    no other UABS's plan covers at step k, with the priorities simulated along the path
+    (+1 per served step, 1 at each window start and for an arriving vehicle, §4), so a
+    path that keeps serving the same vehicles earns more. Steps past the episode's end
+    earn nothing. The fleet is coordinated: the UABS are planned one after another in
+    rank order (highest ||b_t||₁ first), each given the plans of those before it (their
+    coverage taken out, their service in the priorities, and its path kept d_th from
+    their planned positions at steps 2..H); then ``rounds - 1`` more passes replan each
+    UABS given all the others' plans. Each path search is a beam search over lattice
+    moves, ``beam`` paths per first move, one per position (the best so far).
+
+    Only the first move is flown, through the masked selector; the plan is made again at
+    the next step. With ``horizon = 1`` the scores are the oracle's, bit for bit, and
+    the seeded tie-break draws the same numbers, so the actions are the oracle's.
+    """
+
+    def __init__(self, env: UABSEnv, horizon: int, generator: torch.Generator,
+                 beam: int = 16, rounds: int = 2):
+        super().__init__()
+        if horizon < 1:
+            raise ValueError(f"horizon must be >= 1, got {horizon}")
+        self.env, self.horizon, self.generator = env, horizon, generator
+        self.beam, self.rounds = beam, rounds
+        self.in_keys, self.out_keys = [POSITION, MASK, BEAM_PRIORITY], [ACTION_VALUE]
+
+    def forward(self, td: TensorDictBase) -> TensorDictBase:
+        env, p = self.env, self.env.params
+        veh, present = env.vehicles(1)
+        cand = td.get(POSITION)[:, :, None, :] + env.math.moves  # [E, M, 4, 2]
+        score = move_scores(cand, veh, present, env.priority, p.r_b, p.n_beams)
+        if self.horizon > 1:
+            score = score + self.future(td)
+        jitter = torch.rand(score.shape, generator=self.generator, device=score.device)
+        td.set(ACTION_VALUE, score + JITTER * jitter)
+        return td
+
+    # ------------------------------------------------------------------ the plan
+    def world(self) -> dict[str, torch.Tensor]:
+        """The vehicles at steps t+1..t+H: positions ``veh [H, E, 2, V]``, presence
+        ``present [H+1, E, V]`` (index 0: now), window starts ``start [H, E]`` and
+        whether the step is still in the episode, ``live [H, E]``."""
+        env, h = self.env, self.horizon
+        ahead = [env.vehicles(k) for k in range(1, h + 1)]
+        t = env.state["t"]
+        k = torch.arange(1, h + 1, device=t.device)[:, None] + t  # [H, E]
+        return {"veh": torch.stack([v for v, _ in ahead]),
+                "present": torch.stack([env.state["prev_present"], *(q for _, q in ahead)]),
+                "start": k % env.params.window_steps == 0,
+                "live": k <= env.params.episode_steps}
+
+    @torch.no_grad()
+    def future(self, td: TensorDictBase) -> torch.Tensor:
+        """[E, M, 4] the best value of steps 2..H after each first move of each UABS."""
+        p = self.env.params
+        pos, allowed = td.get(POSITION), td.get(MASK)
+        e, m = pos.shape[:2]
+        rows = torch.arange(e, device=pos.device)
+        w = self.world()
+        order = rank_order(td.get(BEAM_PRIORITY))  # [E, M]
+        plan = pos[:, :, None, :].expand(e, m, self.horizon, 2).clone()  # [E, M, H, 2]
+        cover = torch.zeros(e, m, self.horizon, w["veh"].shape[-1], dtype=torch.bool,
+                            device=pos.device)  # [E, M, H, V] each plan's coverage
+        planned = torch.zeros(e, m, dtype=torch.bool, device=pos.device)
+        out = torch.zeros(e, m, 4, device=pos.device)
+        for r in range(self.rounds * m):
+            u = order[:, r % m]
+            others = planned.clone()
+            others[rows, u] = False
+            value, path = self.search(pos[rows, u], plan, cover, others, w)
+            out[rows, u] = value
+            total = value + move_scores(pos[rows, u][:, None, None, :] + self.env.math.moves,
+                                        w["veh"][0], w["present"][1], self.env.priority,
+                                        p.r_b, p.n_beams)[:, 0]
+            best = total.masked_fill(~allowed[rows, u], -math.inf).argmax(-1)  # [E]
+            plan[rows, u] = path[rows, best]
+            cover[rows, u] = footprint_path(plan[rows, u], w["veh"], p.r_b, p.n_beams)
+            planned[rows, u] = True
+        return out
+
+    def search(self, pos: torch.Tensor, plan: torch.Tensor, cover: torch.Tensor,
+               others: torch.Tensor, w: dict[str, torch.Tensor]) -> tuple[torch.Tensor,
+                                                                           torch.Tensor]:
+        """Beam search of one UABS at ``pos [E, 2]`` given the plans of ``others [E, M]``:
+        ``(value [E, 4], path [E, 4, H, 2])``, the best value of steps 2..H and its path
+        (positions at steps 1..H) per first move. A first move with no path that keeps
+        d_th gets a value just below the others'."""
+        p, geo, h = self.env.params, self.env.math.geometry, self.horizon
+        moves = self.env.math.moves
+        e = pos.shape[0]
+        oth_cover = (cover & others[:, :, None, None]).any(1)  # [E, H, V]
+        first = pos[:, None, :] + moves  # [E, 4, 2]
+        own = footprint(first, w["veh"][0], p.r_b, p.n_beams)  # [E, 4, V]
+        prio = next_priority(self.env.priority[:, None, :], own | oth_cover[:, None, 0],
+                             w["present"][1], w["present"][0], w["start"][0])
+        beams = {"pos": first[:, :, None, :], "prio": prio[:, :, None, :],
+                 "value": torch.zeros(e, 4, 1, device=pos.device),
+                 "path": first[:, :, None, None, :].expand(e, 4, 1, h, 2).clone()}
+        for k in range(1, h):
+            beams = self.expand(beams, k, plan, others, oth_cover, w, geo)
+        value = beams["value"].amax(-1)  # [E, 4]
+        path = beams["path"][:, :, 0]  # the best beam per first move (sorted)
+        dead = torch.isinf(value)
+        floor = value.masked_fill(dead, math.inf).amin(-1, keepdim=True) - 1.0
+        value = torch.where(dead, torch.where(dead.all(-1, keepdim=True), 0.0, floor), value)
+        return value, path
+
+    def expand(self, beams: dict[str, torch.Tensor], k: int, plan: torch.Tensor,
+               others: torch.Tensor, oth_cover: torch.Tensor, w: dict[str, torch.Tensor],
+               geo) -> dict[str, torch.Tensor]:
+        """One step (index ``k`` = step k+1) of the beam search: every beam × 4 moves,
+        scored, one per position, the best ``beam`` kept per first move."""
+        p = self.env.params
+        e, a, b = beams["value"].shape
+        cand = (beams["pos"][:, :, :, None, :] + self.env.math.moves).reshape(e, a, b * 4, 2)
+        ok = geo.boundary_mask(beams["pos"]).reshape(e, a, b * 4) & torch.isfinite(
+            beams["value"]).repeat_interleave(4, -1)
+        near = (cand[:, :, :, None, :] - plan[:, None, None, :, k, :]).norm(dim=-1)  # [E,a,c,M]
+        ok &= ~((near < p.d_th) & others[:, None, None, :]).any(-1)
+        veh, present = w["veh"][k], w["present"][k + 1]
+        inside = footprint(cand, veh, p.r_b, p.n_beams)  # [E, a, c, V]
+        prio = beams["prio"].repeat_interleave(4, 2)  # [E, a, c, V]
+        weight = torch.where(present & ~oth_cover[:, k], 1.0, 0.0)[:, None, None, :]
+        gain = (inside * prio.clamp_min(1.0) * weight).sum(-1) * w["live"][k][:, None, None]
+        value = (beams["value"].repeat_interleave(4, -1) + gain).masked_fill(~ok, -math.inf)
+        # one beam per position: the best path that reaches it
+        value, idx = value.sort(-1, descending=True)
+        cand = cand.gather(2, idx[..., None].expand(-1, -1, -1, 2))
+        key = torch.round(cand * 8.0).long()
+        key = key[..., 0] * 1_000_003 + key[..., 1]
+        same = key[..., :, None] == key[..., None, :]
+        value = value.masked_fill(torch.tril(same, diagonal=-1).any(-1), -math.inf)
+        value, top = value.topk(min(self.beam, value.shape[-1]), dim=-1)
+        src = idx.gather(-1, top)  # the candidates kept, as indices before sorting
+        new_pos = cand.gather(2, top[..., None].expand(-1, -1, -1, 2))
+        served = inside.gather(2, src[..., None].expand(-1, -1, -1, inside.shape[-1]))
+        served = served | oth_cover[:, None, None, k]
+        prio = next_priority(prio.gather(2, src[..., None].expand_as(served)), served,
+                             present, w["present"][k], w["start"][k])
+        path = beams["path"].repeat_interleave(4, 2).gather(
+            2, src[..., None, None].expand(-1, -1, -1, *beams["path"].shape[-2:])).clone()
+        path[:, :, :, k:] = new_pos[:, :, :, None, :]
+        return {"pos": new_pos, "prio": prio, "value": value, "path": path}
+
+
+# ----------------------------------------------------------------------------- heuristics
+class TargetScore(TensorDictModuleBase):
+    """Scores each move by minus the distance from where it leads to the UABS's target
+    (from :meth:`targets`), with the baselines' seeded tie-break: at its target a UABS
+    steps off and back (there is no hover action)."""
+
+    def __init__(self, env: UABSEnv, generator: torch.Generator):
+        super().__init__()
+        self.env, self.generator = env, generator
+        self.in_keys, self.out_keys = [POSITION], [ACTION_VALUE]
+
+    def targets(self, pos: torch.Tensor) -> torch.Tensor:
+        """[E, M, 2] where each UABS should go."""
+        raise NotImplementedError
+
+    def forward(self, td: TensorDictBase) -> TensorDictBase:
+        pos = td.get(POSITION)
+        goal = self.targets(pos)
+        cand = pos[:, :, None, :] + self.env.math.moves  # [E, M, 4, 2]
+        score = -(cand - goal[:, :, None, :]).norm(dim=-1)
+        jitter = torch.rand(score.shape, generator=self.generator, device=score.device)
+        td.set(ACTION_VALUE, score + JITTER * jitter)
+        return td
+
+
+def weighted_kmeans(x: torch.Tensor, weight: torch.Tensor, centres: torch.Tensor,
+                    iters: int = 10) -> torch.Tensor:
+    """Lloyd's k-means of points ``x [E, V, 2]`` with weights ``weight [E, V]`` (0 = no
+    point) from ``centres [E, K, 2]``: the final centres ``[E, K, 2]``. A cluster that
+    loses all its points keeps its centre."""
+    for _ in range(iters):
+        near = torch.cdist(x, centres).argmin(-1)  # [E, V]
+        onehot = torch.nn.functional.one_hot(near, centres.shape[1]).float()
+        onehot = onehot * weight[..., None]  # [E, V, K]
+        mass = onehot.sum(1)  # [E, K]
+        mean = onehot.transpose(1, 2) @ x / mass.clamp_min(1e-9)[..., None]
+        centres = torch.where(mass[..., None] > 0, mean, centres)
+    return centres
+
+
+class ClusterScore(TargetScore):
+    """k-means heuristic: a k-means (k = M) of the present vehicles' current positions,
+    weighted by priority (at least 1), started from the UABS positions so that cluster u
+    stays UABS u's; each UABS flies towards its cluster's weighted centroid."""
+
+    def __init__(self, env: UABSEnv, generator: torch.Generator, iters: int = 10):
+        super().__init__(env, generator)
+        self.iters = iters
+
+    def targets(self, pos: torch.Tensor) -> torch.Tensor:
+        veh, present = self.env.vehicles(0)  # [E, 2, V], [E, V]
+        weight = torch.where(present, self.env.priority.clamp_min(1.0), 0.0)
+        x = torch.where(present[..., None], veh.transpose(1, 2), 0.0)  # absent: no point
+        return weighted_kmeans(x, weight, pos, self.iters)
+
+
+def nearest_assignment(pos: torch.Tensor, sites: torch.Tensor) -> torch.Tensor:
+    """[E, M, 2]: a site for each UABS, ``sites [M, 2]`` matched greedily (the closest
+    remaining UABS-site pair first), so each site has one UABS."""
+    e, m = pos.shape[:2]
+    d = torch.cdist(pos, sites.expand(e, -1, -1))  # [E, M, S]
+    rows = torch.arange(e, device=pos.device)
+    goal = torch.empty_like(pos)
+    for _ in range(m):
+        flat = d.flatten(1).argmin(-1)
+        u, s = flat // d.shape[2], flat % d.shape[2]
+        goal[rows, u] = sites[s]
+        d[rows, u, :] = math.inf
+        d[rows, :, s] = math.inf
+    return goal
+
+
+class SiteScore(TargetScore):
+    """Junction heuristic: the UABS hover over fixed sites ``sites [M, 2]`` (the busiest
+    junctions, :func:`busiest_sites`), each flying to the site the greedy matching of
+    positions to sites gives it."""
+
+    def __init__(self, env: UABSEnv, generator: torch.Generator, sites: torch.Tensor):
+        super().__init__(env, generator)
+        self.sites = sites.to(env.device)
+
+    def targets(self, pos: torch.Tensor) -> torch.Tensor:
+        return nearest_assignment(pos, self.sites)
+
+
+def busiest_sites(candidates: torch.Tensor, veh: torch.Tensor, present: torch.Tensor,
+                  m: int, r_b: float, n_beams: int, spacing: float) -> torch.Tensor:
+    """[M, 2] the ``m`` candidate sites (``[S, 2]``) under whose footprints the most
+    vehicles pass (mean over the steps of ``veh [N, 2, V]``, ``present [N, V]``), chosen
+    busiest first among those at least ``spacing`` from the sites already chosen (the
+    spacing halved until m fit, down to none)."""
+    from uabs_rl.config import ConfigError
+
+    if candidates.shape[0] < m:
+        raise ConfigError(f"the junctions heuristic needs at least as many junctions inside "
+                          f"the area as UABS: {candidates.shape[0]} for scenario.n_uabs={m}; "
+                          f"compare with another baseline (kmeans, greedy) here.")
+    inside = footprint(candidates[None].expand(veh.shape[0], -1, -1), veh, r_b, n_beams)
+    busy = (inside & present[:, None, :]).float().sum(-1).mean(0)  # [S]
+    order = busy.argsort(descending=True)
+    while True:
+        chosen: list[int] = []
+        for i in order.tolist():
+            pt = candidates[i]
+            if all(float((pt - candidates[j]).norm()) >= spacing for j in chosen):
+                chosen.append(i)
+            if len(chosen) == m:
+                return candidates[chosen]
+        spacing = spacing / 2.0 if spacing > 1e-3 else 0.0  # at 0 every candidate fits
+
+
+def junctions(scenario, geometry) -> torch.Tensor:
+    """[S, 2] the street network's junctions inside the area, area-relative and moved to
+    the nearest lattice point (where a UABS can be); every lattice point for a scenario
+    given as a .sumocfg (no network file to read)."""
+    from uabs_rl.traces.store import read_net, scenario_inputs
+
+    lo, n, step = geometry.lattice_lo, geometry.lattice_n, geometry.p.step_m
+    net = scenario_inputs(scenario)["net_file"]
+    if net is None:
+        ij = torch.cartesian_prod(torch.arange(int(n[0])), torch.arange(int(n[1]))).float()
+    else:
+        a = scenario.area
+        xy = torch.tensor([node.getCoord()[:2] for node in read_net(net).getNodes()],
+                          dtype=torch.float32) - torch.tensor([a.x_min, a.y_min])
+        inside = ((xy >= 0) & (xy <= geometry.area.cpu())).all(-1)
+        ij = torch.round((xy[inside] - lo.cpu()) / step)
+        ij = torch.minimum(ij.clamp_min(0), (n - 1).cpu().float()).unique(dim=0)
+    return geometry.lattice_point(ij[:, 0].to(lo.device), ij[:, 1].to(lo.device))
+
+
+def junction_sites(cfg, env: UABSEnv) -> torch.Tensor:
+    """[M, 2] the busiest junctions of ``cfg``'s scenario for ``env``'s fleet, busiest on
+    the validation traces (``traces.eval``, never the evaluated ones), at least
+    d_th + v·δt apart (so that, hovering a step off, they keep d_th) where M such
+    sites exist."""
+    from uabs_rl.traces.store import get_traces
+
+    p = env.params
+    geo = env.math.geometry
+    tr = get_traces(cfg.scenario, cfg.traces, "eval", verbose=False)
+    veh = tr.positions.transpose(-1, -2).reshape(-1, 2, tr.positions.shape[-2])
+    present = tr.present.reshape(-1, tr.present.shape[-1])
+    cand = junctions(cfg.scenario, geo).cpu()
+    return busiest_sites(cand, veh.float(), present, p.n_uabs, p.r_b, p.n_beams,
+                         p.d_th + p.step_m)
+
+
+def gap_share(learned: list[float], greedy: list[float], planner: list[float],
+              n_boot: int = 10_000, seed: int = 0) -> dict[str, float]:
+    """The share of the greedy-to-planner gap a policy closes, (learned − greedy) /
+    (planner − greedy), from per-window values of the same windows, with a 95 %
+    percentile bootstrap CI (the windows resampled together for all three):
+    ``{share, ci_low, ci_high, n}``."""
+    import numpy as np
+
+    a, g, p = (np.asarray(x, dtype=float) for x in (learned, greedy, planner))
+    if not a.shape == g.shape == p.shape:
+        raise ValueError(f"per-window values of unequal shapes {a.shape}, {g.shape}, {p.shape}")
+    nan = float("nan")
+    if a.size == 0 or (p - g).mean() <= 0:  # no gap to share: the planner is not above greedy
+        return {"share": nan, "ci_low": nan, "ci_high": nan, "n": int(a.size)}
+    idx = np.random.default_rng(seed).integers(0, a.size, size=(n_boot, a.size))
+    num, den = (a - g)[idx].mean(-1), (p - g)[idx].mean(-1)
+    boots = num[den != 0] / den[den != 0]  # resamples without a gap left out
+    lo, hi = np.quantile(boots, [0.025, 0.975])
+    return {"share": float((a - g).mean() / (p - g).mean()), "ci_low": float(lo),
+            "ci_high": float(hi), "n": int(a.size)}
+
+
+def scale_to_gap(diff: float, ci_low: float, ci_high: float, gap: float) -> dict[str, float]:
+    """A difference learned − greedy with its interval as shares of the greedy-to-planner
+    ``gap`` (``share``, ``ci_low``, ``ci_high``); NaN where the planner is not above
+    greedy (no gap to share), as :func:`gap_share`."""
+    if gap <= 0:
+        nan = float("nan")
+        return {"share": nan, "ci_low": nan, "ci_high": nan}
+    return {"share": diff / gap, "ci_low": ci_low / gap, "ci_high": ci_high / gap}

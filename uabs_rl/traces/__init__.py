@@ -1,0 +1,2 @@
+"""Vehicle traces: SUMO runs (through libsumo, one subprocess each) recorded once into
+cached, checksummed tensors per split (train, eval, test)."""

@@ -1,0 +1,262 @@
+"""Training (docs/model.md §7, §8): wires the env, the algorithm (networks, loss, replay),
+collection, evaluation, checkpoints and the run logs of P >= 1 members (a single run, or
+a population: :mod:`uabs_rl.training.members`), and runs the fit loop."""
+
+from __future__ import annotations
+
+import logging
+import math
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+from tqdm.auto import tqdm
+
+from uabs_rl.algorithms import Dims, make_algorithm
+from uabs_rl.config import RunConfig, TrainConfig, validate_run
+from uabs_rl.env.uabs_env import N_ACTIONS
+from uabs_rl.evaluation.evaluator import Evaluator, greedy_policy, make_eval_env
+from uabs_rl.rng import make_generator
+from uabs_rl.safety.make import make_env, make_selector, resolve_device
+from uabs_rl.traces.store import TraceSet
+from uabs_rl.training.checkpoint import Interrupted
+from uabs_rl.training.members import Checkpoints, Member, member_dir, member_seeds
+from uabs_rl.training.rollout import Collector, UpdateSchedule, episode_records, epsilon
+from uabs_rl.training.runfolder import write_error
+from uabs_rl.training.runlog import check_logger
+from uabs_rl.training.threads import setup_threads
+
+log = logging.getLogger(__name__)
+
+
+class Stopped(Interrupted):
+    """Training stopped on a signal after saving ``last``; the process exits with
+    ``exit_code`` (130 for Ctrl-C, 143 for SIGTERM, as a shell reports them)."""
+
+    def __init__(self, message: str, signum: int):
+        super().__init__(message)
+        self.exit_code = 128 + signum
+
+
+class DeferredInterrupt:
+    """While active, Ctrl-C (SIGINT) and SIGTERM (a scheduler's preemption) only set
+    :attr:`requested`: the loop saves at the end of the round and stops with one line
+    (:meth:`stop`); a second one raises KeyboardInterrupt at once. A handler installed
+    before for SIGTERM or SIGUSR2 (the submitit launcher's, which requeues a preempted
+    SLURM job) runs after the save. Outside the main thread it does nothing."""
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGUSR2)
+
+    def __init__(self):
+        self.requested: int | None = None  # the signal received
+        self._previous: dict[int, Any] = {}
+
+    def _handle(self, signum, frame) -> None:
+        if self.requested is not None:
+            raise KeyboardInterrupt
+        self.requested = signum
+        name = "Ctrl-C" if signum == signal.SIGINT else signal.Signals(signum).name
+        print(f"\n{name}: stopping after this round (again to stop now, keeping the last "
+              f"checkpoint)", file=sys.stderr)
+
+    def __enter__(self) -> DeferredInterrupt:
+        if threading.current_thread() is threading.main_thread():
+            for sig in self.SIGNALS:
+                before = signal.getsignal(sig)
+                if sig == signal.SIGUSR2 and not callable(before):
+                    continue  # only chained where someone (submitit) listens
+                self._previous[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for sig, before in self._previous.items():
+            signal.signal(sig, before)
+        self._previous = {}
+
+    def stop(self, message: str) -> None:
+        """After the save: run a chained handler of the signal (submitit's requeue),
+        then raise :class:`Stopped` with ``message``."""
+        signum = self.requested
+        before = self._previous.get(signum)
+        self.__exit__()
+        if callable(before) and before is not signal.default_int_handler:
+            before(signum, None)
+        raise Stopped(message, signum)
+
+
+class Progress:
+    """The progress bar of a run: episodes, last return, ε, collisions, last eval R."""
+
+    def __init__(self, train: TrainConfig, episode: int):
+        # a thread lock: tqdm's default creates a multiprocessing semaphore, which a run
+        # killed with kill -9 leaves to Python's resource tracker to warn about
+        tqdm.set_lock(threading.RLock())
+        self.bar = tqdm(total=train.episodes, initial=episode, unit="ep",
+                        disable=not train.progress, dynamic_ncols=True)
+        self.collisions, self.last_eval = 0.0, float("nan")
+
+    def update(self, rec: dict[str, Any]) -> None:
+        self.collisions += rec["collisions"]
+        self.bar.update()
+        shown = {"R": f"{rec['return']:.0f}", "eps": f"{rec['epsilon']:.2f}",
+                 "coll": int(self.collisions)}
+        if not math.isnan(self.last_eval):  # none yet in this session (a resume)
+            shown["eval_R"] = f"{self.last_eval:.0f}"
+        self.bar.set_postfix(shown)
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+class Experiment:
+    """Collect / optimise / evaluate / checkpoint / log, each in its own object, for the
+    P = ``train.population`` members of a run (P = 1: a single run)."""
+
+    def __init__(self, cfg: RunConfig, run_dir: Path,
+                 traces: dict[str, TraceSet] | None = None):
+        """``traces`` may hold ready TraceSets per split ("train", "eval"); by default
+        they come from the trace cache (built with SUMO if missing)."""
+        validate_run(cfg)
+        check_logger(cfg.train.logger)
+        self.cfg, self.run_dir = cfg, Path(run_dir)
+        dev = self.device = resolve_device(cfg.device)
+        tr, seeds = cfg.train, member_seeds(cfg)
+        self.n, self.solo = len(seeds), len(seeds) == 1
+        seed = cfg.seed if self.solo else seeds  # an int: one generator, not a list of one
+        self.threads = setup_threads(cfg)
+        torch.manual_seed(cfg.seed)
+        traces = traces or {}
+        env = make_env(cfg.scenario, cfg.channel, cfg.masking, traces.get("train", cfg.traces),
+                       "train", n_envs=tr.n_envs * self.n, device=dev, seed=seed,
+                       compile=tr.compile, spec_mask=False)
+        eval_env = make_eval_env(cfg, traces.get("eval"), dev, members=self.n)
+        self.params = p = env.base_env.params
+        self.learner = make_algorithm(cfg.algo, Dims(p.obs_dim, N_ACTIONS, p.n_uabs), seeds, dev)
+        self.qnet, self.buffer = self.learner.policy, self.learner.buffer
+        self.gen = make_generator(seed, dev)
+        selector = make_selector(env, cfg.algo.eps_start, self.gen,
+                                 compile=tr.compile)
+        self.collector = Collector(env, self.qnet, selector, self.buffer, members=self.n,
+                                   n_step=cfg.algo.n_step, gamma=cfg.algo.gamma)
+        self.updates = UpdateSchedule(self.learner, cfg.algo)
+        self.evaluator = Evaluator(eval_env, tr.eval_seed)
+        self.greedy = greedy_policy(self.qnet, eval_env, cfg, compile=tr.compile,
+                                    members=self.n)
+        self.members = [Member(cfg, s, self.run_dir if self.solo else
+                               member_dir(self.run_dir, s)) for s in seeds]
+        self.checkpoints = Checkpoints(self)
+        self.interrupt = DeferredInterrupt()
+        self.total_steps = tr.episodes * p.episode_steps  # per-env steps of the protocol
+        self.episode = 0  # per member
+        self.identity: dict | None = None  # the run folder's (set by train.prepare)
+        self.run_lock = None  # the run folder's lock, released when fit ends
+
+    # ------------------------------------------------------------------ steps
+    def collect(self) -> list[list[dict[str, Any]]]:
+        """One round of ``n_envs`` training episodes per member with their updates; the
+        records of each member's episodes."""
+        last, served, eps, loss, q = self.collector.round(
+            lambda s: epsilon(self.cfg.algo, s, self.total_steps), self.updates)
+        loss, q = loss.expand(self.n).tolist(), q.expand(self.n).tolist()
+        k = self.cfg.train.n_envs
+        out = []
+        for i in range(self.n):
+            sl = slice(i * k, (i + 1) * k)
+            out.append(episode_records(
+                last[sl], served[sl], self.params.episode_steps, self.episode + 1,
+                self.collector.env_steps,
+                {"epsilon": eps, "loss": loss[i], "q_chosen": q[i],
+                 "updates": self.learner.updates}))
+        self.episode += k
+        return out
+
+    def evaluate(self) -> list[float]:
+        """One batched evaluation of the greedy policy; each member logs its block,
+        checkpoints ``best`` (by evaluation return) and ``last``, and draws its pictures
+        (``eval/``, the logger's figures): a single run at every evaluation, a
+        population's members at a new best and at the end only (each member's pictures
+        take longer to draw than the batched rollout of all). Returns their returns."""
+        td = self.evaluator.rollout(self.greedy)
+        w = td.shape[0] // self.n
+        final = self.episode >= self.cfg.train.episodes
+        returns = []
+        for i, m in enumerate(self.members):
+            block = td[i * w:(i + 1) * w]
+            record = self.evaluator.record(block, self.episode, self.collector.env_steps)
+            m.log.record(record)
+            is_best = record["return"] >= m.best_eval
+            if self.solo or is_best or final:
+                m.log.eval_figures(record, block, self.evaluator, is_best)
+            m.last_eval = record["return"]
+            if is_best:
+                m.best_eval = record["return"]
+                self.checkpoints.save(i, "best")
+            returns.append(record["return"])
+        self.checkpoints.save_all("last")
+        return returns
+
+    # ------------------------------------------------------------------ loop
+    def rounds(self) -> None:
+        """Collect and evaluate until ``train.episodes``, stopping early (after a whole
+        round, so the saved state is consistent) when Ctrl-C or SIGTERM came."""
+        tr = self.cfg.train
+        while self.episode < tr.episodes:
+            per_member = self.collect()
+            self.threads.check()
+            for member, records in zip(self.members, per_member, strict=True):
+                for rec in records:
+                    member.log.record(rec)
+            for recs in zip(*per_member, strict=True):  # the bar: one step per episode
+                self.progress.update({
+                    "return": sum(r["return"] for r in recs) / self.n,
+                    "epsilon": recs[0]["epsilon"],
+                    "collisions": sum(r["collisions"] for r in recs)})
+            if self.episode % tr.eval_every == 0 or self.episode >= tr.episodes:
+                self.progress.last_eval = sum(self.evaluate()) / self.n
+            if self.interrupt.requested:
+                path = self.checkpoints.save_all("last")
+                saved = path if self.solo else "every member's last.pt"
+                self.interrupt.stop(f"interrupted at episode {self.episode}: saved {saved}; "
+                                    f"continue with resume={self.run_dir}")
+
+    def fit(self) -> dict[str, Any]:
+        """Train every member to ``train.episodes``, evaluating every
+        ``train.eval_every`` episodes. Ctrl-C or SIGTERM finishes the current round,
+        saves ``last`` and raises :class:`Stopped` (a second one stops at once, keeping
+        the last checkpoint). The run folder's lock (``run_lock``) is released when it
+        ends, however it ends, and only after the last save. The summary's ``members``
+        hold each member's returns; a single run's are also at its top level."""
+        try:
+            for m in self.members:
+                m.log.open(resume_episode=self.episode if self.episode else None)
+            self.progress = Progress(self.cfg.train, self.episode)
+            t0 = time.perf_counter()
+            try:
+                with self.interrupt:
+                    self.rounds()
+            finally:
+                self.progress.close()
+                for m in self.members:
+                    m.log.close()
+            minutes = (time.perf_counter() - t0) / 60
+            self.checkpoints.save_all("last")
+        except OSError as e:
+            raise write_error(e, self.run_dir) from None
+        finally:
+            if self.run_lock is not None:
+                self.run_lock.release()
+        members = [{"seed": m.seed, "run_dir": m.run_dir, "best_eval_return": m.best_eval,
+                    "last_eval_return": m.last_eval} for m in self.members]
+        summary = {"episodes": self.episode, "updates": self.learner.updates,
+                   "minutes": minutes, "members": members}
+        if self.solo:
+            summary.update({k: members[0][k] for k in ("best_eval_return",
+                                                       "last_eval_return")})
+        log.info("done: %d member(s) x %d episodes, %d updates, best validation return "
+                 "%s, %.1f min", self.n, self.episode, self.learner.updates,
+                 ", ".join(f"{m.best_eval:.0f}" for m in self.members), minutes)
+        return summary

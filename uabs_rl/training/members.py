@@ -1,0 +1,228 @@
+"""The members of a run and their checkpoints.
+
+A run trains P >= 1 seeds of one configuration in one process (``train.population = P``;
+P = 1, the default, is a single run):
+
+    uabs-train train.population=3                         # seeds 0, 1, 2 of rank
+    uabs-train -m masking=penalty,flat,rank train.population=3
+
+Member ``p`` has seed ``seed + p``. Its episodes run in block ``p`` of one env
+(``P · train.n_envs`` envs), drawn from its own generators (:mod:`uabs_rl.rng`); its
+network is member ``p`` of the algorithm's (for the 3DQN slice ``p`` of a
+:class:`~uabs_rl.algorithms.model.StackedQNet`, updated by one batched step per update); its
+transitions go to its own replay buffer (block ``p`` of the algorithm's
+:class:`~uabs_rl.algorithms.replay.TransitionReplay`); its evaluations are block ``p``
+of one batched evaluation. A single run writes into its run folder; each member of a
+population writes what a single run writes, in ``<run>/seed=<s>/``: ``metrics.jsonl``,
+logger files, ``eval/`` pictures, ``checkpoints/{best,last}.pt`` in a single run's
+format (so ``uabs-eval`` and ``uabs-report`` read members as runs). Unlike a single run,
+a member draws its evaluation pictures only at a new best and at the end.
+
+What equals a single run of the same seed, exactly: the initial network, every random
+draw (training windows, start positions, LoS states, exploration, replay samples,
+evaluation episodes). What differs: the batched matrix products round differently from
+the single ones (float32 rounding, 1e-7 to 1e-6 relative), and DQN training amplifies
+such differences, so a member's curve is another sample of the same experiment, not its
+single run's curve bit for bit. ``tests/test_population.py`` checks both: without
+updates a member's records equal its single run's; one population update equals the
+members' single updates to float precision.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import logging
+import math
+import os
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import torch
+
+from uabs_rl.config import RunConfig
+from uabs_rl.rng import Generators
+from uabs_rl.training.checkpoint import (
+    CKPT_FORMAT,
+    CheckpointError,
+    check_compatible,
+    config_dict,
+    load_checkpoint,
+    save_checkpoint,
+)
+from uabs_rl.training.runfolder import check_identity, write_error
+from uabs_rl.training.runlog import RunLog
+
+if TYPE_CHECKING:
+    from uabs_rl.training.experiment import Experiment
+
+log = logging.getLogger(__name__)
+
+NO_REPLAY = ("the checkpoint holds no replay buffer (train.checkpoint_buffer=false): "
+             "learning restarts after algo.learning_starts transitions")
+
+
+def member_seeds(cfg: RunConfig) -> list[int]:
+    return [cfg.seed + i for i in range(cfg.train.population)]
+
+
+def member_dir(run_dir: Path, seed: int) -> Path:
+    return Path(run_dir) / f"seed={seed}"
+
+
+def complete_save(run_dir: Path, name: str = "last") -> None:
+    """Finish or drop an interrupted :meth:`Checkpoints.save_all` of a population: with
+    its commit record, the staged checkpoints replace the old ones; without it, they
+    are removed."""
+    record = Path(run_dir) / f".{name}.commit"
+    if record.is_file():
+        for staged in json.loads(record.read_text()):
+            staged = Path(run_dir) / staged  # relative to the population folder
+            if staged.is_file():
+                os.replace(staged, staged.with_name(f"{name}.pt"))
+        record.unlink()
+    for staged in Path(run_dir).glob(f"seed=*/checkpoints/{name}.staged.pt"):
+        staged.unlink()
+
+
+class Member:
+    """One seed of a run: its config (the run's with its own seed), its folder and log,
+    and its validation returns."""
+
+    def __init__(self, cfg: RunConfig, seed: int, run_dir: Path):
+        self.cfg = copy.deepcopy(cfg)
+        self.cfg.seed = seed
+        self.seed, self.run_dir = seed, Path(run_dir)
+        self.log = RunLog(self.cfg, self.run_dir)
+        self.best_eval = -math.inf
+        self.last_eval = float("nan")
+
+
+def member_generator(gen: torch.Generator | Generators, i: int) -> torch.Generator:
+    """Member ``i``'s generator of ``gen`` (a single run's generator is its own)."""
+    return gen.gens[i] if isinstance(gen, Generators) else gen
+
+
+class Checkpoints:
+    """Each member's checkpoints of an :class:`~uabs_rl.training.experiment.Experiment`: its
+    config, the run's identity, its learner state, the run's counters, the global RNG,
+    its selector's and env's generators and, with ``train.checkpoint_buffer``, its
+    replay buffer; ``population`` (the seeds, and which member) for a member of a
+    population."""
+
+    def __init__(self, exp: Experiment):
+        self.exp = exp
+
+    def generators(self, i: int) -> tuple[torch.Generator, torch.Generator]:
+        """Member ``i``'s selector and env generators."""
+        exp = self.exp
+        return (member_generator(exp.gen, i),
+                member_generator(exp.collector.env.base_env.rng, i))
+
+    def state(self, i: int) -> dict:
+        exp, m = self.exp, self.exp.members[i]
+        selector, env = self.generators(i)
+        state = {
+            "format": CKPT_FORMAT, "config": config_dict(m.cfg), "run": exp.identity,
+            "learner": exp.learner.member_state_dict(i),
+            "counters": {"episode": exp.episode, "env_steps": exp.collector.env_steps,
+                         "update_credit": exp.updates.credit, "best_eval": m.best_eval,
+                         "total_steps": exp.total_steps},
+            "rng": {"torch": torch.get_rng_state(), "selector": selector.get_state(),
+                    "env": env.get_state()},
+            "replay": (exp.buffer.member_state_dict(i) if m.cfg.train.checkpoint_buffer
+                       else None),
+        }
+        if not exp.solo:
+            state["population"] = {"seeds": [x.seed for x in exp.members], "member": i}
+        return state
+
+    def save(self, i: int, name: str) -> Path:
+        path = self.exp.members[i].run_dir / "checkpoints" / f"{name}.pt"
+        try:
+            save_checkpoint(self.state(i), path)
+        except (OSError, RuntimeError) as e:
+            raise write_error(e, self.exp.run_dir) from None
+        return path
+
+    def save_all(self, name: str) -> Path:
+        """Every member's ``<name>.pt`` at this episode, all or none; returns the folder
+        or file saved. A population's are each written beside its old one
+        (``<name>.staged.pt``), then a commit record in the population folder says they
+        are complete, then they replace the old ones. A kill in between leaves either
+        the old set (no record: the staged files are dropped on resume) or a record that
+        :func:`complete_save` finishes."""
+        run_dir = self.exp.run_dir
+        if self.exp.solo:
+            return self.save(0, name)
+        staged = [self.save(i, f"{name}.staged") for i in range(len(self.exp.members))]
+        record = run_dir / f".{name}.commit"
+        tmp = record.with_name(record.name + ".tmp")
+        # names relative to the population folder: it may be resumed from elsewhere or moved
+        tmp.write_text(json.dumps([os.path.relpath(p, run_dir) for p in staged]))
+        os.replace(tmp, record)
+        complete_save(run_dir, name)
+        return run_dir
+
+    def resume(self, states: list[dict], sources: list[Path]) -> None:
+        """Continue every member from its checkpoint (written at the same episode)."""
+        exp = self.exp
+        episodes = {int(s["counters"]["episode"]) for s in states}
+        if len(episodes) > 1:
+            raise CheckpointError(
+                f"the members of {exp.run_dir} saved last.pt at different episodes "
+                f"({sorted(episodes)}): the run was killed while saving them, and a "
+                f"member cannot be rewound. Start the population again in a new folder.")
+        buffers = True
+        for i, (st, path) in enumerate(zip(states, sources, strict=True)):
+            m = exp.members[i]
+            if not exp.solo:
+                self.check_member(st, i, path)
+            check_compatible(st, m.cfg, path)
+            exp.learner.load_member(i, st["learner"])
+            m.best_eval = float(st["counters"]["best_eval"])
+            buffers &= self.restore_streams(st, i)
+        self.restore_counters(states[0])  # the members' counters are equal
+        if not buffers:
+            log.warning(NO_REPLAY)
+
+    def check_member(self, state: dict, i: int, path: Path) -> None:
+        """``state`` is member ``i`` of this population, written in its folder."""
+        exp, m = self.exp, self.exp.members[i]
+        check_identity(state, exp.run_dir, path)
+        pop = state.get("population") or {}
+        seeds = [x.seed for x in exp.members]
+        if list(pop.get("seeds", [])) != seeds or pop.get("member") != i:
+            raise CheckpointError(
+                f"{path} is not member {i} (seed {m.seed}) of this population of seeds "
+                f"{seeds}: it belongs to another run. Put this member's own last.pt "
+                f"back, or resume the population it came from.")
+
+    def load(self) -> None:
+        """Continue every member from its ``last.pt``."""
+        paths = [m.run_dir / "checkpoints" / "last.pt" for m in self.exp.members]
+        self.resume([load_checkpoint(p) for p in paths], paths)
+
+    def restore_counters(self, state: dict) -> None:
+        """The run's episode, env-step and update counters and the global RNG."""
+        exp, c = self.exp, state["counters"]
+        exp.episode, exp.collector.env_steps = int(c["episode"]), int(c["env_steps"])
+        exp.updates.credit = float(c["update_credit"])
+        # the ε schedule as the run planned it, whatever train.episodes says now
+        planned = int(c.get("total_steps", exp.total_steps))
+        if planned != exp.total_steps:
+            log.info("train.episodes changed on resume: the ε schedule keeps the run's "
+                     "original length (%d env steps)", planned)
+        exp.total_steps = planned
+        torch.set_rng_state(state["rng"]["torch"])
+
+    def restore_streams(self, state: dict, i: int) -> bool:
+        """Member ``i``'s generators and replay buffer; False when the checkpoint holds
+        no buffer (``train.checkpoint_buffer=false``)."""
+        selector, env = self.generators(i)
+        selector.set_state(state["rng"]["selector"])
+        env.set_state(state["rng"]["env"])
+        if state.get("replay") is None:
+            return False
+        self.exp.buffer.load_member(i, state["replay"])
+        return True
