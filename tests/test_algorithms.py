@@ -8,6 +8,8 @@ import copy
 
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from uabs_rl.algorithms import ALGORITHMS, Dims, make_algorithm
 from uabs_rl.algorithms import dqn3 as dqn3_module
@@ -317,3 +319,188 @@ def test_n_step_transitions_sum_the_next_rewards(trace_cache, tmp_path, mode):
             assert torch.equal(d3["next_mask"][i], d1["next_mask"][i + 2])
     assert d3["terminated"][-3:].all() and not d3["terminated"][:-3].any()
     assert three.learner.loss_module.gamma == pytest.approx(g ** 3)
+
+
+# ----------------------------------------------------------------------------- QMIX
+def qmix(seeds=(0,), **kw):
+    return make_algorithm(AlgoConfig(name="qmix", hidden=[16], mixing_embed_dim=8, **kw),
+                          Dims(5, 4, 3), list(seeds), torch.device("cpu"))
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), members=st.sampled_from([1, 2]))
+def test_qmix_mixing_is_monotonic_in_every_agent_value(seed, members):
+    """The mixing weights are non-negative, so dQ_tot / dQ_i >= 0 for every agent, every
+    state and every member (the agents' greedy actions are the team's)."""
+    lrn = qmix(seeds=range(seed % 1000, seed % 1000 + members))
+    g = torch.Generator().manual_seed(seed)
+    for m in lrn.mixers:
+        q = (10 * torch.randn(64, 3, 1, generator=g)).requires_grad_()
+        state = 10 * torch.randn(64, 15, generator=g)
+        (grad,) = torch.autograd.grad(m(q, state).sum(), q)
+        assert (grad >= 0).all()
+        assert (torch.abs(m.hyper_w_1(state)) >= 0).all()  # the weights QMixer uses
+
+
+def test_qmix_loss_equals_an_independent_computation():
+    """Q_tot = f_s(Q(o_i, a_i)) with f the two-layer mixer whose weights are |W(s)|,
+    s the joint observation; y with the target mixer at s' over each agent's best legal
+    action; the mean Huber loss, written out step by step."""
+    lrn = qmix(gamma=0.9)
+    assert lrn.buffer.unit == "step"
+    with torch.no_grad():  # targets that differ from the online networks
+        for p in [*lrn.loss_module.target_network.parameters(),
+                  *lrn.loss_module.target_mixers.parameters()]:
+            p.add_(0.05 * torch.randn_like(p))
+    b = steps(8, 3, seed=5, obs_dim=5)
+    b["next_mask"][..., 0] = True
+    b["terminated"][:3] = True
+    b["team_reward"] = b["reward"].sum(-1)
+    loss, _ = lrn.loss(b)
+    st_ = lrn.state_dict()
+    online, target = (DuelingQNet(5, 4, [16]) for _ in range(2))
+    online.load_state_dict(st_["qnet"])
+    target.load_state_dict(st_["target"])
+
+    def f(w, q, s):  # the QMIX mixer, from its state dict
+        lin = lambda k, x: x @ w[k + ".weight"].T + w[k + ".bias"]  # noqa: E731
+        w1 = lin("hyper_w_1", s).abs().view(3, 8)
+        h = torch.nn.functional.elu(q @ w1 + lin("hyper_b_1", s))
+        v = lin("V.2", torch.relu(lin("V.0", s)))
+        return h @ lin("hyper_w_final", s).abs() + v[0]
+
+    terms = []
+    for j in range(8):
+        q = torch.stack([online(b["obs"][j, i])[b["action"][j, i]] for i in range(3)])
+        q_tot = f(st_["mixer"], q, b["obs"][j].flatten())
+        nxt = []
+        for i in range(3):
+            qn = online(b["next_obs"][j, i]).detach()
+            best = max((a for a in range(4) if b["next_mask"][j, i, a]), key=lambda a: qn[a])
+            nxt.append(target(b["next_obs"][j, i])[best].detach())
+        next_tot = f(st_["target_mixer"], torch.stack(nxt), b["next_obs"][j].flatten())
+        y = b["reward"][j].sum() + 0.9 * (0.0 if b["terminated"][j].any() else 1.0) * next_tot
+        d = (q_tot - y).abs()
+        terms.append(0.5 * d ** 2 if d < 1 else d - 0.5)
+    assert loss.item() == pytest.approx(torch.stack(terms).mean().item(), rel=1e-5)
+
+
+@settings(max_examples=25, deadline=None)
+@given(name=st.sampled_from(["dqn3", "vdn", "qmix"]), seed=st.integers(0, 2**31 - 1),
+       members=st.sampled_from([1, 2]), legal=st.floats(0.05, 0.95))
+def test_the_target_never_maximises_over_a_masked_action(name, seed, members, legal):
+    """Every algorithm's target at s' takes Q_target at the best action *of the stored
+    mask* (a masked action is never the target's argmax, even when it has the highest
+    online value), for random states and masks, single runs and populations."""
+    m = 3
+    lrn = make_algorithm(AlgoConfig(name=name, hidden=[16], mixing_embed_dim=8),
+                         Dims(5, 4, m), list(range(members)), torch.device("cpu"))
+    with torch.no_grad():
+        for p in lrn.loss_module.target_network.parameters():
+            p.add_(0.1)
+    g = torch.Generator().manual_seed(seed)
+    lead = (members, 6, m) if members > 1 else (6, m)
+    next_obs = torch.randn(*lead, 5, generator=g)
+    mask = torch.rand(*lead, 4, generator=g) < legal
+    mask[..., int(torch.randint(0, 4, (), generator=g))] = True  # at least one legal
+    b = {"obs": torch.randn(*lead, 5, generator=g), "next_obs": next_obs, "next_mask": mask,
+         "action": torch.randint(0, 4, lead, generator=g)}
+    _, q_next = lrn.loss_module.agent_values(b)
+    with torch.no_grad():
+        online, target = lrn.policy(next_obs), lrn.loss_module.target_network(next_obs)
+    best = online.masked_fill(~mask, -torch.inf).argmax(-1, keepdim=True)
+    assert mask.gather(-1, best).all()
+    assert torch.equal(q_next, target.gather(-1, best).squeeze(-1))
+
+
+# ----------------------------------------------------------------------------- prioritized
+def test_prioritized_replay_draws_in_proportion_to_priority_and_weights_undo_the_bias():
+    """On a small buffer with known priorities p_i: draws in proportion to (p_i + 1e-8)^α
+    (the closed form, to Monte-Carlo error), importance weights (p_i / p_min)^-β, and
+    with β = 1 the weighted sample mean of any f is its uniform mean over the buffer."""
+    alpha, beta = 0.7, 1.0
+    rb = TransitionReplay(8, 2, 4, 1, [3], batch_size=4096, unit="agent",
+                          priority_alpha=alpha, priority_beta=beta)
+    rb.extend(steps(8, 1, seed=0))
+    pri = torch.tensor([0.1, 0.5, 1.0, 2.0, 4.0, 0.3, 0.7, 8.0])
+    rb.update_priority(torch.arange(8), pri)
+    share = (pri + 1e-8) ** alpha
+    share = share / share.sum()
+    counts = torch.zeros(8)
+    f = torch.randn(8)
+    num = den = 0.0
+    for _ in range(25):
+        b = rb.sample()
+        counts += torch.bincount(b["index"], minlength=8)
+        w = b["weight"]
+        p_i = (pri[b["index"]] + 1e-8) ** alpha
+        assert torch.allclose(w, (p_i / (pri.min() + 1e-8) ** alpha) ** -beta, rtol=1e-4)
+        num += float((w * f[b["index"]]).sum())
+        den += float(w.sum())
+    n = counts.sum()
+    se = (share * (1 - share) / n).sqrt()
+    assert ((counts / n - share).abs() <= 5 * se + 1e-4).all()
+    assert num / den == pytest.approx(float(f.mean()), abs=0.05)
+    # the sampled rows are the transitions at those positions
+    b = rb.sample(16)
+    assert torch.equal(b["obs"], rb.data["obs"].flatten(1, 2)[0, b["index"]])
+
+
+def test_new_transitions_get_the_highest_priority_and_uniform_refuses_priorities():
+    rb = TransitionReplay(6, 2, 4, 2, [0], batch_size=4, priority_alpha=1.0)
+    rb.extend(steps(1, 2, seed=0))
+    rb.update_priority(torch.tensor([0, 1]), torch.tensor([3.0, 0.5]))
+    rb.extend(steps(1, 2, seed=1))  # positions 2, 3 at the highest priority so far: 3
+    assert rb.member_state_dict(0)["priority"].tolist() == pytest.approx(
+        [3.0, 0.5, 3.0, 3.0], rel=1e-6)
+    with pytest.raises(NotImplementedError, match="uniformly"):
+        TransitionReplay(6, 2, 4, 2, [0], batch_size=4).update_priority(
+            torch.tensor([0]), torch.tensor([1.0]))
+
+
+def test_a_prioritized_update_weights_the_loss_and_sets_the_td_errors_as_priorities():
+    lrn = make_algorithm(AlgoConfig(hidden=[8], replay="prioritized", batch_size=4,
+                                    buffer_size=12, learning_starts=4),
+                         Dims(2, 4, 2), [0, 1], torch.device("cpu"))
+    tr = steps(6, 2, seed=2)
+    tr["next_mask"][..., 0] = True
+    lrn.buffer.extend({k: torch.cat([v, v]) for k, v in tr.items()})  # [P·n, M, ...]
+    b = lrn.buffer.sample()
+    out = lrn.loss_module(b)
+    plain = lrn.loss_module(b.exclude("weight"))
+    assert "td_error" not in plain.keys()
+    q_taken, q_next = lrn.loss_module.agent_values(b)
+    y = b["reward"] + lrn.loss_module.gamma * (~b["terminated"]).float() * q_next
+    elem = torch.nn.functional.smooth_l1_loss(q_taken, y, reduction="none")
+    assert torch.allclose(out["loss"], (b["weight"] * elem).mean(-1))
+    lrn.update(b)
+    for p in range(2):
+        leaves = lrn.buffer.member_state_dict(p)["priority"]
+        assert torch.allclose(leaves[b["index"][p]].float(),
+                              (out["td_error"][p] + 1e-8) ** 0.6, rtol=1e-5)
+
+
+def test_prioritized_replay_refuses_the_reference_loss():
+    from uabs_rl.config import validate_algo_name
+    with pytest.raises(ConfigError, match=r"algo.replay=prioritized needs the fused loss"):
+        validate_algo_name(AlgoConfig(loss="torchrl", replay="prioritized"))
+
+
+def test_a_qmix_update_trains_each_members_mixer_and_the_target_copies_it():
+    lrn = qmix(seeds=(0, 1), batch_size=6, buffer_size=30, learning_starts=6,
+               target_update=2)
+    tr = steps(8, 3, seed=1, obs_dim=5)  # 4 env steps of each of the 2 members
+    tr["next_mask"][..., 0] = True
+    lrn.buffer.extend(tr)
+    before = [copy.deepcopy(m.state_dict()) for m in lrn.mixers]
+    for _ in range(2):
+        lrn.update(lrn.buffer.sample())
+    for p, m in enumerate(lrn.mixers):
+        assert all(not torch.equal(v, before[p][k]) for k, v in m.state_dict().items())
+        target = lrn.loss_module.target_mixers[p].state_dict()
+        assert all(torch.equal(v, target[k]) for k, v in m.state_dict().items())  # update 2
+    # a member's state is a single run's: its own mixer, target mixer and Adam
+    solo = qmix(seeds=(1,), batch_size=6, buffer_size=30, learning_starts=6)
+    solo.load_state_dict(lrn.member_state_dict(1))
+    assert all(torch.equal(v, lrn.mixers[1].state_dict()[k])
+               for k, v in solo.mixers[0].state_dict().items())

@@ -52,10 +52,15 @@ def test_smoke_run_per_masking_mode(trace_cache, tmp_path, mode):
 
 
 @pytest.mark.parametrize("args", [["algo=vdn", "masking=rank"],
-                                  ["algo=vdn", "masking=flat", "train.population=2"]])
-def test_vdn_trains_end_to_end_without_a_collision_or_fallback(trace_cache, tmp_path, args):
-    """algo=vdn through uabs-train's path (a single run and a population), evaluated
-    by uabs-eval from its checkpoint."""
+                                  ["algo=vdn", "masking=flat", "train.population=2"],
+                                  ["algo=qmix", "masking=flat"],
+                                  ["algo=qmix", "masking=rank", "train.population=2"],
+                                  ["algo.replay=prioritized", "masking=rank"],
+                                  ["algo=qmix", "algo.replay=prioritized", "masking=flat"]])
+def test_each_learner_trains_end_to_end_without_a_collision_or_fallback(trace_cache, tmp_path,
+                                                                       args):
+    """VDN, QMIX and prioritized replay through uabs-train's path (single runs and
+    populations), evaluated by uabs-eval from the checkpoint."""
     run(smoke(trace_cache, *args, "train.trajectory_images=false", "train.logger=none"),
         tmp_path)
     dirs = sorted(tmp_path.glob("seed=*")) or [tmp_path]
@@ -65,7 +70,8 @@ def test_vdn_trains_end_to_end_without_a_collision_or_fallback(trace_cache, tmp_
         assert train[-1]["updates"] > 0 and math.isfinite(train[-1]["loss"])
         assert sum(r["collisions"] + r["fallbacks"] for r in recs) == 0
         state = load_checkpoint(d / "checkpoints" / "best.pt")
-        assert state["config"]["algo"]["name"] == "vdn"
+        name = next((x.split("=")[1] for x in args if x.startswith("algo=")), "dqn3")
+        assert state["config"]["algo"]["name"] == name
         best = [r for r in recs if r["kind"] == "eval"
                 and r["episode"] == state["counters"]["episode"]][0]
         ev = load_evaluation(d, "best", split="eval")
@@ -208,12 +214,16 @@ def test_ctrl_c_finishes_the_round_saves_last_and_stops(trace_cache, tmp_path, m
     assert [r["episode"] for r in records(tmp_path) if r["kind"] == "train"] == [1, 2]
 
 
-@pytest.mark.parametrize("extra", [[], ["train.population=2"]])
-def test_a_vdn_run_stopped_and_resumed_equals_the_uninterrupted_run(trace_cache, tmp_path,
-                                                                  monkeypatch, extra):
-    """algo=vdn stopped by Ctrl-C after episode 2 and resumed: every record and the final
-    networks as in the run that was never stopped (its replay of whole steps included)."""
-    args = ["algo=vdn", "train.checkpoint_buffer=true", "train.logger=none",
+@pytest.mark.parametrize("extra", [["algo=vdn"], ["algo=vdn", "train.population=2"],
+                                   ["algo=qmix", "algo.replay=prioritized",
+                                    "train.population=2"],
+                                   ["algo.replay=prioritized"]])
+def test_a_run_of_each_learner_stopped_and_resumed_equals_the_uninterrupted_run(
+        trace_cache, tmp_path, monkeypatch, extra):
+    """VDN, QMIX and prioritized replay stopped by Ctrl-C after episode 2 and resumed:
+    every record and the final networks (mixers included) as in the run that was never
+    stopped (its replay of whole steps and its priorities included)."""
+    args = ["train.checkpoint_buffer=true", "train.logger=none",
             "train.trajectory_images=false", "train.eval_every=2", "train.threads=1", *extra]
     run(smoke(trace_cache, *args), tmp_path / "ref")
     ctrl_c_in_episode_2(prepare(smoke(trace_cache, *args), tmp_path / "run"), monkeypatch)
@@ -226,8 +236,9 @@ def test_a_vdn_run_stopped_and_resumed_equals_the_uninterrupted_run(trace_cache,
         got = tmp_path / "run" / ref.relative_to(tmp_path / "ref")
         assert records(got) == records(ref)
         a, b = (load_checkpoint(d / "checkpoints" / "last.pt")["learner"] for d in (got, ref))
-        for part in ("qnet", "target"):
-            assert all(torch.equal(a[part][k], v) for k, v in b[part].items()), part
+        for part in ("qnet", "target", "mixer", "target_mixer"):
+            assert (part in a) == (part in b)
+            assert all(torch.equal(a[part][k], v) for k, v in b.get(part, {}).items()), part
 
 
 @pytest.mark.parametrize("override,key", [

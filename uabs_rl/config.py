@@ -72,6 +72,13 @@ class LoggerKind(StrEnum):
     none = "none"
 
 
+class ReplayKind(StrEnum):
+    """How a learner's replay draws its samples (``uabs_rl.algorithms.replay``)."""
+
+    uniform = "uniform"
+    prioritized = "prioritized"
+
+
 class LossKind(StrEnum):
     """Which implementation of the 3DQN loss (``uabs_rl.algorithms.dqn3``)."""
 
@@ -233,7 +240,7 @@ class AlgoConfig:
     """3DQN: shared dueling double DQN (docs/model.md §7). Defaults follow the authors' single-UABS
     3DQN where the paper is silent (see docs/configuration.md, "Learning hyper-parameters")."""
 
-    name: str = "dqn3"  # the learner: a key of uabs_rl.algorithms.ALGORITHMS (dqn3, vdn)
+    name: str = "dqn3"  # the learner: a key of uabs_rl.algorithms.ALGORITHMS (dqn3, vdn, qmix)
     hidden: list[int] = field(default_factory=lambda: [256, 256])  # MLP trunk widths
     lr: float = 1e-4  # Adam learning rate
     gamma: float = 0.8  # discount γ
@@ -250,6 +257,14 @@ class AlgoConfig:
     # + γ^n Q(s_{t+n}) (cut at the episode's end); 1 = the paper's one-step target
     n_step: int = 1
     loss: LossKind = LossKind.fused  # fused (hand-written, same maths) | torchrl (DQNLoss)
+    # beyond the paper: uniform | prioritized (proportional, as TorchRL's
+    # PrioritizedSampler: draws in proportion to (|TD error| + 1e-8)^priority_alpha, new
+    # transitions at the highest priority so far, the loss weighted by
+    # (p_i / p_min)^-priority_beta; uabs_rl.algorithms.replay.SumTree)
+    replay: ReplayKind = ReplayKind.uniform
+    priority_alpha: float = 0.6  # prioritization exponent α (0: uniform draws)
+    priority_beta: float = 0.4  # importance-weight exponent β (1: the bias fully corrected)
+    mixing_embed_dim: int = 32  # algo=qmix: width of the mixing network (its hypernetworks)
 
 
 @dataclass
@@ -322,6 +337,7 @@ def validate_run(cfg: RunConfig) -> None:
     validate_world(cfg)
     validate_algo_name(cfg.algo)
     enum_value(LossKind, cfg.algo.loss, "algo.loss")
+    enum_value(ReplayKind, cfg.algo.replay, "algo.replay")
     enum_value(LoggerKind, cfg.train.logger, "train.logger")
     _raise_first(_algo_checks(cfg) + _train_checks(cfg))
     if not (cfg.device in ("cpu", "cuda", "auto") or cfg.device.startswith("cuda:")):
@@ -367,6 +383,11 @@ def _algo_checks(cfg: RunConfig) -> list[tuple[bool, str, str, Any]]:
         (a.n_step == 1 or s.time_is_terminal, "algo.n_step",
          "must be 1 when scenario.time_is_terminal=false (a cut return would need its "
          "own discount)", a.n_step),
+        (a.priority_alpha >= 0, "algo.priority_alpha", "must be >= 0", a.priority_alpha),
+        (0 <= a.priority_beta <= 1, "algo.priority_beta", "must be in [0, 1]",
+         a.priority_beta),
+        (a.mixing_embed_dim >= 1, "algo.mixing_embed_dim", "must be >= 1",
+         a.mixing_embed_dim),
         (t.population == 1 or a.loss == LossKind.fused, "algo.loss",
          "must be fused when train.population > 1 (torchrl is the solo reference loss)",
          str(a.loss)),

@@ -43,13 +43,17 @@ from uabs_rl.algorithms.base import (
 )
 from uabs_rl.algorithms.model import DuelingQNet, StackedQNet
 from uabs_rl.algorithms.replay import TransitionReplay
-from uabs_rl.config import AlgoConfig, LossKind
+from uabs_rl.config import AlgoConfig, ConfigError, LossKind, ReplayKind
 
 TARGET_WARNING = "No target network updater has been associated"
 
 
-def huber(pred: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-    """The mean Huber loss over the last dim: 0-d for ``[B]``, one per member for ``[P, B]``."""
+def huber(pred: torch.Tensor, y: torch.Tensor,
+          weight: torch.Tensor | None = None) -> torch.Tensor:
+    """The mean Huber loss over the last dim: 0-d for ``[B]``, one per member for ``[P, B]``;
+    with ``weight`` (a prioritized sample's importance weights) the weighted mean."""
+    if weight is not None:
+        return (weight * F.smooth_l1_loss(pred, y, reduction="none")).mean(-1)
     if pred.dim() == 1:
         return F.smooth_l1_loss(pred, y)
     return F.smooth_l1_loss(pred, y, reduction="none").mean(-1)
@@ -78,8 +82,19 @@ class DQN3Loss(LossModule):
         q_taken, q_next = self.agent_values(b)
         with torch.no_grad():
             y = b.get("reward") + self.gamma * (~b.get("terminated")).float() * q_next
-        return TensorDict({"loss": huber(q_taken, y), "q_chosen": q_taken.detach().mean(-1)},
-                          batch_size=[])
+        return self.outputs(q_taken, y, b, q_taken.detach().mean(-1))
+
+    @staticmethod
+    def outputs(pred: torch.Tensor, y: torch.Tensor, b: TensorDict,
+                q_chosen: torch.Tensor) -> TensorDict:
+        """``loss`` (Huber of ``pred`` against ``y``, weighted when the sample is
+        prioritized), ``q_chosen``, and for a prioritized sample ``td_error`` |pred − y|,
+        the sampled items' new priorities."""
+        weight = b.get("weight", None)
+        out = {"loss": huber(pred, y, weight), "q_chosen": q_chosen}
+        if weight is not None:
+            out["td_error"] = (pred.detach() - y).abs()
+        return TensorDict(out, batch_size=[])
 
     def agent_values(self, b: TensorDict) -> tuple[torch.Tensor, torch.Tensor]:
         """Q(o, a) (with gradient) and Q_target(o', argmax_{a' ∈ mask'} Q(o', a')) (without),
@@ -163,19 +178,36 @@ class DQN3(Algorithm):
 
     def __init__(self, algo: AlgoConfig, dims: Dims, seeds: list[int], device: torch.device):
         super().__init__(algo, dims, seeds, device)
-        nets = []
+        nets, self.extras = [], []
         for s in self.seeds:  # each member's initial network is its single run's
             torch.manual_seed(s)
             nets.append(self.acting_network(algo, dims))
+            self.extras.append(self.member_extra())
         self.policy = (nets[0] if self.members == 1 else StackedQNet(nets)).to(device)
         gamma = float(algo.gamma) ** algo.n_step  # bootstraps n steps on
         self.loss_module = self.make_loss(gamma)
         self.target_updater = PeriodicHardUpdate(self.loss_module, int(algo.target_update))
         # fused Adam: one kernel for all parameters (3x faster than foreach on CPU here)
         self.optim = torch.optim.Adam(self.policy.parameters(), lr=algo.lr, fused=True)
+        self.optims = [self.optim]  # every optimiser an update steps
+        prioritized = algo.replay == ReplayKind.prioritized
         self.buffer = TransitionReplay(algo.buffer_size, dims.obs_dim, dims.n_actions,
                                        dims.n_agents, self.seeds, self.sample_size(),
-                                       unit=self.unit, device=device)
+                                       unit=self.unit, device=device,
+                                       priority_alpha=algo.priority_alpha if prioritized
+                                       else None, priority_beta=algo.priority_beta)
+
+    @classmethod
+    def check_config(cls, algo: AlgoConfig) -> None:
+        if algo.loss == LossKind.torchrl and algo.replay != ReplayKind.uniform:
+            raise ConfigError(f"algo.replay={algo.replay} needs the fused loss (it weights "
+                              f"each sample); algo.loss=torchrl, the reference loss, takes "
+                              f"uniform samples only: drop algo.loss.")
+
+    def member_extra(self) -> nn.Module | None:
+        """A module of each member built right after its network, from the same seeded
+        draws (QMIX's mixer); the 3DQN has none."""
+        return None
 
     def make_loss(self, gamma: float) -> LossModule:
         """The loss module on ``self.policy`` (``algo.loss`` picks the implementation)."""
@@ -197,15 +229,20 @@ class DQN3(Algorithm):
         return out.get("loss"), out.get("q_chosen")
 
     def update(self, batch: TensorDict) -> tuple[torch.Tensor, torch.Tensor]:
-        loss, q_chosen = self.loss(batch)
-        self.optim.zero_grad(set_to_none=True)
+        out = self.loss_module(batch)
+        loss, q_chosen = out.get("loss"), out.get("q_chosen")
+        for optim in self.optims:
+            optim.zero_grad(set_to_none=True)
         (loss if loss.dim() == 0 else loss.sum()).backward()
         if self.algo.grad_clip is not None:
             self.clip_gradients()
         with flush_denormals():
-            self.optim.step()
+            for optim in self.optims:
+                optim.step()
         self.updates += 1
         self.target_updater.step()
+        if "td_error" in out.keys():  # a prioritized sample: its new priorities
+            self.buffer.update_priority(batch.get("index"), out.get("td_error"))
         return loss.detach(), q_chosen
 
     def clip_gradients(self) -> None:

@@ -18,6 +18,18 @@ What a sample is depends on the learner (``unit``):
 A population's sample is ``[P, B, ...]``, each member's indices drawn from its own
 generator, seeded as its single run seeds its own (``tests/test_algorithms.py``).
 
+Prioritized replay (``algo.replay=prioritized``, ``priority_alpha`` given): each member
+draws through a :class:`SumTree` over its storage positions (``slot · M + agent``, or
+step slots), with its own generator: TorchRL's ``PrioritizedSampler`` semantics
+(priorities (p + 1e-8)^α, new items at the highest priority so far, weights
+(p_i / p_min)^-β), in plain torch, because TorchRL's sampler needs its C++ extension,
+which does not load with the CPU torch this project pins. A new
+transition gets the highest priority so far; a sample carries ``index`` and the
+importance ``weight`` (p_i / p_min)^-β, and :meth:`update_priority` sets the sampled
+items' priorities from the learner's TD errors. It draws among the held step slots'
+transitions, which, when M does not divide ``algo.buffer_size``, are up to M − 1 more
+than ``buffer_size`` (uniform sampling keeps exactly the newest ``buffer_size``).
+
 Why not TorchRL's ``ReplayBuffer(LazyTensorStorage)``: measured on the 2-core
 development CPU (``benchmarks/replay_bench.py``, one thread, in turns), one push of an
 env step's transitions (3 agents) plus one sample of 128 takes 105 µs here against
@@ -49,13 +61,83 @@ def storage(lead: tuple[int, ...], capacity: int, obs_dim: int, n_actions: int,
             for k in FIELDS}
 
 
+class SumTree:
+    """Proportional prioritized sampling over ``capacity`` items (Schaul et al., 2016),
+    as TorchRL's ``PrioritizedSampler`` does it: item i is drawn with probability
+    (p_i + eps)^α / Σ_j (p_j + eps)^α and weighted (p_i / p_min)^-β; an item written
+    anew gets the highest priority given so far (1 before any). The leaves, and their
+    pairwise sums up to the root, in one float64 tensor: an update rewrites the
+    updated leaves' ancestors level by level, a draw descends from the root (both
+    vectorised over the batch, log2(capacity) steps)."""
+
+    def __init__(self, capacity: int, alpha: float, beta: float, generator: torch.Generator,
+                 eps: float = 1e-8):
+        self.alpha, self.beta, self.eps, self.generator = alpha, beta, eps, generator
+        self.leaves = 1 << max(0, (capacity - 1).bit_length())  # a power of two >= capacity
+        self.tree = torch.zeros(2 * self.leaves, dtype=torch.float64)
+        self.max_priority: float | None = None  # the highest priority given so far
+
+    def _set(self, index: torch.Tensor, values: torch.Tensor) -> None:
+        node = index.long() + self.leaves
+        self.tree[node] = values.to(torch.float64)
+        while node.numel() and int(node[0]) > 1:
+            node = node // 2
+            self.tree[node] = self.tree[2 * node] + self.tree[2 * node + 1]
+
+    def update_priority(self, index: torch.Tensor, priority: torch.Tensor) -> None:
+        """Items ``index`` get priorities ``priority`` (raw: the tree stores (p + eps)^α)."""
+        priority = priority.detach().to("cpu", torch.float64).reshape(-1)
+        if priority.numel():
+            top = float(priority.max())
+            self.max_priority = top if self.max_priority is None else max(self.max_priority, top)
+        self._set(index.cpu().reshape(-1), (priority + self.eps) ** self.alpha)
+
+    def mark_update(self, index: torch.Tensor) -> None:
+        """Items written anew: the highest priority so far."""
+        index = index.cpu().reshape(-1)
+        first = 1.0 if self.max_priority is None else self.max_priority
+        self.update_priority(index, torch.full(index.shape, first))
+
+    def priorities(self, n: int) -> torch.Tensor:
+        """The stored (p + eps)^α of items ``0..n-1``."""
+        return self.tree[self.leaves:self.leaves + n]
+
+    def sample(self, held: int, batch_size: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """``batch_size`` items among ``0..held-1`` in proportion to their stored
+        priorities, and their importance weights (p_i / p_min)^-β (float32)."""
+        mass = torch.rand(batch_size, generator=self.generator, dtype=torch.float64)
+        mass = mass * self.tree[1]
+        node = torch.ones(batch_size, dtype=torch.long)
+        while int(node[0]) < self.leaves:
+            left = self.tree[2 * node]
+            right = mass > left
+            mass = torch.where(right, mass - left, mass)
+            node = 2 * node + right.long()
+        index = (node - self.leaves).clamp(max=held - 1)
+        p = self.tree[index + self.leaves]
+        weight = (p / self.priorities(held).min()) ** -self.beta
+        return index, weight.float()
+
+    def state_dict(self, held: int) -> dict:
+        top = -1.0 if self.max_priority is None else self.max_priority
+        return {"priority": self.priorities(held).clone(), "max_priority": top}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.tree.zero_()
+        leaves = state["priority"].to(torch.float64)
+        self._set(torch.arange(leaves.shape[0]), leaves)
+        top = float(state["max_priority"])
+        self.max_priority = None if top < 0 else top
+
+
 class TransitionReplay:
     """The replay buffers of P members (see the module docstring): ``capacity`` per-agent
     transitions each, ``n_agents`` agents a step, sampled in ``unit`` by ``batch_size``."""
 
     def __init__(self, capacity: int, obs_dim: int, n_actions: int, n_agents: int,
                  seeds: list[int], batch_size: int, unit: str = "agent",
-                 device: str | torch.device = "cpu"):
+                 device: str | torch.device = "cpu", priority_alpha: float | None = None,
+                 priority_beta: float = 0.4):
         if unit not in UNITS:
             raise ValueError(f"unit must be one of {UNITS}, got {unit!r}")
         dev = torch.device(device)
@@ -73,6 +155,15 @@ class TransitionReplay:
         self.written = 0  # env steps written per member
         self.generators = [torch.Generator(device=dev).manual_seed(s) for s in seeds]
         self.rows = torch.arange(self.members, device=dev)[:, None]
+        self.samplers: list[SumTree] = []
+        if priority_alpha is not None:  # one sampler per member, drawing from its generator
+            items = self.slots * (n_agents if unit == "agent" else 1)
+            self.samplers = [SumTree(items, priority_alpha, priority_beta, g)
+                             for g in self.generators]
+
+    @property
+    def prioritized(self) -> bool:
+        return bool(self.samplers)
 
     # ------------------------------------------------------------------ sizes
     def __len__(self) -> int:
@@ -95,7 +186,16 @@ class TransitionReplay:
         for k, v in self.data.items():
             v.index_copy_(1, idx, data[k].reshape(self.members, n, *v.shape[2:]))
         self.written += n
+        if self.samplers:  # the new transitions at the highest priority so far
+            pos = idx if self.unit == "step" else (
+                idx[:, None] * self.n_agents + torch.arange(self.n_agents, device=dev)).flatten()
+            for sampler in self.samplers:
+                sampler.mark_update(pos)
         return idx
+
+    def held_items(self) -> int:
+        """Storage positions holding a transition (what a prioritized draw ranges over)."""
+        return self.steps_held * (self.n_agents if self.unit == "agent" else 1)
 
     # ------------------------------------------------------------------ sampling
     def draw(self, batch_size: int) -> torch.Tensor:
@@ -130,27 +230,56 @@ class TransitionReplay:
             out["team_reward"] = out["reward"].sum(-1)
         return out
 
+    def draw_prioritized(self, batch_size: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """``[P, batch_size]`` storage positions drawn in proportion to priority^α, and
+        their importance weights, each member's from its own sampler."""
+        drawn = [s.sample(self.held_items(), batch_size) for s in self.samplers]
+        dev = self.data["obs"].device
+        index = torch.stack([i for i, _ in drawn]).to(dev)
+        weight = torch.stack([w for _, w in drawn]).to(dev)
+        return index, weight
+
     def sample(self, batch_size: int | None = None, return_info: bool = False):
         """A batch of :data:`FIELDS` (``[B, ...]``, or ``[P, B, ...]`` for a population;
-        ``unit`` step adds the agent dim), and with ``return_info`` ``{"index": ...}``."""
-        index = self.draw(batch_size or self.batch_size)
+        ``unit`` step adds the agent dim), and with ``return_info`` ``{"index": ...}``.
+        A prioritized sample also holds ``index`` and ``weight``."""
+        n = batch_size or self.batch_size
+        weight = None
+        if self.samplers:
+            index, weight = self.draw_prioritized(n)
+        else:
+            index = self.draw(n)
         batch = self.gather(index)
+        if weight is not None:
+            batch["index"], batch["weight"] = index, weight
+            if self.members == 1:
+                batch["index"], batch["weight"] = index[0], weight[0]
         if self.members == 1:
             index = index[0]
         td = TensorDict(batch, batch_size=index.shape)
         return (td, {"index": index}) if return_info else td
 
     def update_priority(self, index: torch.Tensor, priority: torch.Tensor) -> None:
-        """Uniform sampling has no priorities: refused, as TorchRL's uniform sampler
-        ignores them silently and a learner that sets them expects them used."""
-        raise NotImplementedError("this replay samples uniformly; it keeps no priorities")
+        """Set the priorities of the items at ``index`` (``[B]``, or ``[P, B]`` for a
+        population, as :meth:`sample` returns them) to ``priority`` (the same shape; the
+        sum tree stores (priority + 1e-8)^α). Uniform sampling has no priorities: refused,
+        as TorchRL's uniform sampler ignores them silently and a learner that sets them
+        expects them used."""
+        if not self.samplers:
+            raise NotImplementedError("this replay samples uniformly; it keeps no priorities")
+        index, priority = index.reshape(self.members, -1), priority.reshape(self.members, -1)
+        for p, sampler in enumerate(self.samplers):
+            sampler.update_priority(index[p], priority[p])
 
     # ------------------------------------------------------------------ state
     def member_state_dict(self, p: int) -> dict:
         """Member ``p``'s buffer (its held step slots, in slot order) and generator."""
         held = self.steps_held
-        return {"data": {k: v[p, :held].clone() for k, v in self.data.items()},
-                "written": self.written, "generator": self.generators[p].get_state()}
+        state = {"data": {k: v[p, :held].clone() for k, v in self.data.items()},
+                 "written": self.written, "generator": self.generators[p].get_state()}
+        if self.samplers:  # the sum tree's leaves ((p + eps)^α) and the highest priority
+            state.update(self.samplers[p].state_dict(self.held_items()))
+        return state
 
     def load_member(self, p: int, state: dict) -> None:
         """Member ``p`` from :meth:`member_state_dict`. Members are written in step, so
@@ -164,6 +293,11 @@ class TransitionReplay:
             self.data[k][p, :held] = state["data"][k].to(self.data[k].device)
         self.written = int(state["written"])
         self.generators[p].set_state(state["generator"])
+        if self.samplers:
+            if "priority" not in state:
+                raise ValueError("the saved buffer holds no priorities (it was sampled "
+                                 "uniformly): resume it with algo.replay=uniform")
+            self.samplers[p].load_state_dict(state)
 
     def state_dict(self) -> dict:
         """A single run's buffer (``P = 1``)."""

@@ -19,7 +19,7 @@ from torchrl.modules import VDNMixer
 from torchrl.objectives import LossModule
 
 from uabs_rl.algorithms.base import register
-from uabs_rl.algorithms.dqn3 import DQN3, DQN3Loss, huber
+from uabs_rl.algorithms.dqn3 import DQN3, DQN3Loss
 from uabs_rl.config import AlgoConfig, ConfigError, LossKind
 
 
@@ -38,8 +38,7 @@ class VDNLoss(DQN3Loss):
             next_tot = self.mixer(q_next[..., None]).squeeze(-1)
             alive = (~b.get("terminated").any(-1)).float()  # the episode ends for all
             y = b.get("team_reward") + self.gamma * alive * next_tot
-        return TensorDict({"loss": huber(q_tot, y),
-                           "q_chosen": q_taken.detach().flatten(-2).mean(-1)}, batch_size=[])
+        return self.outputs(q_tot, y, b, q_taken.detach().flatten(-2).mean(-1))
 
 
 @register
@@ -51,9 +50,9 @@ class VDN(DQN3):
 
     @classmethod
     def check_config(cls, algo: AlgoConfig) -> None:
-        if algo.loss != LossKind.fused:
+        if algo.loss != LossKind.fused:  # (its message covers algo=qmix too)
             raise ConfigError(f"algo.loss={algo.loss} is the 3DQN's reference loss; "
-                              f"algo=vdn has its own loss only: drop algo.loss.")
+                              f"algo={cls.name} has its own loss only: drop algo.loss.")
 
     def make_loss(self, gamma: float) -> LossModule:
         return VDNLoss(self.policy, gamma, self.dims.n_agents)
