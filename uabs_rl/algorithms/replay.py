@@ -130,6 +130,28 @@ class SumTree:
         self.max_priority = None if top < 0 else top
 
 
+def prioritized_draw(samplers: list[SumTree], held: int, batch_size: int,
+                     device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """``[P, batch_size]`` positions among the ``held`` drawn in proportion to priority^α,
+    and their importance weights, each member's from its own sum tree."""
+    drawn = [s.sample(held, batch_size) for s in samplers]
+    return (torch.stack([i for i, _ in drawn]).to(device),
+            torch.stack([w for _, w in drawn]).to(device))
+
+
+def flat_ring_position(slot: torch.Tensor, total: int, capacity: int,
+                       ring: int) -> torch.Tensor:
+    """Where slot ``slot`` of the paper's flat ring of ``capacity`` per-agent transitions
+    lies in the step slots (``ring`` = S · M positions), after ``total`` were written.
+    The slot holds the newest transition g with g = slot mod capacity; it lies at the
+    slot itself until the ring wraps, or when the step slots are that ring (capacity a
+    multiple of M), else at g mod ring."""
+    if total <= capacity or ring == capacity:
+        return slot
+    g = slot + capacity * torch.div(total - 1 - slot, capacity, rounding_mode="floor")
+    return g % ring
+
+
 class TransitionReplay:
     """The replay buffers of P members (see the module docstring): ``capacity`` per-agent
     transitions each, ``n_agents`` agents a step, sampled in ``unit`` by ``batch_size``."""
@@ -160,10 +182,6 @@ class TransitionReplay:
             items = self.slots * (n_agents if unit == "agent" else 1)
             self.samplers = [SumTree(items, priority_alpha, priority_beta, g)
                              for g in self.generators]
-
-    @property
-    def prioritized(self) -> bool:
-        return bool(self.samplers)
 
     # ------------------------------------------------------------------ sizes
     def __len__(self) -> int:
@@ -208,16 +226,8 @@ class TransitionReplay:
         size = len(self)
         slot = torch.stack([torch.randint(0, size, (batch_size,), generator=g, device=dev)
                             for g in self.generators])
-        # the draw names a slot of a ring of `capacity` per-agent transitions (the
-        # newest per-agent transition g with g = slot mod capacity); where that
-        # transition lies in the step slots: the slot itself until the ring wraps, or
-        # when the step slots are that ring (capacity a multiple of M)
-        total, ring = self.written * self.n_agents, self.slots * self.n_agents
-        if total <= self.capacity or ring == self.capacity:
-            return slot
-        g = slot + self.capacity * torch.div(total - 1 - slot, self.capacity,
-                                             rounding_mode="floor")
-        return g % ring
+        return flat_ring_position(slot, self.written * self.n_agents, self.capacity,
+                                  self.slots * self.n_agents)
 
     def gather(self, index: torch.Tensor) -> dict[str, torch.Tensor]:
         """The transitions at ``index`` (``[P, B]``, as :meth:`draw` returns them):
@@ -230,15 +240,6 @@ class TransitionReplay:
             out["team_reward"] = out["reward"].sum(-1)
         return out
 
-    def draw_prioritized(self, batch_size: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """``[P, batch_size]`` storage positions drawn in proportion to priority^α, and
-        their importance weights, each member's from its own sampler."""
-        drawn = [s.sample(self.held_items(), batch_size) for s in self.samplers]
-        dev = self.data["obs"].device
-        index = torch.stack([i for i, _ in drawn]).to(dev)
-        weight = torch.stack([w for _, w in drawn]).to(dev)
-        return index, weight
-
     def sample(self, batch_size: int | None = None, return_info: bool = False):
         """A batch of :data:`FIELDS` (``[B, ...]``, or ``[P, B, ...]`` for a population;
         ``unit`` step adds the agent dim), and with ``return_info`` ``{"index": ...}``.
@@ -246,7 +247,8 @@ class TransitionReplay:
         n = batch_size or self.batch_size
         weight = None
         if self.samplers:
-            index, weight = self.draw_prioritized(n)
+            index, weight = prioritized_draw(self.samplers, self.held_items(), n,
+                                             self.data["obs"].device)
         else:
             index = self.draw(n)
         batch = self.gather(index)
@@ -260,11 +262,9 @@ class TransitionReplay:
         return (td, {"index": index}) if return_info else td
 
     def update_priority(self, index: torch.Tensor, priority: torch.Tensor) -> None:
-        """Set the priorities of the items at ``index`` (``[B]``, or ``[P, B]`` for a
-        population, as :meth:`sample` returns them) to ``priority`` (the same shape; the
-        sum tree stores (priority + 1e-8)^α). Uniform sampling has no priorities: refused,
-        as TorchRL's uniform sampler ignores them silently and a learner that sets them
-        expects them used."""
+        """The priorities of the items at ``index`` (as :meth:`sample` gives it) set to
+        ``priority``. Refused when sampling uniformly (TorchRL's uniform sampler ignores
+        them silently; a learner that sets them expects them used)."""
         if not self.samplers:
             raise NotImplementedError("this replay samples uniformly; it keeps no priorities")
         index, priority = index.reshape(self.members, -1), priority.reshape(self.members, -1)
