@@ -165,7 +165,7 @@ def test_learned_vs_baselines_on_test_traces(sweep, report):
     out, res = report
     with open(out / "learned_vs_baselines.csv") as f:
         rows = list(csv.DictReader(f))
-    assert list(rows[0]) == ["mode", "n_uabs", "config", "metric", "baseline", "learned",
+    assert list(rows[0]) == ["mode", "algo", "n_uabs", "config", "metric", "baseline", "learned",
                              "diff", "ci_low", "ci_high", "n_seeds", "gap_share",
                              "gap_ci_low", "gap_ci_high"]
     assert {r["gap_share"] for r in rows} == {""}  # no planner asked for
@@ -504,3 +504,26 @@ def test_a_damaged_checkpoint_is_one_line_naming_it(sweep, tmp_path, capsys):
     assert report_main([str(tmp_path / "run"), "--curves"]) == 2
     (line,) = capsys.readouterr().err.splitlines()
     assert line.startswith("error: ") and str(ckpt) in line
+
+
+
+def test_runs_of_two_learners_are_two_groups_with_their_algo_column(sweep, trace_cache,
+                                                                     tmp_path):
+    """uabs-report groups runs by learner as it groups by mode: the 3DQN's rank runs and
+    QMIX's (the same seeds and settings otherwise) are two groups, each row named by its
+    learner in ``algo``."""
+    import shutil
+
+    root = tmp_path / "two"
+    for seed in (0, 1):
+        shutil.copytree(sweep / f"masking=rank,seed={seed}", root / f"dqn3,seed={seed}")
+        run(smoke(trace_cache, "masking=rank", f"seed={seed}", "algo=qmix", *QUIET),
+            root / f"qmix,seed={seed}")
+    out = tmp_path / "report"
+    build_report(root, out, with_baselines=True, command="uabs-report test")
+    with open(out / "learned_vs_baselines.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 2 * 9 and {r["n_seeds"] for r in rows} == {"2"}
+    assert sorted({r["algo"] for r in rows}) == ["dqn3", "qmix"]
+    labels = {r["algo"]: r["config"] for r in rows}
+    assert labels["dqn3"] != labels["qmix"] and "qmix" in labels["qmix"]

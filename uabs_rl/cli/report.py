@@ -297,8 +297,8 @@ def learned_pg_on_test(groups: dict[str, list[Run]],
 
 
 # ----------------------------------------------------------------------------- test set
-LVB_COLUMNS = ["mode", "n_uabs", "config", "metric", "baseline", "learned", "diff", "ci_low",
-               "ci_high", "n_seeds", "gap_share", "gap_ci_low", "gap_ci_high"]
+LVB_COLUMNS = ["mode", "algo", "n_uabs", "config", "metric", "baseline", "learned", "diff",
+               "ci_low", "ci_high", "n_seeds", "gap_share", "gap_ci_low", "gap_ci_high"]
 
 
 def learned_vs_baselines(grouping: Grouping, tests: dict[Path, dict]) -> list[dict[str, Any]]:
@@ -329,7 +329,8 @@ def learned_vs_baselines(grouping: Grouping, tests: dict[Path, dict]) -> list[di
                 seed_means = [float(d.mean()) for d in diffs]
                 _, lo, hi = bootstrap_ci(seed_means if len(per_seed) > 1 else diffs[0])
                 rows.append({
-                    "mode": runs[0].mode, "n_uabs": int(runs[0].settings["scenario.n_uabs"]),
+                    "mode": runs[0].mode, "algo": runs[0].settings["algo.name"],
+                    "n_uabs": int(runs[0].settings["scenario.n_uabs"]),
                     "config": runs[0].label, "metric": metric, "baseline": base,
                     "learned": float(np.mean([np.mean(r["learned"][k]) for r in per_seed])),
                     "diff": float(np.mean(seed_means)), "ci_low": lo, "ci_high": hi,
