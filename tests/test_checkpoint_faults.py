@@ -332,3 +332,35 @@ def test_a_format_1_checkpoint_loads_with_its_replay_in_todays_layout(state, tmp
     assert loaded["format"] == 2 and loaded["replay"]["written"] == replay["written"]
     for k, v in replay["data"].items():
         assert torch.equal(loaded["replay"]["data"][k], v), k
+
+
+def test_a_run_saved_before_settings_were_added_resumes_with_their_defaults(
+        ckpt_run, trace_cache, tmp_path):
+    """A checkpoint (and run folder) written before algo.replay, algo.priority_* and
+    algo.mixing_embed_dim existed resumes: an absent setting is its default, not a
+    difference of settings."""
+    import shutil
+
+    import yaml
+
+    run_dir = tmp_path / "old"
+    shutil.copytree(ckpt_run, run_dir)
+    added = ("replay", "priority_alpha", "priority_beta", "mixing_embed_dim")
+    for name in ("last.pt", "best.pt"):
+        path = run_dir / "checkpoints" / name
+        st = torch.load(path, weights_only=True)
+        st["config"]["algo"] = {k: v for k, v in st["config"]["algo"].items() if k not in added}
+        torch.save(st, path)
+    hydra_cfg = run_dir / ".hydra" / "config.yaml"
+    if hydra_cfg.exists():
+        d = yaml.safe_load(hydra_cfg.read_text())
+        d["algo"] = {k: v for k, v in d["algo"].items() if k not in added}
+        hydra_cfg.write_text(yaml.safe_dump(d))
+    episodes = int(st["config"]["train"]["episodes"]) + 1
+    # the original command re-typed with a new setting at its default, resume= appended
+    again = [f"resume={run_dir}", f"train.episodes={episodes}", "algo.replay=uniform"]
+    run(smoke(trace_cache, *again), Path("unused"), overrides=again)
+    assert load_checkpoint(run_dir / "checkpoints" / "last.pt")["counters"]["episode"] == episodes
+    with pytest.raises(CheckpointError, match=r"algo\.replay: 'uniform' in the checkpoint"):
+        bad = [f"resume={run_dir}", "algo.replay=prioritized"]
+        run(smoke(trace_cache, *bad), Path("unused"), overrides=bad)

@@ -182,7 +182,8 @@ def resumed_config(saved: RunConfig, overrides: list[str]) -> RunConfig:
                           f"{first}") from None
     own = _flat_config(saved)
     changed = {k: typed[k] for k in touched if k in typed and typed[k] != own.get(k)}
-    diffs = config_differences({k: own.get(k, "<absent>") for k in changed}, changed)
+    # a setting the run's config lacks (added since) compares as its default
+    diffs = config_differences({k: own[k] for k in changed if k in own}, changed)
     if diffs:
         raise CheckpointError("resume continues a run with its own settings; these "
                               "overrides would change its results:\n  " + "\n  ".join(diffs)

@@ -388,13 +388,17 @@ def flatten(d: Any, prefix: str = "") -> dict[str, Any]:
 
 
 def config_differences(saved: dict, current: dict) -> list[str]:
-    """Settings of ``COMPAT_KEYS`` that differ between a checkpoint and a config."""
+    """Settings of ``COMPAT_KEYS`` that differ between a checkpoint and a config. A
+    setting the saved config lacks (it was added since the run was written) counts as
+    its default, the value the run had in effect."""
     a, b = flatten(saved), flatten(current)
+    defaults = flatten(config_dict(RunConfig()))
     keys = sorted(k for k in set(a) | set(b) if any(
         k == c or k.startswith(c + ".") for c in COMPAT_KEYS) and not k.endswith("cache_dir")
         and not k.startswith("traces.test."))  # test traces never touch a training run
-    return [f"{k}: {a.get(k, '<absent>')!r} in the checkpoint, {b.get(k, '<absent>')!r} now"
-            for k in keys if a.get(k) != b.get(k)]
+    old = {k: a.get(k, defaults.get(k, "<absent>")) for k in keys}
+    return [f"{k}: {old[k]!r} in the checkpoint, {b.get(k, '<absent>')!r} now"
+            for k in keys if old[k] != b.get(k)]
 
 
 def check_compatible(state: dict, cfg: RunConfig, source: Path) -> None:
