@@ -362,3 +362,35 @@ def fixed_q_policy(sel, q):
     def policy(td):
         return sel(td.set(ACTION_VALUE, q))
     return policy
+
+
+@settings(max_examples=12, deadline=None)
+@given(name=st.sampled_from(["dqn3", "vdn", "qmix"]),
+       mode=st.sampled_from(["penalty", "flat", "rank"]), eps=st.floats(0.0, 0.5),
+       seed=st.integers(0, 2**31 - 1))
+def test_every_learners_policy_acts_only_within_the_mask(small_traces_cfg, train, name, mode,
+                                                         eps, seed):
+    """Each algorithm's acting network (randomly initialised) behind the masking rule's
+    selector, ε-greedy from random states: every chosen action is legal under the mask
+    that applied to it, and the collision masks keep every pair apart."""
+    from tensordict.nn import TensorDictModule, TensorDictSequential
+
+    from uabs_rl.algorithms import Dims, make_algorithm
+    from uabs_rl.config import AlgoConfig
+    from uabs_rl.env.uabs_env import N_ACTIONS, OBS
+
+    mk = MaskingConfig(mode=mode)
+    env = make_env(scenario(small_traces_cfg), ChannelConfig(), mk, train, n_envs=8,
+                   seed=seed % 1000)
+    p = env.base_env.params
+    lrn = make_algorithm(AlgoConfig(name=name, hidden=[32], mixing_embed_dim=8),
+                         Dims(p.obs_dim, N_ACTIONS, p.n_uabs), [seed % 1000],
+                         torch.device("cpu"))
+    policy = TensorDictSequential(
+        TensorDictModule(lrn.policy, in_keys=[OBS], out_keys=[ACTION_VALUE]),
+        make_selector(env, eps=eps, generator=torch.Generator().manual_seed(seed)))
+    env.set_seed(seed % 1000)
+    td = env.rollout(40, policy=policy, break_when_any_done=False)
+    assert td[MASK].gather(-1, td[ACTION][..., None]).all()
+    if mode != "penalty":
+        assert_never_below_d_th(td, p)
