@@ -298,6 +298,29 @@ def pack_outputs(out: dict[str, torch.Tensor], e: int, m: int,
     }, batch_size=(e,), device=device)
 
 
+def draw_windows(cursor: torch.Tensor, eval_windows: torch.Tensor | None,
+                 trace_shape: tuple[int, int], episode_steps: int,
+                 gen: torch.Generator | list[torch.Generator]) -> tuple[torch.Tensor, torch.Tensor]:
+    """(simulation, start step) of each env's next episode: the fixed evaluation window
+    its ``cursor`` points at, or (no ``eval_windows``, training) a random window of the
+    ``trace_shape`` = (simulations, steps) traces."""
+    if eval_windows is not None:
+        w = eval_windows[cursor % eval_windows.shape[0]]
+        return w[:, 0], w[:, 1]
+    n, dev = cursor.shape[0], cursor.device
+    sim = rng.randint(0, trace_shape[0], (n,), gen, dev)
+    start = rng.randint(0, trace_shape[1] - episode_steps, (n,), gen, dev)
+    return sim, start
+
+
+def merge_where(state: dict[str, torch.Tensor], fresh: dict[str, torch.Tensor],
+                mask: torch.Tensor, skip: str) -> None:
+    """``state[k]`` takes ``fresh[k]`` in the envs of ``mask`` (every entry but ``skip``)."""
+    for k, v in fresh.items():
+        if k != skip:
+            state[k] = torch.where(mask.view(-1, *([1] * (v.dim() - 1))), v, state[k])
+
+
 class UABSEnv(EnvBase):
     """M UABS over replayed vehicle traces; see the module docstring for the step order.
 
@@ -379,17 +402,6 @@ class UABSEnv(EnvBase):
         self.rng.manual_seed(int(seed) if seed is not None else 0)
         self.state["cursor"] = torch.arange(self.n_envs, device=self.device)
 
-    # ------------------------------------------------------------------ traces
-    def _draw_windows(self, st: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
-        if self.mode == "eval":
-            w = self.eval_windows[st["cursor"] % self.eval_windows.shape[0]]
-            return w[:, 0], w[:, 1]
-        s, steps = self.veh_pos.shape[:2]
-        sim = rng.randint(0, s, (self.n_envs,), self.rng, self.device)
-        hi = steps - self.params.episode_steps
-        start = rng.randint(0, hi, (self.n_envs,), self.rng, self.device)
-        return sim, start
-
     # ------------------------------------------------------------------ reset / step
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         mask = None
@@ -405,7 +417,9 @@ class UABSEnv(EnvBase):
         if mask is None:
             mask = torch.ones(self.n_envs, dtype=torch.bool, device=self.device)
         fresh = self._empty_state()
-        fresh["sim"], fresh["start"] = self._draw_windows(st)
+        fresh["sim"], fresh["start"] = draw_windows(st["cursor"], self.eval_windows,
+                                                    self.veh_pos.shape[:2],
+                                                    self.params.episode_steps, self.rng)
         geo = self.math.geometry
         fresh["pos"] = geo.start_positions(self.n_envs, self.rng)
         if self.start_spacing is not None:
@@ -413,11 +427,7 @@ class UABSEnv(EnvBase):
                                             self.rng)
         fresh["backup"] = geo.boundary_mask(fresh["pos"]).float().argmax(-1)
         served, present = self.math.observe(fresh, self.veh_pos, self.veh_present, self.rng)
-        for k, v in fresh.items():
-            if k == "cursor":
-                continue
-            m = mask.view(-1, *([1] * (v.dim() - 1)))
-            st[k] = torch.where(m, v, st[k])
+        merge_where(st, fresh, mask, skip="cursor")
         if self.mode == "eval":  # the next reset of env i takes window i + n_envs, ...
             st["cursor"] = st["cursor"] + mask.long() * self.n_envs
         zeros = torch.zeros(self.n_envs, device=self.device)
