@@ -260,7 +260,7 @@ class AlgoConfig:
     # beyond the paper: uniform | prioritized (proportional, as TorchRL's
     # PrioritizedSampler: draws in proportion to (|TD error| + 1e-8)^priority_alpha, new
     # transitions at the highest priority so far, the loss weighted by
-    # (p_i / p_min)^-priority_beta; uabs_rl.algorithms.replay.SumTree)
+    # (p_i / p_min)^-priority_beta; uabs_rl.algorithms.replay.Priorities)
     replay: ReplayKind = ReplayKind.uniform
     priority_alpha: float = 0.6  # prioritization exponent α (0: uniform draws)
     priority_beta: float = 0.4  # importance-weight exponent β (1: the bias fully corrected)

@@ -19,14 +19,13 @@ A population's sample is ``[P, B, ...]``, each member's indices drawn from its o
 generator, seeded as its single run seeds its own (``tests/test_algorithms.py``).
 
 Prioritized replay (``algo.replay=prioritized``, ``priority_alpha`` given): each member
-draws through a :class:`SumTree` over its storage positions (``slot · M + agent``, or
-step slots), with its own generator: TorchRL's ``PrioritizedSampler`` semantics
-(priorities (p + 1e-8)^α, new items at the highest priority so far, weights
+draws through a :class:`Priorities` table over its storage positions (``slot · M +
+agent``, or step slots), with its own generator: TorchRL's ``PrioritizedSampler``
+semantics (priorities (p + 1e-8)^α, new items at the highest priority so far, weights
 (p_i / p_min)^-β), in plain torch, because TorchRL's sampler needs its C++ extension,
-which does not load with the CPU torch this project pins. A new
-transition gets the highest priority so far; a sample carries ``index`` and the
-importance ``weight`` (p_i / p_min)^-β, and :meth:`update_priority` sets the sampled
-items' priorities from the learner's TD errors. It draws among the held step slots'
+which does not load with the CPU torch this project pins. A sample carries ``index`` and
+the importance ``weight``, and :meth:`update_priority` sets the sampled items'
+priorities from the learner's TD errors. It draws among the held step slots'
 transitions, which, when M does not divide ``algo.buffer_size``, are up to M − 1 more
 than ``buffer_size`` (uniform sampling keeps exactly the newest ``buffer_size``).
 
@@ -61,36 +60,31 @@ def storage(lead: tuple[int, ...], capacity: int, obs_dim: int, n_actions: int,
             for k in FIELDS}
 
 
-class SumTree:
+class Priorities:
     """Proportional prioritized sampling over ``capacity`` items (Schaul et al., 2016),
     as TorchRL's ``PrioritizedSampler`` does it: item i is drawn with probability
     (p_i + eps)^α / Σ_j (p_j + eps)^α and weighted (p_i / p_min)^-β; an item written
-    anew gets the highest priority given so far (1 before any). The leaves, and their
-    pairwise sums up to the root, in one float64 tensor: an update rewrites the
-    updated leaves' ancestors level by level, a draw descends from the root (both
-    vectorised over the batch, log2(capacity) steps)."""
+    anew gets the highest priority given so far (1 before any).
+
+    The stored (p + eps)^α in one float64 tensor; a draw searches their cumulative sum.
+    Measured on the development CPU (one thread, 100 002 items, batch 128): a draw takes
+    108 µs and setting 128 priorities 2 µs, against about 250 µs each (and 250 µs to
+    mark three new items) for a sum tree in plain torch, whose log2(capacity) levels
+    each cost a few small tensor ops."""
 
     def __init__(self, capacity: int, alpha: float, beta: float, generator: torch.Generator,
                  eps: float = 1e-8):
         self.alpha, self.beta, self.eps, self.generator = alpha, beta, eps, generator
-        self.leaves = 1 << max(0, (capacity - 1).bit_length())  # a power of two >= capacity
-        self.tree = torch.zeros(2 * self.leaves, dtype=torch.float64)
+        self.stored = torch.zeros(capacity, dtype=torch.float64)
         self.max_priority: float | None = None  # the highest priority given so far
 
-    def _set(self, index: torch.Tensor, values: torch.Tensor) -> None:
-        node = index.long() + self.leaves
-        self.tree[node] = values.to(torch.float64)
-        while node.numel() and int(node[0]) > 1:
-            node = node // 2
-            self.tree[node] = self.tree[2 * node] + self.tree[2 * node + 1]
-
     def update_priority(self, index: torch.Tensor, priority: torch.Tensor) -> None:
-        """Items ``index`` get priorities ``priority`` (raw: the tree stores (p + eps)^α)."""
+        """Items ``index`` get priorities ``priority`` (raw: stored as (p + eps)^α)."""
         priority = priority.detach().to("cpu", torch.float64).reshape(-1)
         if priority.numel():
             top = float(priority.max())
             self.max_priority = top if self.max_priority is None else max(self.max_priority, top)
-        self._set(index.cpu().reshape(-1), (priority + self.eps) ** self.alpha)
+        self.stored[index.cpu().reshape(-1)] = (priority + self.eps) ** self.alpha
 
     def mark_update(self, index: torch.Tensor) -> None:
         """Items written anew: the highest priority so far."""
@@ -98,42 +92,32 @@ class SumTree:
         first = 1.0 if self.max_priority is None else self.max_priority
         self.update_priority(index, torch.full(index.shape, first))
 
-    def priorities(self, n: int) -> torch.Tensor:
-        """The stored (p + eps)^α of items ``0..n-1``."""
-        return self.tree[self.leaves:self.leaves + n]
-
     def sample(self, held: int, batch_size: int) -> tuple[torch.Tensor, torch.Tensor]:
         """``batch_size`` items among ``0..held-1`` in proportion to their stored
         priorities, and their importance weights (p_i / p_min)^-β (float32)."""
+        p = self.stored[:held]
+        total = torch.cumsum(p, 0)
         mass = torch.rand(batch_size, generator=self.generator, dtype=torch.float64)
-        mass = mass * self.tree[1]
-        node = torch.ones(batch_size, dtype=torch.long)
-        while int(node[0]) < self.leaves:
-            left = self.tree[2 * node]
-            right = mass > left
-            mass = torch.where(right, mass - left, mass)
-            node = 2 * node + right.long()
-        index = (node - self.leaves).clamp(max=held - 1)
-        p = self.tree[index + self.leaves]
-        weight = (p / self.priorities(held).min()) ** -self.beta
+        index = torch.searchsorted(total, mass * total[-1]).clamp(max=held - 1)
+        weight = (p[index] / p.min()) ** -self.beta
         return index, weight.float()
 
     def state_dict(self, held: int) -> dict:
         top = -1.0 if self.max_priority is None else self.max_priority
-        return {"priority": self.priorities(held).clone(), "max_priority": top}
+        return {"priority": self.stored[:held].clone(), "max_priority": top}
 
     def load_state_dict(self, state: dict) -> None:
-        self.tree.zero_()
+        self.stored.zero_()
         leaves = state["priority"].to(torch.float64)
-        self._set(torch.arange(leaves.shape[0]), leaves)
+        self.stored[:leaves.shape[0]] = leaves
         top = float(state["max_priority"])
         self.max_priority = None if top < 0 else top
 
 
-def prioritized_draw(samplers: list[SumTree], held: int, batch_size: int,
+def prioritized_draw(samplers: list[Priorities], held: int, batch_size: int,
                      device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
     """``[P, batch_size]`` positions among the ``held`` drawn in proportion to priority^α,
-    and their importance weights, each member's from its own sum tree."""
+    and their importance weights, each member's from its own table."""
     drawn = [s.sample(held, batch_size) for s in samplers]
     return (torch.stack([i for i, _ in drawn]).to(device),
             torch.stack([w for _, w in drawn]).to(device))
@@ -177,10 +161,10 @@ class TransitionReplay:
         self.written = 0  # env steps written per member
         self.generators = [torch.Generator(device=dev).manual_seed(s) for s in seeds]
         self.rows = torch.arange(self.members, device=dev)[:, None]
-        self.samplers: list[SumTree] = []
+        self.samplers: list[Priorities] = []
         if priority_alpha is not None:  # one sampler per member, drawing from its generator
             items = self.slots * (n_agents if unit == "agent" else 1)
-            self.samplers = [SumTree(items, priority_alpha, priority_beta, g)
+            self.samplers = [Priorities(items, priority_alpha, priority_beta, g)
                              for g in self.generators]
 
     # ------------------------------------------------------------------ sizes
@@ -252,12 +236,10 @@ class TransitionReplay:
         else:
             index = self.draw(n)
         batch = self.gather(index)
+        if self.members == 1:
+            index, weight = index[0], None if weight is None else weight[0]
         if weight is not None:
             batch["index"], batch["weight"] = index, weight
-            if self.members == 1:
-                batch["index"], batch["weight"] = index[0], weight[0]
-        if self.members == 1:
-            index = index[0]
         td = TensorDict(batch, batch_size=index.shape)
         return (td, {"index": index}) if return_info else td
 
@@ -277,7 +259,7 @@ class TransitionReplay:
         held = self.steps_held
         state = {"data": {k: v[p, :held].clone() for k, v in self.data.items()},
                  "written": self.written, "generator": self.generators[p].get_state()}
-        if self.samplers:  # the sum tree's leaves ((p + eps)^α) and the highest priority
+        if self.samplers:  # the stored (p + eps)^α and the highest priority
             state.update(self.samplers[p].state_dict(self.held_items()))
         return state
 
