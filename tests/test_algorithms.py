@@ -504,3 +504,23 @@ def test_a_qmix_update_trains_each_members_mixer_and_the_target_copies_it():
     solo.load_state_dict(lrn.member_state_dict(1))
     assert all(torch.equal(v, lrn.mixers[1].state_dict()[k])
                for k, v in solo.mixers[0].state_dict().items())
+
+
+@pytest.mark.parametrize("members", [1, 2])
+def test_qmix_clips_each_members_network_and_mixer_by_their_joint_norm(members):
+    """algo.grad_clip on QMIX: each member's gradient over its Q-network and its mixer
+    together is scaled to norm grad_clip, as clip_grad_norm_ over both in a single run."""
+    lrn = qmix(seeds=range(members), grad_clip=1e-3, batch_size=6, buffer_size=30,
+               learning_starts=6)
+    tr = steps(4 * members, 3, seed=2, obs_dim=5)
+    tr["next_mask"][..., 0] = True
+    lrn.buffer.extend(tr)
+    loss, _ = lrn.loss(lrn.buffer.sample())
+    loss.sum().backward()
+    lrn.clip_gradients()
+    grads = [q.grad for q in lrn.policy.parameters()]
+    for p in range(members):
+        net = (torch.stack([g.pow(2).sum() for g in grads]) if members == 1 else
+               torch.stack([g.pow(2).sum() for g in lrn.policy.member_tensors(grads, p).values()]))
+        mixer = torch.stack([q.grad.pow(2).sum() for q in lrn.mixers[p].parameters()])
+        assert (net.sum() + mixer.sum()).sqrt().item() == pytest.approx(1e-3, rel=1e-4)

@@ -246,16 +246,25 @@ class DQN3(Algorithm):
         return loss.detach(), q_chosen
 
     def clip_gradients(self) -> None:
-        """Each member's gradient clipped by its own norm, as ``clip_grad_norm_`` does in
-        a single run."""
+        """Each member's gradient (its network's and its :meth:`member_extra`'s) clipped
+        by its own norm, as ``clip_grad_norm_`` over both does in a single run."""
+        extras = [[] if m is None else list(m.parameters()) for m in self.extras]
         if self.members == 1:
-            torch.nn.utils.clip_grad_norm_(self.policy.parameters(), self.algo.grad_clip)
+            torch.nn.utils.clip_grad_norm_([*self.policy.parameters(), *extras[0]],
+                                           self.algo.grad_clip)
             return
         grads = [p.grad for p in self.policy.parameters()]
-        norm = torch.stack([g.pow(2).flatten(1).sum(1) for g in grads]).sum(0).sqrt()  # [P]
-        scale = (self.algo.grad_clip / (norm + 1e-6)).clamp(max=1.0)
+        sq = torch.stack([g.pow(2).flatten(1).sum(1) for g in grads]).sum(0)  # [P]
+        extra = [[q.grad for q in ps if q.grad is not None] for ps in extras]
+        if all(extra):
+            sq = sq + torch.stack([torch.stack([g.pow(2).sum() for g in gs]).sum()
+                                   for gs in extra])
+        scale = (self.algo.grad_clip / (sq.sqrt() + 1e-6)).clamp(max=1.0)
         for g in grads:
             g.mul_(scale.view(-1, *([1] * (g.dim() - 1))))
+        for p, gs in enumerate(extra):
+            for g in gs:
+                g.mul_(scale[p])
 
     # ------------------------------------------------------------------ state
     def member_state_dict(self, p: int) -> dict:

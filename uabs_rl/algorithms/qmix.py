@@ -98,26 +98,6 @@ class QMIX(VDN):
         super().__init__(algo, dims, seeds, device)
         self.optims += self.mixer_optims  # an update steps the mixers with the network
 
-    def clip_gradients(self) -> None:
-        """Each member's gradient (its network's and its mixer's) clipped by its own
-        norm, as ``clip_grad_norm_`` over both would in a single run."""
-        grads = [q.grad for q in self.policy.parameters()]
-        if self.members == 1:
-            sq = torch.stack([g.pow(2).sum() for g in grads]).sum()[None]
-        else:
-            sq = torch.stack([g.pow(2).flatten(1).sum(1) for g in grads]).sum(0)  # [P]
-        mixer_grads = [[q.grad for q in m.parameters() if q.grad is not None]
-                       for m in self.mixers]
-        sq = sq + torch.stack([torch.stack([g.pow(2).sum() for g in gs]).sum()
-                               for gs in mixer_grads])
-        scale = (self.algo.grad_clip / (sq.sqrt() + 1e-6)).clamp(max=1.0)  # [P]
-        for g in grads:
-            g.mul_(scale[0] if self.members == 1 else
-                   scale.view(-1, *([1] * (g.dim() - 1))))
-        for p, gs in enumerate(mixer_grads):
-            for g in gs:
-                g.mul_(scale[p])
-
     # ------------------------------------------------------------------ state
     def member_state_dict(self, p: int) -> dict:
         """The 3DQN's member state, plus ``mixer``, ``target_mixer`` (``QMixer`` state
