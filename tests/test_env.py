@@ -8,7 +8,7 @@ import pytest
 import torch
 from torchrl.envs.utils import check_env_specs
 
-from uabs_rl.config import ChannelConfig, ConfigError, ScenarioConfig
+from uabs_rl.config import ChannelConfig, ConfigError, ObsConfig, ScenarioConfig
 from uabs_rl.env import service
 from uabs_rl.env.channel import los_probability
 from uabs_rl.env.params import EnvParams
@@ -279,7 +279,7 @@ def test_sampled_los_draws_only_where_they_matter(small_traces_cfg):
 
 
 def test_lookahead_observation_scores_each_candidate_move(small_traces_cfg):
-    """scenario.lookahead_obs: one vehicle 40 m east of the UABS is under its footprints
+    """obs.lookahead: one vehicle 40 m east of the UABS is under its footprints
     after a move right (20 m off) and after two (0 m), and nowhere else."""
     from uabs_rl.traces.store import TraceSet
 
@@ -287,8 +287,8 @@ def test_lookahead_observation_scores_each_candidate_move(small_traces_cfg):
     pos = torch.zeros(1, steps, 1, 2)
     pos[..., 0], pos[..., 1] = 145.0, 85.0
     traces = TraceSet(pos, torch.ones(1, steps, 1, dtype=torch.bool), {"split": "x", "dt": 1.0})
-    sc = scenario(small_traces_cfg, n_uabs=1, lookahead_obs=True)
-    env = UABSEnv(sc, ChannelConfig(), traces, n_envs=1, seed=0)
+    sc = scenario(small_traces_cfg, n_uabs=1)
+    env = UABSEnv(sc, ChannelConfig(), traces, n_envs=1, seed=0, obs=ObsConfig(lookahead=True))
     assert env.params.obs_dim == 3 + 2 + 9 + 8
     env.reset()
     st = env.state
@@ -299,11 +299,11 @@ def test_lookahead_observation_scores_each_candidate_move(small_traces_cfg):
     # order: up, right, down, left, then 2 x up, 2 x right, 2 x down, 2 x left
     assert look.tolist() == [0.0, prio, 0.0, 0.0, 0.0, prio, 0.0, 0.0]
     obs = env.math.observation(st["pos"], st["t"], st["b"], st["look"])
-    assert torch.allclose(obs[0, 0, -8:], look / sc.priority_obs_scale)
+    assert torch.allclose(obs[0, 0, -8:], look / ObsConfig().priority_scale)
 
 
 def test_motion_observation_scores_moves_at_extrapolated_positions(small_traces_cfg):
-    """scenario.motion_obs: a vehicle that moved 40 m east in the last step is scored
+    """obs.motion: a vehicle that moved 40 m east in the last step is scored
     where it will be if it keeps moving (40 m east of the UABS: only the move right
     reaches it), while the plain lookahead scores it where it is (under the UABS: every
     move reaches it). At the window's first step there is no last move."""
@@ -314,11 +314,11 @@ def test_motion_observation_scores_moves_at_extrapolated_positions(small_traces_
     pos[..., 1] = 85.0
     pos[0, :5, 0, 0], pos[0, 5:, 0, 0] = 65.0, 105.0
     traces = TraceSet(pos, torch.ones(1, steps, 1, dtype=torch.bool), {"split": "x", "dt": 1.0})
-    with pytest.raises(ConfigError, match="motion_obs needs scenario.lookahead_obs"):
-        UABSEnv(scenario(small_traces_cfg, n_uabs=1, motion_obs=True), ChannelConfig(),
-                traces, n_envs=1, seed=0)
-    sc = scenario(small_traces_cfg, n_uabs=1, lookahead_obs=True, motion_obs=True)
-    env = UABSEnv(sc, ChannelConfig(), traces, n_envs=1, seed=0)
+    sc = scenario(small_traces_cfg, n_uabs=1)
+    with pytest.raises(ConfigError, match="obs.motion needs obs.lookahead=true"):
+        UABSEnv(sc, ChannelConfig(), traces, n_envs=1, seed=0, obs=ObsConfig(motion=True))
+    env = UABSEnv(sc, ChannelConfig(), traces, n_envs=1, seed=0,
+                  obs=ObsConfig(lookahead=True, motion=True))
     assert env.params.obs_dim == 3 + 2 + 9 + 8 + 4
     env.reset()
     st = env.state

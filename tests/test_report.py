@@ -264,6 +264,22 @@ def test_run_labels_name_the_observation_and_learning_settings(scenario, algo, t
     assert Run(Path("x"), "flat", 0, 1000, [], [], cfg).label == label
 
 
+@pytest.mark.parametrize("obs,label", [
+    ({"name": "lookahead", "lookahead": True}, "lookahead"),
+    ({"name": "lookahead_motion", "lookahead": True, "motion": True}, "lookahead+motion"),
+    ({"name": "egocentric", "frame": "egocentric", "motion": True}, "egocentric"),
+    ({"frame": "egocentric", "map_radius": 3}, "egocentric-static obs.map_radius=3"),
+])
+def test_run_labels_name_the_obs_group(obs, label):
+    """Runs written with the obs group; a run of the same observation written before
+    it (scenario.lookahead_obs, above) gets the same label."""
+    from uabs_rl.cli.report import Run
+
+    cfg = {"scenario": {}, "obs": obs, "channel": {}, "masking": {"recoverable": True},
+           "algo": {}, "train": {}, "traces": {}, "seed": 0}
+    assert Run(Path("x"), "flat", 0, 1000, [], [], cfg).label == label
+
+
 def test_runs_written_before_recoverable_masks_are_literal():
     from uabs_rl.cli.report import Run
 

@@ -21,7 +21,12 @@ from uabs_rl.cli.train import prepare, run
 from uabs_rl.config import ConfigError, validate_run
 from uabs_rl.safety.make import make_selector
 from uabs_rl.traces.store import TraceSet
-from uabs_rl.training.checkpoint import CheckpointError, Interrupted, load_checkpoint
+from uabs_rl.training.checkpoint import (
+    CheckpointError,
+    Interrupted,
+    config_from_checkpoint,
+    load_checkpoint,
+)
 from uabs_rl.training.experiment import Experiment
 
 
@@ -362,3 +367,32 @@ def test_checkpoint_of_an_earlier_version_still_loads(rank_run, tmp_path):
     torch.save(state, tmp_path / "old.pt")
     ev = load_evaluation(tmp_path / "old.pt", split="eval")
     assert ev.cfg.train.logger == "none"
+
+
+@pytest.mark.parametrize("lookahead,motion,name", [(False, False, "paper"),
+                                                   (True, False, "lookahead"),
+                                                   (True, True, "lookahead_motion")])
+def test_a_config_with_the_observation_in_scenario_still_loads(rank_run, tmp_path,
+                                                               lookahead, motion, name):
+    """Checkpoints written before the obs group held scenario.lookahead_obs,
+    motion_obs and priority_obs_scale: they load with those in obs, and the command the
+    run was started with (obs=..., re-typed) finds no difference."""
+    from uabs_rl.training.checkpoint import config_dict, config_differences, upgrade_config
+
+    state = load_checkpoint(rank_run / "checkpoints" / "last.pt")
+    cfg = dict(state["config"])
+    cfg.pop("obs")
+    cfg["scenario"] = {**cfg["scenario"], "lookahead_obs": lookahead, "motion_obs": motion,
+                       "priority_obs_scale": 10.0}
+    state["config"] = cfg
+    if not lookahead:  # the network fits: the whole checkpoint loads
+        torch.save(state, tmp_path / "old.pt")
+        assert load_evaluation(tmp_path / "old.pt", split="eval").cfg.obs.name == "paper"
+    cfg = config_from_checkpoint(state)
+    assert (cfg.obs.lookahead, cfg.obs.motion, cfg.obs.name) == (lookahead, motion, name)
+    assert cfg.obs.frame == "fleet" and cfg.obs.priority_scale == 10.0
+    current = config_dict(cfg)
+    assert config_differences(upgrade_config(state["config"]), current) == []
+    current["obs"]["motion"] = not motion
+    assert config_differences(upgrade_config(state["config"]), current) == [
+        f"obs.motion: {motion!r} in the checkpoint, {not motion!r} now"]

@@ -103,7 +103,9 @@ def test_uabs_eval_on_another_network_and_fleet(smoke_run, user_dir, capsys):
 
 
 @pytest.mark.parametrize("override, names", [
-    ("scenario.n_uabs=4", ["scenario.n_uabs=4", "observations of size"]),
+    ("scenario.n_uabs=4", ["scenario.n_uabs=4", "observations of size", "obs=egocentric"]),
+    ("obs=egocentric", ["obs=egocentric", "belongs to the trained policy"]),
+    ("scenario.lookahead_obs=true", ["moved to the observation group", "obs=lookahead"]),
     ("channel.n_beams=16", ["channel.n_beams=16", "cannot change at evaluation"]),
     ("algo.lr=0.1", ["algo.lr=0.1", "belongs to the trained policy"]),
     ("train.episodes=3", ["train.episodes=3", "belongs to the trained policy"]),
@@ -117,3 +119,42 @@ def test_uabs_eval_refuses_what_cannot_change(smoke_run, override, names, capsys
     assert err.startswith("error: ") and len(err.strip().splitlines()) == 1
     for n in names:
         assert n in err
+
+
+@pytest.fixture(scope="module")
+def egocentric_run(trace_cache, tmp_path_factory) -> Path:
+    run_dir = tmp_path_factory.mktemp("egocentric_run")
+    run(smoke(trace_cache, "obs=egocentric", "masking=rank", "train.logger=none",
+              "train.trajectory_images=false"), run_dir)
+    return run_dir
+
+
+def test_an_egocentric_policy_flies_other_fleets_and_cities(egocentric_run, user_dir,
+                                                           capsys):
+    """Trained at M = 3 over the default grid: evaluated at M = 6 there, and at M = 2
+    over a user's 4 x 4 grid, with its own observation (the scenario files hold none)."""
+    test_traces = ["traces.test.n_sims=1", "traces.test.duration_s=170",
+                   "traces.test.warmup_s=10"]
+    assert eval_main([str(egocentric_run), "scenario.n_uabs=6", *test_traces,
+                      "--checkpoint", "last"]) == 0
+    res = json.loads((egocentric_run / "evaluation" / ",".join(
+        ["scenario.n_uabs=6", *test_traces]) / "eval.json").read_text())
+    learned = res["policies"]["learned"]
+    assert learned["collisions"] == 0 and learned["fallbacks"] == 0
+    other = ["scenario=grid4", "scenario.n_uabs=2", *test_traces]
+    assert eval_main([str(egocentric_run), "--config-dir", str(user_dir), *other,
+                      "--checkpoint", "last"]) == 0
+    res = json.loads((egocentric_run / "evaluation" / ",".join(other) / "eval.json")
+                     .read_text())
+    assert res["scenario"] == "grid4" and res["policies"]["learned"]["collisions"] == 0
+
+
+def test_old_observation_keys_on_the_command_line_say_what_to_type():
+    proc = subprocess.run([sys.executable, "-m", "uabs_rl.cli.train",
+                           "scenario.lookahead_obs=true", "scenario.motion_obs=true"],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2
+    assert proc.stderr.strip() == (
+        "error: scenario.lookahead_obs moved to the observation group: type obs=lookahead "
+        "(obs=lookahead_motion with the motion features) instead of "
+        "scenario.lookahead_obs=true (conf/obs holds the observations).")

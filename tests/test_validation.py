@@ -22,6 +22,7 @@ from uabs_rl.config import (
     ChannelConfig,
     ConfigError,
     MaskingConfig,
+    ObsConfig,
     ScenarioConfig,
     SplitConfig,
     TracesConfig,
@@ -68,6 +69,12 @@ BAD = [  # (override on the smoke preset, the setting its message must name)
     ("channel.shadow_sigma_los_db=-4", "channel.shadow_sigma_los_db"),
     ("channel.shadow_sigma_nlos_db=nan", "channel.shadow_sigma_nlos_db"),
     ("channel.outside_beam_gain_db=nan", "channel.outside_beam_gain_db"),
+    ("obs.priority_scale=0", "obs.priority_scale"),
+    ("obs.priority_scale=nan", "obs.priority_scale"),
+    ("obs.motion=true", "obs.motion"),  # on the paper's observation: nothing to extend
+    ("obs.map_radius=-1", "obs.map_radius"),
+    ("obs.neighbours=-1", "obs.neighbours"),
+    ("obs.edge_range=0", "obs.edge_range"),
     ("masking.flat_margin=nan", "masking.flat_margin"),
     ("masking.collider_margin=-1", "masking.collider_margin"),
     ("train.threads=0", "train.threads"),
@@ -90,6 +97,13 @@ def test_bad_values_are_refused_naming_the_setting(trace_cache, override, key):
     with pytest.raises(ConfigError, match=re.escape(key)) as e:
         validate_run(smoke(trace_cache, override))
     assert "\n" not in str(e.value)
+
+
+def test_the_egocentric_map_replaces_the_lookahead_scores(trace_cache):
+    with pytest.raises(ConfigError, match=r"obs\.lookahead must be false with "
+                                          r"obs\.frame=egocentric"):
+        validate_run(smoke(trace_cache, "obs=egocentric", "obs.lookahead=true"))
+    validate_run(smoke(trace_cache, "obs=egocentric"))
 
 
 def test_the_last_population_seed_must_be_a_generator_seed(trace_cache):
@@ -159,15 +173,18 @@ def test_every_default_and_preset_validates():
 
 
 # ----------------------------------------------------------------------------- memory
-@pytest.mark.parametrize("lookahead,motion", [(False, False), (True, False), (True, True)])
+@pytest.mark.parametrize("obs", [ObsConfig(), ObsConfig(lookahead=True),
+                                 ObsConfig(lookahead=True, motion=True),
+                                 ObsConfig(frame="egocentric", motion=True),
+                                 ObsConfig(frame="egocentric", map_radius=1, neighbours=2)])
 @pytest.mark.parametrize("n_uabs,n_beams", [(3, 9), (25, 16)])
-def test_memory_sizes_equal_the_allocated_tensors(lookahead, motion, n_uabs, n_beams):
+def test_memory_sizes_equal_the_allocated_tensors(obs, n_uabs, n_beams):
     """The byte counts of the memory check are those of the replay storage and the env
     state as allocated (on the meta device: shapes and dtypes, no memory)."""
-    sc = ScenarioConfig(n_uabs=n_uabs, lookahead_obs=lookahead, motion_obs=motion)
+    sc = ScenarioConfig(n_uabs=n_uabs)
     ch = ChannelConfig(n_beams=n_beams)
-    p = EnvParams.from_config(sc, ch)
-    assert observation_size(sc, ch) == p.obs_dim
+    p = EnvParams.from_config(sc, ch, obs)
+    assert observation_size(sc, ch, obs) == p.obs_dim
     nbytes = lambda ts: sum(t.numel() * t.element_size() for t in ts.values())  # noqa: E731
     meta = torch.device("meta")
     assert transition_bytes(p.obs_dim) * 7 == nbytes(storage((), 7, p.obs_dim, N_ACTIONS,
@@ -175,7 +192,7 @@ def test_memory_sizes_equal_the_allocated_tensors(lookahead, motion, n_uabs, n_b
     assert transition_bytes(18) == 165  # the paper's observation: 3 + 2·3 + 9 features
     v = sc.sumo.fleet_size
     links = 2 * 4 * n_uabs * v  # one step's beam-grid x and y, float32 [M, V]
-    assert env_bytes(sc, ch) * 5 == nbytes(empty_state(p, 5, v, meta)) + 5 * links
+    assert env_bytes(sc, ch, obs) * 5 == nbytes(empty_state(p, 5, v, meta)) + 5 * links
 
 
 @pytest.fixture

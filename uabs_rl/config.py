@@ -172,18 +172,47 @@ class ScenarioConfig:
     safety_distance: float | None = None  # d_th (m); null = 2·h·tan(φ/2) ≈ 72.8 m [decision]
     lattice: bool = True  # positions on a lattice of pitch v·δt [decision]; false = continuous
     safe_start: bool = True  # the inner UABS starts ≥ d_th from the others [decision]
-    priority_obs_scale: float = 10.0  # b_t is divided by this in the observation
-    # beyond the paper: the observation also holds, for each of the 4 moves and for 2
-    # steps in each direction, the priority the UABS's footprints would cover there at
-    # the vehicles' current positions (what the greedy baseline looks at); false = the
-    # paper's observation
-    lookahead_obs: bool = False
-    # beyond the paper, with lookahead_obs: 4 more features, the priority each move would
-    # cover at the vehicles' positions extrapolated one step from their last move
-    # (x_t + (x_t - x_{t-1}), past positions only): an estimate of what the oracle
-    # baseline sees; false = none
-    motion_obs: bool = False
     time_is_terminal: bool = True  # t/T is observed: t = T ends the MDP, no bootstrap [decision]
+
+
+class ObsFrame(StrEnum):
+    """Which frame each UABS's observation is written in (``uabs_rl.env.observe``)."""
+
+    fleet = "fleet"
+    egocentric = "egocentric"
+
+
+@dataclass
+class ObsConfig:
+    """What each UABS observes: the network's input (docs/model.md §5). Its own group,
+    apart from ``scenario``, so a policy evaluated in another city keeps the observation
+    it was trained on. ``obs=paper`` (default), ``lookahead``, ``lookahead_motion``,
+    ``egocentric``."""
+
+    name: str = "paper"  # a label for reports; the fields below decide the observation
+    # fleet: the paper's (x/W, y/H, t/T, every UABS's position, b_t): its size grows
+    # with M. egocentric: a size fixed whatever M and the area (below)
+    frame: ObsFrame = ObsFrame.fleet
+    priority_scale: float = 10.0  # priorities (b_t, lookahead, map) are divided by this
+    # fleet frame, beyond the paper: for each of the 4 moves and for 2 steps in each
+    # direction, the priority the UABS's footprints would cover there at the vehicles'
+    # current positions (what the greedy baseline looks at); false = the paper's
+    lookahead: bool = False
+    # beyond the paper, with lookahead (fleet) or egocentric: the same scores at the
+    # vehicles' positions extrapolated one step from their last move (x_t + (x_t -
+    # x_{t-1}), past positions only): an estimate of what the oracle baseline sees
+    # (fleet: the 4 moves; egocentric: the whole local map)
+    motion: bool = False
+    # egocentric: the priority the footprints would cover at each lattice point within
+    # this many steps in x and y of the UABS, (2r + 1)^2 numbers
+    map_radius: int = 2
+    neighbours: int = 4  # egocentric: K nearest other UABS (offset and a present flag)
+    # egocentric: neighbours' offsets, in lattice steps, divided by this and clipped
+    # to [-1, 1]
+    neighbour_range: float = 10.0
+    # egocentric: the distance to each of the area's 4 edges, in lattice steps, divided
+    # by this and clipped to [0, 1]
+    edge_range: float = 4.0
 
 
 @dataclass
@@ -302,6 +331,7 @@ class RunConfig:
     """Top-level config of ``uabs-train``."""
 
     scenario: ScenarioConfig = field(default_factory=ScenarioConfig)
+    obs: ObsConfig = field(default_factory=ObsConfig)
     channel: ChannelConfig = field(default_factory=ChannelConfig)
     masking: MaskingConfig = field(default_factory=MaskingConfig)
     algo: AlgoConfig = field(default_factory=AlgoConfig)
@@ -320,6 +350,47 @@ class TracesAppConfig(RunConfig):
     split: str = "all"  # which traces to build: train, eval, test or all (uabs-traces split=test)
 
 
+def validate_obs(obs: ObsConfig) -> None:
+    """Value checks for the observation, each naming the offending key."""
+    check_finite(obs, "obs.")
+    ego = enum_value(ObsFrame, obs.frame, "obs.frame") == ObsFrame.egocentric
+    _raise_first([
+        (obs.priority_scale > 0, "obs.priority_scale", "must be > 0", obs.priority_scale),
+        (not (ego and obs.lookahead), "obs.lookahead", "must be false with "
+         "obs.frame=egocentric (its local map holds the lookahead scores)", obs.lookahead),
+        (obs.lookahead or ego or not obs.motion, "obs.motion", "needs obs.lookahead=true "
+         "or obs.frame=egocentric (it extends their scores)", obs.motion),
+        (obs.map_radius >= 0, "obs.map_radius", "must be >= 0 (lattice steps)",
+         obs.map_radius),
+        (obs.neighbours >= 0, "obs.neighbours", "must be >= 0", obs.neighbours),
+        (obs.neighbour_range > 0, "obs.neighbour_range", "must be > 0 (lattice steps)",
+         obs.neighbour_range),
+        (obs.edge_range > 0, "obs.edge_range", "must be > 0 (lattice steps)",
+         obs.edge_range),
+    ])
+
+
+# settings that moved: (section, old key) -> (section, new key); stored configs are
+# upgraded (uabs_rl.training.checkpoint.upgrade_config), command lines refused by
+# check_moved_overrides
+MOVED = {("scenario", "lookahead_obs"): ("obs", "lookahead"),
+         ("scenario", "motion_obs"): ("obs", "motion"),
+         ("scenario", "priority_obs_scale"): ("obs", "priority_scale")}
+
+
+def check_moved_overrides(overrides: list[str]) -> None:
+    """Refuse a command-line override of a setting that moved, saying what to type."""
+    for o in overrides:
+        key, _, value = o.lstrip("+~").partition("=")
+        for (sec, old), (new_sec, new) in MOVED.items():
+            if key == f"{sec}.{old}":
+                hint = {"lookahead": "obs=lookahead (obs=lookahead_motion with the motion "
+                                     "features)", "motion": "obs=lookahead_motion"}.get(
+                    new, f"{new_sec}.{new}={value}")
+                raise ConfigError(f"{key} moved to the observation group: type {hint} "
+                                  f"instead of {o} (conf/obs holds the observations).")
+
+
 def validate_world(cfg: RunConfig) -> None:
     """The start-up checks of the world a policy acts in (scenario, traces, channel,
     masking), each naming the key: what ``uabs-eval`` checks, and part of
@@ -327,6 +398,7 @@ def validate_world(cfg: RunConfig) -> None:
     again, so an env built from the library is guarded too.)"""
     validate_scenario_traces(cfg.scenario, cfg.traces)
     validate_env(cfg.scenario, cfg.channel)
+    validate_obs(cfg.obs)
     validate_masking(cfg.masking)
 
 
@@ -419,6 +491,7 @@ def _train_checks(cfg: RunConfig) -> list[tuple[bool, str, str, Any]]:
 def register_configs() -> None:
     cs = ConfigStore.instance()
     cs.store(group="scenario", name="scenario_schema", node=ScenarioConfig)
+    cs.store(group="obs", name="obs_schema", node=ObsConfig)
     cs.store(group="channel", name="channel_schema", node=ChannelConfig)
     cs.store(group="masking", name="masking_schema", node=MaskingConfig)
     cs.store(name="traces_app_schema", node=TracesAppConfig)
@@ -560,11 +633,6 @@ def validate_env(scenario: ScenarioConfig, channel: ChannelConfig) -> None:
         (scenario.safety_distance is None or scenario.safety_distance
          >= scenario.collision_distance, "scenario.safety_distance",
          "must be null or >= scenario.collision_distance", scenario.safety_distance),
-        (scenario.priority_obs_scale > 0, "scenario.priority_obs_scale", "must be > 0",
-         scenario.priority_obs_scale),
-        (scenario.lookahead_obs or not scenario.motion_obs, "scenario.motion_obs",
-         "needs scenario.lookahead_obs=true (it extends the lookahead features)",
-         scenario.motion_obs),
         (min(scenario.area.width, scenario.area.height) >= scenario.speed * scenario.dt,
          "scenario.area", "must be at least v·δt wide and high so every UABS can move",
          (scenario.area.width, scenario.area.height)),
@@ -612,10 +680,21 @@ def _raise_first(checks: list[tuple[bool, str, str, Any]]) -> None:
 
 
 # ----------------------------------------------------------------------------- memory
-def observation_size(scenario: ScenarioConfig, channel: ChannelConfig) -> int:
+def score_size(obs: ObsConfig) -> int:
+    """Priority scores one agent's observation holds (the env state's ``look``;
+    ``uabs_rl.env.params.EnvParams.n_lookahead``)."""
+    if obs.frame == ObsFrame.egocentric:
+        return (2 * obs.map_radius + 1) ** 2 * (1 + obs.motion)
+    return (8 + 4 * obs.motion) if obs.lookahead else 0
+
+
+def observation_size(scenario: ScenarioConfig, channel: ChannelConfig,
+                     obs: ObsConfig | None = None) -> int:
     """Features of one agent's observation (``uabs_rl.env.params.EnvParams.obs_dim``)."""
-    look = (8 + 4 * scenario.motion_obs) if scenario.lookahead_obs else 0
-    return 3 + 2 * scenario.n_uabs + channel.n_beams + look
+    obs = ObsConfig() if obs is None else obs
+    if obs.frame == ObsFrame.egocentric:
+        return 1 + channel.n_beams + score_size(obs) + 3 * obs.neighbours + 4
+    return 3 + 2 * scenario.n_uabs + channel.n_beams + score_size(obs)
 
 
 def transition_bytes(obs_dim: int) -> int:
@@ -625,12 +704,13 @@ def transition_bytes(obs_dim: int) -> int:
     return 2 * 4 * obs_dim + 8 + 2 * N_MOVES + 4 + 1
 
 
-def env_bytes(scenario: ScenarioConfig, channel: ChannelConfig) -> int:
+def env_bytes(scenario: ScenarioConfig, channel: ChannelConfig,
+              obs: ObsConfig | None = None) -> int:
     """A lower bound on one training env's memory: its episode state
     (``uabs_rl.env.uabs_env.empty_state``) over the fleet's vehicles only, plus one step's two
     float32 beam-grid coordinates per UABS-vehicle link (``uabs_rl.env.links``)."""
     m, v, b = scenario.n_uabs, scenario.sumo.fleet_size, channel.n_beams
-    look = observation_size(scenario, channel) - (3 + 2 * m + b)
+    look = score_size(ObsConfig() if obs is None else obs)
     # priority, served_count, window_full, prev_present, n_windows, ns_hist [N + 1]
     per_vehicle = 4 + 8 + 1 + 1 + 4 + 4 * (scenario.window_steps + 1)
     per_uabs = 4 * 2 + 8 + 4 * b + 4 * look  # pos, backup, b, look
@@ -706,8 +786,8 @@ def check_memory(cfg: RunConfig) -> None:
     lower bound (the envs and traces count the fleet's vehicles only), so a run that
     fits is never refused."""
     a, t, s, P = cfg.algo, cfg.train, cfg.scenario, cfg.train.population
-    obs = observation_size(s, cfg.channel)
-    per_env = env_bytes(s, cfg.channel)
+    obs = observation_size(s, cfg.channel, cfg.obs)
+    per_env = env_bytes(s, cfg.channel, cfg.obs)
     have = available_memory(cfg.device)
     parts = [
         ("algo.buffer_size", a.buffer_size * transition_bytes(obs) * P,

@@ -28,9 +28,11 @@ Overrides after the path evaluate the checkpoint under other settings: the run's
 config with ``scenario``, ``channel``, ``masking`` and ``traces`` changed as on the
 ``uabs-train`` command line (``group=option`` takes a config file of that group, from
 ``conf/`` or a folder given with ``--config-dir``; ``group.key=value`` sets one value).
-The network fixes the observation size, so ``scenario.n_uabs``, ``channel.n_beams``
-and ``scenario.lookahead_obs`` must stay as trained; ``algo`` and ``train`` define the
-network and its training and cannot change. Results then go to
+The observation (``obs``) belongs to the trained policy and stays as trained, whatever
+the scenario; with the paper's observation its size fixes ``scenario.n_uabs`` and
+``channel.n_beams`` too (a run trained with ``obs=egocentric`` evaluates at any
+``scenario.n_uabs``, in any area); ``algo`` and ``train`` define the network and its
+training and cannot change. Results then go to
 ``<run dir>/evaluation/<overrides>/``.
 
 Evaluation needs only the held-out env, the Q-network and the masking rule
@@ -58,6 +60,7 @@ from uabs_rl.config import (
     CONF_DIR,
     ConfigError,
     RunConfig,
+    check_moved_overrides,
     to_container,
     validate_world,
 )
@@ -94,9 +97,9 @@ class Evaluation:
 
 # what uabs-eval may change: the world the policy is put in, not the policy
 EVAL_GROUPS = ("scenario", "channel", "masking", "traces")
-# the settings that fix the network's input size (EnvParams.obs_dim)
-OBS_KEYS = ("scenario.n_uabs", "channel.n_beams", "scenario.lookahead_obs",
-            "scenario.motion_obs")
+# the settings uabs-eval may change that can change the network's input size
+# (EnvParams.obs_dim; the obs group itself belongs to the trained policy)
+OBS_KEYS = ("scenario.n_uabs", "channel.n_beams")
 
 
 def _group_file(group: str, option: str, config_dirs: list[Path]) -> Path:
@@ -115,6 +118,7 @@ def with_overrides(cfg: RunConfig, overrides: list[str],
     ``EVAL_GROUPS`` sections: ``group=option`` replaces the section by that config file
     (the schema's defaults plus the file, as ``uabs-train`` composes it), ``key=value``
     sets one value. Anything else is refused, naming the key."""
+    check_moved_overrides(overrides)
     conf = OmegaConf.structured(cfg)
     section_types = {f.name: type(getattr(cfg, f.name)) for f in fields(cfg)}
     dotted = []
@@ -158,16 +162,20 @@ def _obs_values(cfg: RunConfig) -> dict[str, Any]:
 
 def check_network_fits(trained: RunConfig, cfg: RunConfig) -> None:
     """Refuse settings under which the trained network's input size would change."""
-    a = EnvParams.from_config(trained.scenario, trained.channel).obs_dim
-    b = EnvParams.from_config(cfg.scenario, cfg.channel).obs_dim
+    a = EnvParams.from_config(trained.scenario, trained.channel, trained.obs).obs_dim
+    b = EnvParams.from_config(cfg.scenario, cfg.channel, cfg.obs).obs_dim
     if a != b:
         before, now = _obs_values(trained), _obs_values(cfg)
         changed = ", ".join(f"{k}={now[k]}" for k in OBS_KEYS if before[k] != now[k])
         trained_as = ", ".join(f"{k}={before[k]}" for k in OBS_KEYS)
+        fleet = ("" if trained.obs.frame == "egocentric" else
+                 " A policy trained with obs=egocentric (whose size depends on neither "
+                 "the fleet size nor the area) flies any scenario.n_uabs.")
         raise ConfigError(
-            f"the network was trained on observations of size {a} ({trained_as}); with "
-            f"{changed} they would have size {b}. These settings cannot change at "
-            f"evaluation: keep them as trained (or train a run with them).")
+            f"the network was trained on observations of size {a} ({trained_as}, "
+            f"obs={trained.obs.name}); with {changed} they would have size {b}. These "
+            f"settings cannot change at evaluation: keep them as trained (or train a run "
+            f"with them).{fleet}")
 
 
 def find_checkpoint(path: Path, which: str = "best") -> Path:

@@ -11,7 +11,13 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
-from uabs_rl.config import CONF_DIR, ConfigError, register_configs, to_container
+from uabs_rl.config import (
+    CONF_DIR,
+    ConfigError,
+    check_moved_overrides,
+    register_configs,
+    to_container,
+)
 from uabs_rl.training.checkpoint import CheckpointError, Interrupted
 from uabs_rl.training.runfolder import RunLock
 
@@ -62,6 +68,11 @@ def hydra_main(config_name: str, body: Callable[..., Any],
             print(str(e) or interrupted, file=sys.stderr)
             sys.exit(getattr(e, "exit_code", 130))
 
+    try:  # before Hydra, whose own message would not say what to type instead
+        check_moved_overrides(sys.argv[1:])
+    except ConfigError as e:
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(2)
     register_configs()
     # ${prefixed:_,<text>}: "_<text>", or nothing when <text> is empty (run folder names)
     OmegaConf.register_new_resolver("prefixed", lambda sep, text: f"{sep}{text}" if text

@@ -5,7 +5,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from uabs_rl.config import ChannelConfig, LosMode, ScenarioConfig, validate_env
+from uabs_rl.config import (
+    ChannelConfig,
+    LosMode,
+    ObsConfig,
+    ObsFrame,
+    ScenarioConfig,
+    validate_env,
+    validate_obs,
+)
 from uabs_rl.env import channel as ch
 
 
@@ -28,9 +36,15 @@ class EnvParams:
     d_th: float
     lattice: bool
     safe_start: bool
+    # the observation (ObsConfig)
     obs_scale: float
     lookahead_obs: bool
     motion_obs: bool
+    egocentric: bool
+    map_radius: int
+    neighbours: int
+    neighbour_range: float  # lattice steps
+    edge_range: float  # lattice steps
     time_is_terminal: bool
     # channel
     fc_ghz: float
@@ -50,8 +64,12 @@ class EnvParams:
     channel: str  # channel.name: the model of uabs_rl.env.channel.CHANNELS
 
     @classmethod
-    def from_config(cls, scenario: ScenarioConfig, channel: ChannelConfig) -> EnvParams:
+    def from_config(cls, scenario: ScenarioConfig, channel: ChannelConfig,
+                    obs: ObsConfig | None = None) -> EnvParams:
+        """``obs`` None: the paper's observation."""
+        obs = ObsConfig() if obs is None else obs
         validate_env(scenario, channel)
+        validate_obs(obs)
         d_th = scenario.safety_distance
         if d_th is None:
             d_th = ch.safety_distance(scenario.altitude, channel.fov_deg)
@@ -62,8 +80,10 @@ class EnvParams:
             nhat_s=scenario.nhat_s, lambda_s=scenario.lambda_s, lambda_c=scenario.lambda_c,
             collision_distance=scenario.collision_distance, d_th=float(d_th),
             lattice=scenario.lattice, safe_start=scenario.safe_start,
-            obs_scale=scenario.priority_obs_scale, lookahead_obs=scenario.lookahead_obs,
-            motion_obs=scenario.motion_obs,
+            obs_scale=obs.priority_scale, lookahead_obs=obs.lookahead, motion_obs=obs.motion,
+            egocentric=obs.frame == ObsFrame.egocentric, map_radius=obs.map_radius,
+            neighbours=obs.neighbours, neighbour_range=obs.neighbour_range,
+            edge_range=obs.edge_range,
             time_is_terminal=scenario.time_is_terminal,
             fc_ghz=channel.carrier_ghz, h_ut=channel.ue_height, tx_dbm=channel.tx_power_dbm,
             tx_gain_db=channel.tx_gain_db, noise_dbm=channel.noise_dbm,
@@ -77,10 +97,17 @@ class EnvParams:
 
     @property
     def obs_dim(self) -> int:
+        """One agent's observation size (``uabs_rl.env.observe``): the egocentric one's
+        depends on neither the fleet size nor the area."""
+        if self.egocentric:
+            return 1 + self.n_beams + self.n_lookahead + 3 * self.neighbours + 4
         return 3 + 2 * self.n_uabs + self.n_beams + self.n_lookahead
 
     @property
     def n_lookahead(self) -> int:
-        """Lookahead features per agent: 4 moves and 4 double moves (and 4 moves at
-        the extrapolated vehicle positions with ``motion_obs``), or none."""
+        """Priority scores per agent: egocentric, the local map's (2r + 1)^2 lattice
+        points (twice with ``motion_obs``); else 4 moves and 4 double moves (and 4 moves
+        at the extrapolated vehicle positions with ``motion_obs``), or none."""
+        if self.egocentric:
+            return (2 * self.map_radius + 1) ** 2 * (1 + self.motion_obs)
         return (8 + 4 * self.motion_obs) if self.lookahead_obs else 0

@@ -20,8 +20,8 @@ from torchrl.data import Binary, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from uabs_rl import rng
-from uabs_rl.config import ChannelConfig, ConfigError, ScenarioConfig
-from uabs_rl.env import service
+from uabs_rl.config import ChannelConfig, ConfigError, ObsConfig, ScenarioConfig
+from uabs_rl.env import observe, service
 from uabs_rl.env._compile import compiled_or_eager
 from uabs_rl.env.geometry import Geometry
 from uabs_rl.env.links import LinkModel
@@ -74,8 +74,11 @@ class StepMath:
         self.geometry = Geometry(p, device)
         self.links = LinkModel(p, device)
         self.moves = self.geometry.moves
-        # lookahead observation: the 4 moves, then 2 steps in each direction
-        self.look_offsets = torch.cat([self.moves, 2 * self.moves])[: min(p.n_lookahead, 8)]
+        # the scored positions: the egocentric local map, or the lookahead observation's
+        # 4 moves, then 2 steps in each direction
+        self.look_offsets = (observe.map_offsets(p.map_radius, p.step_m, device)
+                             if p.egocentric else
+                             torch.cat([self.moves, 2 * self.moves])[: min(p.n_lookahead, 8)])
 
     def observe(self, st: dict[str, torch.Tensor], veh_pos: torch.Tensor,
                 veh_present: torch.Tensor,
@@ -87,15 +90,16 @@ class StepMath:
         inside, beam, served = self.links.links(st["pos"], veh, present, gen)
         service.update_service(st, served, present, self.p.window_steps)
         st["b"] = service.beam_sums(inside, beam, st["priority"], self.p.n_beams)
-        if self.p.lookahead_obs:
-            cand = st["pos"][:, :, None, :] + self.look_offsets  # [E, M, 8, 2]
+        if self.p.n_lookahead:
+            cand = st["pos"][:, :, None, :] + self.look_offsets  # [E, M, C, 2]
             look = service.move_scores(cand, veh, present, st["priority"], self.p.r_b,
                                        self.p.n_beams)
             if self.p.motion_obs:
                 ahead = service.extrapolated(st, veh, present, veh_pos, veh_present)
+                moved = cand if self.p.egocentric else st["pos"][:, :, None, :] + self.moves
                 look = torch.cat([look, service.move_scores(
-                    st["pos"][:, :, None, :] + self.moves, ahead, present, st["priority"],
-                    self.p.r_b, self.p.n_beams)], dim=-1)
+                    moved, ahead, present, st["priority"], self.p.r_b, self.p.n_beams)],
+                    dim=-1)
             st["look"] = look
         return served, present
 
@@ -111,16 +115,15 @@ class StepMath:
 
     def observation(self, pos: torch.Tensor, t: torch.Tensor, b: torch.Tensor,
                     look: torch.Tensor) -> torch.Tensor:
-        """o = (x/W, y/H, t/T, L_t, b_t / scale[, lookahead / scale]):
-        [E, M, 3 + 2M + B (+ 8)]."""
-        e, m, _ = pos.shape
-        norm = pos / self.geometry.area
-        tt = (t.float() / self.p.episode_steps)[:, None, None].expand(e, m, 1)
-        fleet = norm.reshape(e, 1, 2 * m).expand(e, m, 2 * m)
-        parts = [norm, tt, fleet, b / self.p.obs_scale]
-        if self.p.lookahead_obs:
-            parts.append(look / self.p.obs_scale)
-        return torch.cat(parts, dim=-1)
+        """[E, M, obs_dim]: the paper's o = (x/W, y/H, t/T, L_t, b_t / scale[, lookahead /
+        scale]) or the egocentric observation (:mod:`uabs_rl.env.observe`)."""
+        p, area = self.p, self.geometry.area
+        if p.egocentric:
+            return observe.egocentric_observation(
+                pos, t, b, look, area, p.episode_steps, p.obs_scale, p.neighbours,
+                p.neighbour_range * p.step_m, p.edge_range * p.step_m)
+        return observe.fleet_observation(pos, t, b, look if p.lookahead_obs else None, area,
+                                         p.episode_steps, p.obs_scale)
 
     # ------------------------------------------------------------------ one step
     def step(self, st: dict[str, torch.Tensor], action: torch.Tensor, veh_pos: torch.Tensor,
@@ -339,14 +342,14 @@ class UABSEnv(EnvBase):
     def __init__(self, scenario: ScenarioConfig, channel: ChannelConfig, traces: TraceSet,
                  n_envs: int = 1, mode: str = "train", device: str | torch.device = "cpu",
                  n_eval_windows: int | None = None, seed: int | None = None,
-                 compile_step: bool = False):
+                 compile_step: bool = False, obs: ObsConfig | None = None):
         if mode not in ("train", "eval"):
             raise ConfigError(f"mode must be 'train' or 'eval', got {mode!r}")
         if n_envs < 1:
             raise ConfigError(f"n_envs must be >= 1, got {n_envs}")
         device = torch.device(device)
         super().__init__(batch_size=torch.Size([n_envs]), device=device)
-        self.params = EnvParams.from_config(scenario, channel)
+        self.params = EnvParams.from_config(scenario, channel, obs)
         self.mode = mode
         self.n_envs = n_envs
         self.compile_step = compile_step

@@ -49,7 +49,8 @@ def make_eval_env(cfg: RunConfig, traces: TraceSet | None = None,
     seed = [tr.eval_seed] * members if members > 1 else tr.eval_seed
     return make_env(cfg.scenario, cfg.channel, cfg.masking, traces, split,
                     n_envs=n * members, device=device, n_eval_windows=n, seed=seed,
-                    compile=tr.compile if compile is None else compile, spec_mask=False)
+                    compile=tr.compile if compile is None else compile, spec_mask=False,
+                    obs=cfg.obs)
 
 
 def eval_window_count(cfg: RunConfig, traces: TraceSet, split: str,

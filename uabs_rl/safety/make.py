@@ -13,6 +13,7 @@ from uabs_rl.config import (
     ChannelConfig,
     ConfigError,
     MaskingConfig,
+    ObsConfig,
     ScenarioConfig,
     TracesConfig,
 )
@@ -27,18 +28,19 @@ def make_env(scenario: ScenarioConfig, channel: ChannelConfig, masking: MaskingC
              traces: TraceSet | TracesConfig, split: str = "train", n_envs: int = 1,
              device: str | torch.device = "cpu", n_eval_windows: int | None = None,
              seed: int | None = None, compile: bool = False,
-             spec_mask: bool = True) -> TransformedEnv:
+             spec_mask: bool = True, obs: ObsConfig | None = None) -> TransformedEnv:
     """``UABSEnv`` over the ``split`` traces ("train": random windows; "eval"
     (validation) or "test": fixed windows), wrapped with the masking transform and,
     with ``spec_mask``, TorchRL's ``ActionMask`` (so ``env.rand_action()`` respects the
     written mask; the trainer acts through the selector and skips it).
 
-    ``traces`` is a :class:`TraceSet` or the ``traces`` config (then loaded or built)."""
+    ``traces`` is a :class:`TraceSet` or the ``traces`` config (then loaded or built);
+    ``obs`` the observation (None: the paper's)."""
     if not isinstance(traces, TraceSet):
         traces = get_traces(scenario, traces, split)
     mode = "train" if split == "train" else "eval"
     base = UABSEnv(scenario, channel, traces, n_envs=n_envs, mode=mode, device=device,
-                   n_eval_windows=n_eval_windows, seed=seed, compile_step=compile)
+                   n_eval_windows=n_eval_windows, seed=seed, compile_step=compile, obs=obs)
     rule = make_rule(masking, base.params).to(base.device)
     base.require_start_spacing(rule.start_margin)
     safety = SafetyTransform(rule)

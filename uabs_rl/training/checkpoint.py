@@ -23,15 +23,16 @@ import torch
 from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from uabs_rl.config import ConfigError, RunConfig
+from uabs_rl.config import MOVED, ConfigError, RunConfig
 from uabs_rl.env.params import EnvParams
 
 # 2: the replay keeps the agent dimension (step slots of M agents); format 1's flat
 # ring of per-agent transitions is converted on load (upgrade_state)
 CKPT_FORMAT = 2
 # config sections a checkpoint must agree with to be resumed or evaluated
-COMPAT_KEYS = ("scenario", "channel", "masking", "algo", "traces", "seed", "train.n_envs",
-               "train.population")
+COMPAT_KEYS = ("scenario", "obs", "channel", "masking", "algo", "traces", "seed",
+               "train.n_envs", "train.population")
+LABELS = ("obs.name",)  # names, not settings: never compared
 # what members.Checkpoints.state writes, entry by entry: a nested layout, or the kind of value
 TENSORS, BYTES, NUMBER, INT, DICT = ("a dict of tensors", "a uint8 tensor (an RNG state)",
                                      "a number", "an integer", "a dict")
@@ -256,12 +257,26 @@ def config_dict(cfg: RunConfig) -> dict:
 
 def upgrade_config(d: Any) -> Any:
     """A stored run config (checkpoint or ``.hydra/config.yaml``) in today's keys:
-    ``train.tensorboard: true|false`` became ``train.logger: tensorboard|none``."""
-    train = d.get("train") if hasattr(d, "get") else None
+    ``train.tensorboard: true|false`` became ``train.logger: tensorboard|none``; the
+    observation settings moved from ``scenario`` to the ``obs`` group (``MOVED``; a run
+    written before has the paper's observation frame, and ``obs.name`` says which of
+    ``conf/obs`` it matches)."""
+    if not hasattr(d, "get"):
+        return d
+    train = d.get("train")
     if train is not None and "tensorboard" in train:
         train = dict(train)
         train["logger"] = "tensorboard" if train.pop("tensorboard") else "none"
         d = {**d, "train": train}
+    scenario = d.get("scenario")
+    if hasattr(scenario, "get") and any(old in scenario for _, old in MOVED):
+        scenario, obs = dict(scenario), dict(d.get("obs") or {})
+        for (_, old), (_, new) in MOVED.items():
+            if old in scenario:
+                obs[new] = scenario.pop(old)
+        obs.setdefault("name", "lookahead_motion" if obs.get("motion") else
+                       "lookahead" if obs.get("lookahead") else "paper")
+        d = {**d, "scenario": scenario, "obs": obs}
     return d
 
 
@@ -289,7 +304,7 @@ def network_shapes(cfg: RunConfig) -> dict[str, torch.Size]:
     from uabs_rl.algorithms import Dims, algorithm_class
     from uabs_rl.env.uabs_env import N_ACTIONS
 
-    p = EnvParams.from_config(cfg.scenario, cfg.channel)
+    p = EnvParams.from_config(cfg.scenario, cfg.channel, cfg.obs)
     with torch.device("meta"):  # shapes only: no memory, no initialisation
         net = algorithm_class(cfg.algo.name).acting_network(
             cfg.algo, Dims(p.obs_dim, N_ACTIONS, p.n_uabs))
@@ -299,7 +314,7 @@ def network_shapes(cfg: RunConfig) -> dict[str, torch.Size]:
 def _network_of(cfg: RunConfig) -> str:
     hidden = list(cfg.algo.hidden)
     try:
-        obs = EnvParams.from_config(cfg.scenario, cfg.channel).obs_dim
+        obs = EnvParams.from_config(cfg.scenario, cfg.channel, cfg.obs).obs_dim
     except ConfigError:
         return f"algo.hidden={hidden}"
     return f"algo.hidden={hidden} on observations of size {obs}"
@@ -395,7 +410,8 @@ def config_differences(saved: dict, current: dict) -> list[str]:
     defaults = flatten(config_dict(RunConfig()))
     keys = sorted(k for k in set(a) | set(b) if any(
         k == c or k.startswith(c + ".") for c in COMPAT_KEYS) and not k.endswith("cache_dir")
-        and not k.startswith("traces.test."))  # test traces never touch a training run
+        and not k.startswith("traces.test.")  # test traces never touch a training run
+        and k not in LABELS)
     old = {k: a.get(k, defaults.get(k, "<absent>")) for k in keys}
     return [f"{k}: {old[k]!r} in the checkpoint, {b.get(k, '<absent>')!r} now"
             for k in keys if old[k] != b.get(k)]

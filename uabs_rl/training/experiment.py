@@ -132,7 +132,7 @@ class Experiment:
         traces = traces or {}
         env = make_env(cfg.scenario, cfg.channel, cfg.masking, traces.get("train", cfg.traces),
                        "train", n_envs=tr.n_envs * self.n, device=dev, seed=seed,
-                       compile=tr.compile, spec_mask=False)
+                       compile=tr.compile, spec_mask=False, obs=cfg.obs)
         eval_env = make_eval_env(cfg, traces.get("eval"), dev, members=self.n)
         self.params = p = env.base_env.params
         self.learner = make_algorithm(cfg.algo, Dims(p.obs_dim, N_ACTIONS, p.n_uabs), seeds, dev)

@@ -22,7 +22,8 @@ MODES = tuple(m.value for m in MaskingMode)
 NEUTRAL = ("seed", "resume", "device", "train.progress", "train.population",
            "train.logger", "train.threads", "train.compile", "train.trajectory_images",
            "train.checkpoint_buffer", "traces.cache_dir", "traces.workers",
-           "algo.loss")  # fused and torchrl compute the same loss
+           "algo.loss",  # fused and torchrl compute the same loss
+           "obs.name")  # a label: the obs.* settings say what was observed
 # settings the baselines depend on (what uabs-eval may change, and the start positions
 # of evaluations): groups that differ in one of them get their own Fig. 4 panel
 ENV_SETTINGS = ("scenario.", "channel.", "masking.", "traces.", "train.eval_seed")
@@ -102,21 +103,24 @@ def _default_settings() -> dict[str, Any]:
 
 
 def describe(settings: dict[str, Any], skip: tuple[str, ...] = (), words: bool = True) -> str:
-    """Settings against the defaults: the observation (``paper``, ``lookahead`` or
-    ``lookahead+motion``; ``paper`` is left out when the scenario, channel or traces
-    differ from the paper's too), ``-literal`` for the paper's literal masks, then every
-    other setting that differs from its default (``lookahead algo.lr=0.0003``), three or
-    more of one section as ``algo.{hidden=[32, 32], batch_size=32, ...}``. With
-    ``words=False``, settings only (``scenario.lookahead_obs=true``), "" for none."""
+    """Settings against the defaults: the observation (``paper``, ``lookahead``,
+    ``lookahead+motion``, ``egocentric`` or ``egocentric-static`` (without the motion
+    map); ``paper`` is left out when the scenario, channel or traces differ from the
+    paper's too), ``-literal`` for the paper's literal masks, then every other setting
+    that differs from its default (``lookahead algo.lr=0.0003``), three or more of one
+    section as ``algo.{hidden=[32, 32], batch_size=32, ...}``. With ``words=False``,
+    settings only (``obs.lookahead=true``), "" for none."""
     defaults = _default_settings()
-    obs = ("scenario.lookahead_obs", "scenario.motion_obs", "masking.recoverable")
+    obs = ("obs.frame", "obs.lookahead", "obs.motion", "masking.recoverable")
     keys = [k for k, v in settings.items()
             if k not in skip and (k not in obs or not words) and v != defaults.get(k)]
     train_first = ("train.n_envs", "train.episodes")  # as reports have named them
     keys.sort(key=lambda k: (k.startswith("train."), k not in train_first,
                              train_first.index(k) if k in train_first else 0))
-    word = ("lookahead+motion" if settings.get("scenario.motion_obs") else
-            "lookahead" if settings.get("scenario.lookahead_obs") else
+    ego = settings.get("obs.frame") == "egocentric"
+    word = ("egocentric" + ("" if settings.get("obs.motion") else "-static") if ego else
+            "lookahead+motion" if settings.get("obs.motion") else
+            "lookahead" if settings.get("obs.lookahead") else
             "" if any(_is(k, ("scenario", "channel", "traces")) for k in keys) else "paper")
     if settings.get("masking.recoverable") is False:
         word = (word or "paper") + "-literal"

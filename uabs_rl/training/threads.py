@@ -107,7 +107,8 @@ def update_work(cfg: RunConfig) -> int:
     from uabs_rl.env.params import EnvParams
     from uabs_rl.env.uabs_env import N_ACTIONS
 
-    widths = [EnvParams.from_config(cfg.scenario, cfg.channel).obs_dim, *cfg.algo.hidden]
+    obs_dim = EnvParams.from_config(cfg.scenario, cfg.channel, cfg.obs).obs_dim
+    widths = [obs_dim, *cfg.algo.hidden]
     per_row = sum(i * o for i, o in zip(widths, widths[1:], strict=False))
     per_row += widths[-1] * (1 + N_ACTIONS)  # value and advantage heads
     return cfg.algo.batch_size * cfg.scenario.n_uabs * cfg.train.population * per_row

@@ -1,0 +1,132 @@
+"""The egocentric observation (obs=egocentric): its size depends on neither the fleet size
+nor the area, it is unchanged when the whole scene is translated by a lattice step or
+the UABS are renumbered, and its parts are what docs/model.md §5 says."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from uabs_rl.config import AreaConfig, ChannelConfig, ObsConfig, ScenarioConfig
+from uabs_rl.env.observe import map_offsets, nearest_neighbours
+from uabs_rl.env.params import EnvParams
+from uabs_rl.env.uabs_env import UABSEnv
+from uabs_rl.traces.store import TraceSet
+
+EGO = ObsConfig(name="egocentric", frame="egocentric", motion=True)
+STEP = 20.0  # the lattice pitch v·δt of the defaults
+CITY = AreaConfig(width=2004, height=1004)  # conf/scenario/city.yaml
+
+
+def ego_size(obs: ObsConfig = EGO, beams: int = 9) -> int:
+    r, k = obs.map_radius, obs.neighbours
+    return 1 + beams + (2 * r + 1) ** 2 * (1 + obs.motion) + 3 * k + 4
+
+
+@pytest.mark.parametrize("m", [2, 3, 6, 25])
+@pytest.mark.parametrize("area", [AreaConfig(), CITY])
+def test_the_size_depends_on_neither_the_fleet_nor_the_area(m, area):
+    p = EnvParams.from_config(ScenarioConfig(n_uabs=m, area=area), ChannelConfig(), EGO)
+    assert p.obs_dim == ego_size() == 1 + 9 + 50 + 12 + 4
+    paper = EnvParams.from_config(ScenarioConfig(n_uabs=m, area=area), ChannelConfig())
+    assert paper.obs_dim == 3 + 2 * m + 9  # the paper's grows with the fleet
+
+
+def traces(area: AreaConfig, v: int = 60, steps: int = 30, shift: float = 0.0,
+           seed: int = 0) -> TraceSet:
+    """``v`` vehicles on a random walk of 10 m steps inside the middle of ``area``,
+    every coordinate a whole number, all of them moved by ``shift`` metres east."""
+    g = torch.Generator().manual_seed(seed)
+    lo = torch.tensor([area.width, area.height]) * 0.3
+    hi = torch.tensor([area.width, area.height]) * 0.7
+    start = (lo + torch.rand(v, 2, generator=g) * (hi - lo)).round()
+    walk = torch.randint(-1, 2, (steps, v, 2), generator=g).float() * 10.0
+    pos = (start + walk.cumsum(0))[None] + torch.tensor([shift, 0.0])
+    return TraceSet(pos, torch.ones(1, steps, v, dtype=torch.bool), {"split": "x", "dt": 1.0})
+
+
+def run_scene(m: int, uabs: torch.Tensor, actions: torch.Tensor, tr: TraceSet,
+              area: AreaConfig, los: str = "sample") -> list[torch.Tensor]:
+    """Observations [M, obs_dim] at reset and after each row of ``actions`` [K, M], the
+    fleet placed at ``uabs`` [M, 2] and the window starting at step 0."""
+    env = UABSEnv(ScenarioConfig(n_uabs=m, area=area, episode_steps=20),
+                  ChannelConfig(los_mode=los), tr, n_envs=1, seed=3, obs=EGO)
+    env.reset()
+    st = env.state
+    st["pos"][0], st["start"][:], st["t"][:] = uabs, 0, 0
+    st["priority"].zero_()
+    st["prev_present"].zero_()
+    env.math.observe(st, env.veh_pos, env.veh_present, env.rng)
+    seen = [env.math.observation(st["pos"], st["t"], st["b"], st["look"])[0]]
+    for a in actions:
+        out = env.math.step(st, a[None], env.veh_pos, env.veh_present, env.rng)
+        seen.append(out["observation"][0])
+    return seen
+
+
+AREA = AreaConfig(width=800, height=800)
+FLEET = torch.tensor([[400.0, 400.0], [500.0, 400.0], [400.0, 300.0], [300.0, 400.0],
+                      [400.0, 500.0], [520.0, 520.0]])  # 3 at 100 m: ties in distance
+MOVES = torch.tensor([[1, 0, 2, 3, 1, 0], [1, 1, 3, 3, 0, 2], [0, 1, 2, 2, 1, 3],
+                      [3, 1, 0, 2, 0, 0]])
+
+
+def test_unchanged_when_the_whole_scene_moves_a_lattice_step():
+    """Vehicles and UABS 20 m further east, far from every edge: every UABS observes
+    exactly what it did, step after step (LoS sampled, same draws); the paper's
+    observation does not."""
+    here = run_scene(6, FLEET, MOVES, traces(AREA), AREA)
+    east = run_scene(6, FLEET + torch.tensor([STEP, 0.0]), MOVES,
+                     traces(AREA, shift=STEP), AREA)
+    for a, b in zip(here, east, strict=True):
+        assert torch.equal(a, b)
+    assert here[-1][:, 1:10].sum() > 0  # vehicles were served: the test compares something
+    p = EnvParams.from_config(ScenarioConfig(n_uabs=6, area=AREA), ChannelConfig())
+    assert p.obs_dim != here[0].shape[-1]
+
+
+def test_unchanged_when_the_uabs_are_renumbered():
+    """UABS i of the renumbered fleet is UABS perm[i] of the first: it observes what
+    that one observed, including with neighbours tied in distance."""
+    perm = torch.tensor([4, 2, 5, 0, 3, 1])
+    tr = traces(AREA)
+    first = run_scene(6, FLEET, MOVES, tr, AREA, los="los")
+    renumbered = run_scene(6, FLEET[perm], MOVES[:, perm], tr, AREA, los="los")
+    for a, b in zip(first, renumbered, strict=True):
+        assert torch.equal(a[perm], b)
+
+
+def test_neighbours_are_the_nearest_others_padded_when_fewer():
+    pos = torch.tensor([[[0.0, 0.0], [100.0, 0.0], [0.0, -300.0]]])
+    near = nearest_neighbours(pos, 4, scale=200.0).view(1, 3, 4, 3)
+    # UABS 0: UABS 1 at (+100, 0), then UABS 2 at (0, -300) clipped to -1; two missing
+    assert near[0, 0].tolist() == [[0.5, 0.0, 1.0], [0.0, -1.0, 1.0], [0.0, 0.0, 0.0],
+                                   [0.0, 0.0, 0.0]]
+    assert near[0, 2, 0].tolist() == [0.0, 1.0, 1.0]  # UABS 0, 300 m north (clipped)
+    assert nearest_neighbours(pos[:, :1], 2, 200.0).abs().sum() == 0  # alone: all padding
+
+
+def test_the_parts_are_time_beams_map_neighbours_and_edges():
+    """One vehicle 40 m east of a lone UABS: the map scores it from the lattice points
+    whose 3 x 3 beam grid (about 31.5 m either way) covers it, the edges say how far the
+    UABS is from each (clipped at 4 steps)."""
+    veh = torch.zeros(1, 30, 1, 2)
+    veh[..., 0], veh[..., 1] = 145.0, 85.0
+    tr = TraceSet(veh, torch.ones(1, 30, 1, dtype=torch.bool), {"split": "x", "dt": 1.0})
+    seen = run_scene(1, torch.tensor([[105.0, 85.0]]), torch.zeros(0, 1), tr, AreaConfig())
+    o = seen[0][0]
+    assert o.shape == (ego_size(),)
+    assert o[0] == 0.0  # t / T at reset
+    grid = map_offsets(2, STEP, torch.device("cpu"))
+    scored = o[10:35] > 0
+    # 20 m and 40 m east, a step south to a step north; the extrapolated copy alike
+    # (the vehicle has not moved)
+    assert grid[scored].tolist() == [[20.0, -20.0], [40.0, -20.0], [20.0, 0.0], [40.0, 0.0],
+                                     [20.0, 20.0], [40.0, 20.0]]
+    assert torch.equal(o[35:60], o[10:35])
+    assert o[60:72].abs().sum() == 0  # no other UABS
+    # west 105 m, south 85 m, east 245 m, north 85 m: all beyond 4 steps = 80 m
+    assert o[72:].tolist() == [1.0, 1.0, 1.0, 1.0]
+    near_edge = run_scene(1, torch.tensor([[25.0, 85.0]]), torch.zeros(0, 1), tr,
+                          AreaConfig())[0][0]
+    assert near_edge[72].item() == pytest.approx(25.0 / 80.0)
