@@ -34,7 +34,8 @@ def difference(a: list[float], b: list[float], n_boot: int = 10_000) -> tuple[fl
 def main(root: Path) -> None:
     values: dict[tuple[str, str], list[dict[str, float]]] = {}
     for group in sorted(root.glob("algo=*")):
-        algo, mode = (kv.split("=")[1] for kv in group.name.split(",")[:2])
+        keys = dict(kv.split("=", 1) for kv in group.name.split(","))
+        algo, mode = keys["algo"], keys["masking"]
         values[algo, mode] = [test_means(run) for run in sorted(group.glob("seed=*"))]
     print("| mask | learner | seeds | served fraction | − 3DQN [95 % CI] | P_g(N̂_s=5) "
           "| − 3DQN [95 % CI] |")

@@ -280,6 +280,16 @@ def test_run_labels_name_the_obs_group(obs, label):
     assert Run(Path("x"), "flat", 0, 1000, [], [], cfg).label == label
 
 
+def test_run_labels_name_a_family_by_its_cities():
+    from uabs_rl.cli.report import Run
+
+    cfg = {"scenario": {}, "obs": {"frame": "egocentric", "motion": True}, "channel": {},
+           "masking": {"recoverable": True}, "algo": {}, "train": {"n_envs": 4},
+           "traces": {}, "seed": 0, "family": [{}, {"name": "blocks60"}, {"name": "b"}]}
+    assert Run(Path("x"), "rank", 0, 1000, [], [], cfg).label == (
+        "egocentric family=manhattan+blocks60+b train.n_envs=4")
+
+
 def test_runs_written_before_recoverable_masks_are_literal():
     from uabs_rl.cli.report import Run
 

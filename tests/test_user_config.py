@@ -158,3 +158,34 @@ def test_old_observation_keys_on_the_command_line_say_what_to_type():
         "error: scenario.lookahead_obs moved to the observation group: type obs=lookahead "
         "(obs=lookahead_motion with the motion features) instead of "
         "scenario.lookahead_obs=true (conf/obs holds the observations).")
+
+
+def test_training_over_a_family_of_cities(trace_cache, user_dir, tmp_path, caplog):
+    """experiment=smoke over the default grid and the user's 4 x 4 grid at once (the
+    family given on the command line): both cities' training traces are read and the
+    run trains to its end without a collision (tests/test_family.py checks the envs)."""
+    import logging
+
+    grid4 = (f"{{name:grid4,area:{{width:184,height:184}},"
+             f"sumo:{{net_file:'{user_dir / 'grid4.net.xml'}',fleet_size:30}}}}")
+    cfg = smoke(trace_cache, "obs=egocentric", f"family=[{{}},{grid4}]",
+                "train.logger=none", "train.trajectory_images=false")
+    with caplog.at_level(logging.INFO, logger="uabs_rl.traces.store"):
+        run(cfg, tmp_path)
+    assert "family city grid4" in caplog.text and "family city manhattan" in caplog.text
+    recs = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
+    train = [r for r in recs if r["kind"] == "train"]
+    assert len(train) == 6 and all(r["collisions"] == 0 for r in train)
+
+
+def test_uabs_eval_takes_the_city_preset_with_its_traces():
+    """scenario=city is a global-package file (it sizes the traces too): uabs-eval takes
+    its scenario and its test traces, not its training settings."""
+    from uabs_rl.cli.evaluate import with_overrides
+    from uabs_rl.config import RunConfig
+
+    cfg = with_overrides(RunConfig(), ["scenario=city", "scenario.n_uabs=30"])
+    assert (cfg.scenario.name, cfg.scenario.n_uabs, cfg.scenario.sumo.fleet_size) == (
+        "city", 30, 2000)
+    assert (cfg.traces.test.n_sims, cfg.traces.test.duration_s) == (2, 600.0)
+    assert cfg.train.eval_windows == RunConfig().train.eval_windows

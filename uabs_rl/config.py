@@ -337,6 +337,11 @@ class RunConfig:
     algo: AlgoConfig = field(default_factory=AlgoConfig)
     traces: TracesConfig = field(default_factory=TracesConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
+    # beyond the paper: train over several cities at once. Each entry is a city given by
+    # what differs from `scenario` (name, area, sumo: its network and vehicles; {} is
+    # `scenario` itself); each training env draws its city per episode among them.
+    # Empty: `scenario` only. Validation and the default evaluation stay on `scenario`.
+    family: list[Any] = field(default_factory=list)
     seed: int = 0  # network init, exploration, training windows and start positions
     device: str = "cpu"  # cpu | cuda | cuda:N | auto
     resume: str | None = None  # a run directory (outputs/runs/...) to continue
@@ -402,11 +407,45 @@ def validate_world(cfg: RunConfig) -> None:
     validate_masking(cfg.masking)
 
 
+FAMILY_KEYS = ("name", "area", "sumo")  # what a family's cities may set
+
+
+def family_scenarios(cfg: RunConfig) -> list[ScenarioConfig]:
+    """The training cities of ``cfg.family``, each ``cfg.scenario`` with the entry's
+    ``name``, ``area`` and ``sumo`` (checked, naming ``family[i]``); empty without a
+    family."""
+    out: list[ScenarioConfig] = []
+    for i, entry in enumerate(cfg.family):
+        key = f"family[{i}]"
+        if not isinstance(entry, dict | DictConfig):
+            raise ConfigError(f"{key} must be a mapping of {', '.join(FAMILY_KEYS)}, got "
+                              f"{entry!r}.")
+        other = sorted(set(entry) - set(FAMILY_KEYS))
+        if other:
+            raise ConfigError(
+                f"{key}.{other[0]}: a family's cities share scenario's fleet, altitude and "
+                f"episodes; a city sets only {', '.join(FAMILY_KEYS)}.")
+        try:
+            merged = OmegaConf.merge(OmegaConf.structured(cfg.scenario), entry)
+        except Exception as e:  # OmegaConf's type and key errors: one line, the entry named
+            raise ConfigError(f"{key}: {str(e).splitlines()[0]}") from None
+        out.append(OmegaConf.to_object(merged))
+    names = [s.name for s in out]
+    dup = next((n for n in names if names.count(n) > 1), None)
+    if dup is not None:
+        raise ConfigError(f"family: two cities are named {dup!r}; give each its own name "
+                          f"(it names its trace cache files).")
+    return out
+
+
 def validate_run(cfg: RunConfig) -> None:
     """Every start-up check of ``uabs-train``, each naming the offending key: nothing is
     built or written before they pass."""
     check_finite(cfg)
     validate_world(cfg)
+    for city in family_scenarios(cfg):
+        validate_scenario_traces(city, cfg.traces)
+        validate_env(city, cfg.channel)
     validate_algo_name(cfg.algo)
     enum_value(LossKind, cfg.algo.loss, "algo.loss")
     enum_value(ReplayKind, cfg.algo.replay, "algo.replay")
@@ -800,8 +839,9 @@ def check_memory(cfg: RunConfig) -> None:
          f"the Q-network{f's of {P} members' if P > 1 else ''} (with target copy, "
          "gradients and Adam's moments)",
          "narrow algo.hidden or lower train.population"),
-        ("traces.train/eval", sum(trace_bytes(s, getattr(cfg.traces, n))
-                                  for n in ("train", "eval")),
+        ("traces.train/eval", sum(trace_bytes(c, cfg.traces.train)
+                                  for c in family_scenarios(cfg) or [s])
+         + trace_bytes(s, cfg.traces.eval),
          "the training and validation traces", "lower their n_sims or duration_s"),
     ]
     for key, need, what, fix in parts:

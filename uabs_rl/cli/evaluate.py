@@ -139,11 +139,18 @@ def with_overrides(cfg: RunConfig, overrides: list[str],
         if "." in key or key == "device":
             dotted.append(f"{key}={value}")
             continue
-        body = OmegaConf.load(_group_file(key, value, list(config_dirs or [])))
+        path = _group_file(key, value, list(config_dirs or []))
+        body = OmegaConf.load(path)
         if "defaults" in body:  # a schema reference: the section starts from it anyway
             body.pop("defaults")
+        others = {}
+        if "@package _global_" in path.read_text():  # scenario=city: it sizes traces too
+            others = {k: v for k, v in body.items() if k in EVAL_GROUPS and k != key}
+            body = body.get(key, {})  # its train settings belong to the trained policy
         try:
             conf[key] = OmegaConf.merge(OmegaConf.structured(section_types[key]), body)
+            for k, v in others.items():
+                conf[k] = OmegaConf.merge(conf[k], v)
         except OmegaConfBaseException as e:
             raise ConfigError(f"{key}={value}: {str(e).splitlines()[0]}") from None
     try:

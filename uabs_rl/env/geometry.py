@@ -99,11 +99,14 @@ class Geometry:
         return torch.where(ok[:, None, None], pos, alt)
 
     # ------------------------------------------------------------------ geometry
-    def boundary_mask(self, pos: torch.Tensor) -> torch.Tensor:
-        """[E, M, 4] True where the move (up, right, down, left) keeps the UABS inside."""
+    def boundary_mask(self, pos: torch.Tensor,
+                      bounds: torch.Tensor | None = None) -> torch.Tensor:
+        """[E, M, 4] True where the move (up, right, down, left) keeps the UABS inside
+        the area, or inside each env's own (W, H) ``bounds [E, 2]`` (a family of cities)."""
         x, y, s = pos[..., 0], pos[..., 1], self.p.step_m
-        return torch.stack([y + s <= self.p.height, x + s <= self.p.width,
-                            y - s >= 0.0, x - s >= 0.0], dim=-1)
+        w, h = (self.p.width, self.p.height) if bounds is None else (bounds[:, None, 0],
+                                                                      bounds[:, None, 1])
+        return torch.stack([y + s <= h, x + s <= w, y - s >= 0.0, x - s >= 0.0], dim=-1)
 
     def pair_distances(self, pos: torch.Tensor) -> torch.Tensor:
         """[E, M, M] distances, +inf on the diagonal."""

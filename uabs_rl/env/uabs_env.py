@@ -14,6 +14,8 @@ at t+1 → priorities p_{t+1} → per-beam sums b_{t+1} → rewards and observat
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Binary, Categorical, Composite, Unbounded
@@ -114,10 +116,12 @@ class StepMath:
         return r, coll.flatten(1).sum(-1) / 2.0, prox.flatten(1).sum(-1) / 2.0
 
     def observation(self, pos: torch.Tensor, t: torch.Tensor, b: torch.Tensor,
-                    look: torch.Tensor) -> torch.Tensor:
+                    look: torch.Tensor, bounds: torch.Tensor | None = None) -> torch.Tensor:
         """[E, M, obs_dim]: the paper's o = (x/W, y/H, t/T, L_t, b_t / scale[, lookahead /
-        scale]) or the egocentric observation (:mod:`uabs_rl.env.observe`)."""
-        p, area = self.p, self.geometry.area
+        scale]) or the egocentric observation (:mod:`uabs_rl.env.observe`); ``bounds
+        [E, 2]``: each env's own area (a family of cities)."""
+        p = self.p
+        area = self.geometry.area if bounds is None else bounds[:, None, :]
         if p.egocentric:
             return observe.egocentric_observation(
                 pos, t, b, look, area, p.episode_steps, p.obs_scale, p.neighbours,
@@ -134,7 +138,8 @@ class StepMath:
         action = action.long()
         old = st["pos"]
         geo = self.geometry
-        legal = geo.boundary_mask(old).gather(-1, action[..., None]).squeeze(-1)  # [E, M]
+        bounds = st.get("bounds")  # a family's per-env (W, H); None: the one area
+        legal = geo.boundary_mask(old, bounds).gather(-1, action[..., None]).squeeze(-1)
         new = torch.where(legal[..., None], old + self.moves[action], old)
         st["pos"] = new
         st["t"] = st["t"] + 1
@@ -170,8 +175,10 @@ class StepMath:
         return dict(
             diag, **flags, **{f"agent_{k}": f[:, None, :].expand(e, m, 1)
                               for k, f in flags.items()},
-            observation=self.observation(st["pos"], st["t"], st["b"], st["look"]),
-            action_mask=self.geometry.boundary_mask(st["pos"]), position=st["pos"],
+            observation=self.observation(st["pos"], st["t"], st["b"], st["look"],
+                                         st.get("bounds")),
+            action_mask=self.geometry.boundary_mask(st["pos"], st.get("bounds")),
+            position=st["pos"],
             beam_priority=st["b"], backup_action=st["backup"],
             served_fraction=served.float().sum(-1) / present.float().sum(-1).clamp_min(1.0),
             ep_return=st["ep_return"], ep_collisions=st["ep_collisions"],
@@ -231,11 +238,14 @@ def fixed_windows(n_sims: int, steps: int, episode_steps: int, n: int | None,
     return torch.stack([k % n_sims, (k // n_sims) * (episode_steps + 1)], dim=-1)
 
 
-def empty_state(p: EnvParams, e: int, v: int, dev: torch.device) -> dict[str, torch.Tensor]:
-    """The episode state of ``e`` envs over ``v`` vehicle slots, all zeros."""
+def empty_state(p: EnvParams, e: int, v: int, dev: torch.device,
+                family: bool = False) -> dict[str, torch.Tensor]:
+    """The episode state of ``e`` envs over ``v`` vehicle slots, all zeros (with
+    ``family``, each env's area ``bounds [E, 2]`` too)."""
     m, n = p.n_uabs, p.window_steps
     z = lambda *s, dt=torch.float32: torch.zeros(*s, dtype=dt, device=dev)  # noqa: E731
     return {
+        **({"bounds": z(e, 2)} if family else {}),
         "pos": z(e, m, 2), "backup": z(e, m, dt=torch.long), "t": z(e, dt=torch.long),
         "sim": z(e, dt=torch.long),
         "start": z(e, dt=torch.long), "cursor": torch.arange(e, device=dev),
@@ -363,9 +373,15 @@ class UABSEnv(EnvBase):
             if mode == "eval" else None)
         # one generator, or one per population member (a list of seeds; see uabs_rl.rng)
         self.rng = rng.make_generator(seed, device)
+        # a family of cities (traces.store.stack_cities): each sim's city and their areas
+        family = traces.meta.get("city_of_sim")
+        self.register_buffer("city_of_sim", None if family is None else
+                             torch.tensor(family, dtype=torch.long, device=device))
+        self.register_buffer("city_bounds", None if family is None else
+                             torch.tensor(traces.meta["city_area"], device=device))
         self._build_math(device)
         self.start_spacing: float | None = None  # see require_start_spacing
-        self.register_buffer("packing", None)  # [K, 2] start points, see there
+        self.packings: list[torch.Tensor] = []  # each city's [K, 2] start points
         self.state = self._empty_state()
         specs = env_specs(self.params, n_envs, device)
         self.observation_spec, self.action_spec = specs["observation"], specs["action"]
@@ -373,6 +389,10 @@ class UABSEnv(EnvBase):
 
     def _build_math(self, device: torch.device) -> None:
         self.math = StepMath(self.params, device)
+        # each city's geometry (lattice, starts), or the one area's
+        self.cities = [self.math.geometry] if self.city_bounds is None else [
+            Geometry(replace(self.params, width=float(w), height=float(h)), device)
+            for w, h in self.city_bounds.tolist()]
         # torch.compile fuses the step's many small tensor ops: ~6x faster at n_envs = 1
         # on CPU (benchmarks/numpy_reference.py); ~10 s of compilation at the first step
         self._step_math = compiled_or_eager(self.math.step, "the env step", device) \
@@ -386,6 +406,7 @@ class UABSEnv(EnvBase):
             dev = self.veh_pos.device
             self.state = {k: fn(v) for k, v in self.state.items()}
             self.rng = rng.reseeded(self.rng, dev)
+            self.packings = [fn(k) for k in self.packings]
             self._build_math(dev)
         return out
 
@@ -394,10 +415,11 @@ class UABSEnv(EnvBase):
         paper's placement where it achieves that, else random points of a packing of
         the area). Refuses a fleet the area cannot hold that far apart."""
         self.start_spacing = self.params.d_th + margin
-        self.packing = fleet_packing(self.math.geometry, margin)
+        self.packings = [fleet_packing(geo, margin) for geo in self.cities]
 
     def _empty_state(self) -> dict[str, torch.Tensor]:
-        return empty_state(self.params, self.n_envs, self.veh_pos.shape[3], self.device)
+        return empty_state(self.params, self.n_envs, self.veh_pos.shape[3], self.device,
+                           family=self.city_bounds is not None)
 
     def _set_seed(self, seed: int | None) -> None:
         """Seeds start positions, windows and LoS draws; in eval mode it also rewinds to
@@ -423,12 +445,18 @@ class UABSEnv(EnvBase):
         fresh["sim"], fresh["start"] = draw_windows(st["cursor"], self.eval_windows,
                                                     self.veh_pos.shape[:2],
                                                     self.params.episode_steps, self.rng)
-        geo = self.math.geometry
-        fresh["pos"] = geo.start_positions(self.n_envs, self.rng)
-        if self.start_spacing is not None:
-            fresh["pos"] = geo.spread_start(fresh["pos"], self.packing, self.start_spacing,
-                                            self.rng)
-        fresh["backup"] = geo.boundary_mask(fresh["pos"]).float().argmax(-1)
+        city = None
+        if self.city_bounds is not None:
+            city = self.city_of_sim[fresh["sim"]]
+            fresh["bounds"] = self.city_bounds[city]
+        for c, geo in enumerate(self.cities):  # each city's starts, kept where it is drawn
+            pos = geo.start_positions(self.n_envs, self.rng)
+            if self.start_spacing is not None:
+                pos = geo.spread_start(pos, self.packings[c], self.start_spacing, self.rng)
+            fresh["pos"] = pos if city is None else torch.where(
+                (city == c)[:, None, None], pos, fresh["pos"])
+        fresh["backup"] = self.math.geometry.boundary_mask(
+            fresh["pos"], fresh.get("bounds")).float().argmax(-1)
         served, present = self.math.observe(fresh, self.veh_pos, self.veh_present, self.rng)
         merge_where(st, fresh, mask, skip="cursor")
         if self.mode == "eval":  # the next reset of env i takes window i + n_envs, ...

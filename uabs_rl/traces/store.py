@@ -49,9 +49,11 @@ from uabs_rl.config import (
     PROJECT_ROOT,
     TRACE_SPLITS,
     ConfigError,
+    RunConfig,
     ScenarioConfig,
     SplitConfig,
     TracesConfig,
+    family_scenarios,
     resolve_path,
     validate_scenario_traces,
 )
@@ -660,3 +662,40 @@ def get_traces(scenario: ScenarioConfig, traces_cfg: TracesConfig, split: str,
         log.info("traces %s built in %.2f s -> %s\n  %s", split, ts.meta["build_seconds"], path,
                  ts.summary())
     return ts
+
+
+def stack_cities(sets: list[TraceSet], areas: list[tuple[float, float]],
+                 names: list[str]) -> TraceSet:
+    """Several cities' traces as one (a family, ``RunConfig.family``): their simulations
+    side by side, vehicle slots padded (absent) to the largest fleet's, steps cut to the
+    shortest; ``meta`` says each simulation's city (``city_of_sim``) and each city's
+    (W, H) (``city_area``), which ``UABSEnv`` reads."""
+    steps = min(s.steps for s in sets)
+    v = max(s.max_vehicles for s in sets)
+    n = sum(s.n_sims for s in sets)
+    pos = torch.zeros(n, steps, v, 2)
+    present = torch.zeros(n, steps, v, dtype=torch.bool)
+    city_of_sim: list[int] = []
+    for c, s in enumerate(sets):
+        i = len(city_of_sim)
+        pos[i:i + s.n_sims, :, :s.max_vehicles] = s.positions[:, :steps]
+        present[i:i + s.n_sims, :, :s.max_vehicles] = s.present[:, :steps]
+        city_of_sim += [c] * s.n_sims
+    meta = {**sets[0].meta, "cities": list(names), "city_of_sim": city_of_sim,
+            "city_area": [[float(w), float(h)] for w, h in areas]}
+    return TraceSet(pos, present, meta, source="family")
+
+
+def training_traces(cfg: RunConfig) -> TraceSet:
+    """The training traces of ``cfg``: its scenario's, or every city of its family
+    stacked (:func:`stack_cities`), each built with SUMO or read from the cache."""
+    cities = family_scenarios(cfg)
+    if not cities:
+        return get_traces(cfg.scenario, cfg.traces, "train")
+    sets = []
+    for city in cities:
+        ts = get_traces(city, cfg.traces, "train")
+        log.info("family city %s: %s", city.name, ts.summary())
+        sets.append(ts)
+    return stack_cities(sets, [(c.area.width, c.area.height) for c in cities],
+                        [c.name for c in cities])

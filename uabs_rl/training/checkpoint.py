@@ -30,7 +30,7 @@ from uabs_rl.env.params import EnvParams
 # ring of per-agent transitions is converted on load (upgrade_state)
 CKPT_FORMAT = 2
 # config sections a checkpoint must agree with to be resumed or evaluated
-COMPAT_KEYS = ("scenario", "obs", "channel", "masking", "algo", "traces", "seed",
+COMPAT_KEYS = ("scenario", "family", "obs", "channel", "masking", "algo", "traces", "seed",
                "train.n_envs", "train.population")
 LABELS = ("obs.name",)  # names, not settings: never compared
 # what members.Checkpoints.state writes, entry by entry: a nested layout, or the kind of value

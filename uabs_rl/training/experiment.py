@@ -22,7 +22,7 @@ from uabs_rl.env.uabs_env import N_ACTIONS
 from uabs_rl.evaluation.evaluator import Evaluator, greedy_policy, make_eval_env
 from uabs_rl.rng import make_generator
 from uabs_rl.safety.make import make_env, make_selector, resolve_device
-from uabs_rl.traces.store import TraceSet
+from uabs_rl.traces.store import TraceSet, training_traces
 from uabs_rl.training.checkpoint import Interrupted
 from uabs_rl.training.members import Checkpoints, Member, member_dir, member_seeds
 from uabs_rl.training.rollout import Collector, UpdateSchedule, episode_records, epsilon
@@ -130,7 +130,8 @@ class Experiment:
         self.threads = setup_threads(cfg)
         torch.manual_seed(cfg.seed)
         traces = traces or {}
-        env = make_env(cfg.scenario, cfg.channel, cfg.masking, traces.get("train", cfg.traces),
+        train = traces["train"] if "train" in traces else training_traces(cfg)
+        env = make_env(cfg.scenario, cfg.channel, cfg.masking, train,
                        "train", n_envs=tr.n_envs * self.n, device=dev, seed=seed,
                        compile=tr.compile, spec_mask=False, obs=cfg.obs)
         eval_env = make_eval_env(cfg, traces.get("eval"), dev, members=self.n)

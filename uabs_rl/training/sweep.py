@@ -111,6 +111,10 @@ def describe(settings: dict[str, Any], skip: tuple[str, ...] = (), words: bool =
     section as ``algo.{hidden=[32, 32], batch_size=32, ...}``. With ``words=False``,
     settings only (``obs.lookahead=true``), "" for none."""
     defaults = _default_settings()
+    if settings.get("family"):  # the cities by name: family=manhattan+blocks60+...
+        home = settings.get("scenario.name", "manhattan")
+        settings = {**settings, "family": "+".join(
+            str((c or {}).get("name", home)) for c in settings["family"])}
     obs = ("obs.frame", "obs.lookahead", "obs.motion", "masking.recoverable")
     keys = [k for k, v in settings.items()
             if k not in skip and (k not in obs or not words) and v != defaults.get(k)]

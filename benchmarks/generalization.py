@@ -1,0 +1,137 @@
+"""Zero-shot evaluation over cities and fleet sizes: each run's best.pt (chosen on its
+own validation traces) on the test traces of every (city, M) given, beside the greedy
+and oracle baselines under the same masks and windows. Prints a markdown table (rows:
+city x M; learned, greedy and oracle served fraction, learned − greedy with a 95 %
+bootstrap CI over seeds: each seed's mean over windows of the paired differences) and
+writes every number to a csv.
+
+    python benchmarks/generalization.py outputs/runs/<generalist population> \
+        --at grid6:3 grid6:6 lights60:3 city:25 --csv docs/results/generalization/table.csv
+
+``--at CITY:M`` names a scenario option (conf/scenario or --config-dir) and a fleet
+size; ``home:M`` is the run's own scenario. ``--beside RUNS`` evaluates a second
+population (for example a single-city policy of the paper's observation size) on the
+pairs where its network fits, in the columns ``other − greedy``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from uabs_rl.cli.evaluate import evaluate_policies, load_evaluation
+from uabs_rl.config import ConfigError
+from uabs_rl.evaluation.stats import bootstrap_ci
+
+METRIC = "served_fractions"  # per window
+
+
+def members(root: Path) -> list[Path]:
+    found = sorted(root.glob("seed=*"), key=lambda p: int(p.name.split("=")[1]))
+    return found or [root]
+
+
+def overrides(at: str) -> list[str]:
+    city, m = at.split(":")
+    return ([] if city == "home" else [f"scenario={city}"]) + [f"scenario.n_uabs={m}"]
+
+
+def learned(runs: list[Path], over: list[str], dirs: list[Path]) -> list[np.ndarray] | None:
+    """Per seed, the learned policy's served fraction per window; None where the
+    network does not fit (the paper's observation at another M)."""
+    out = []
+    for run in runs:
+        try:
+            ev = load_evaluation(run, "best", split="test", overrides=over, config_dirs=dirs)
+        except ConfigError as e:
+            if "observations of size" in str(e):
+                return None
+            raise
+        rec = evaluate_policies(ev, ("learned",))["learned"][0]
+        out.append(np.asarray(rec[METRIC], dtype=float))
+    return out
+
+
+def baselines(run: Path, over: list[str], dirs: list[Path]) -> dict[str, np.ndarray]:
+    ev = load_evaluation(run, "best", split="test", overrides=over, config_dirs=dirs)
+    res = evaluate_policies(ev, ("greedy", "oracle"))
+    return {k: np.asarray(res[k][0][METRIC], dtype=float) for k in res}
+
+
+def versus(per_seed: list[np.ndarray], base: np.ndarray) -> tuple[float, float, float]:
+    """learned − baseline: per seed the mean over windows of the paired differences,
+    then their mean over seeds and its 95 % bootstrap CI."""
+    return bootstrap_ci([float((s - base).mean()) for s in per_seed])
+
+
+def pt(x: float) -> str:
+    return f"{100 * x:+.2f}"
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("runs", type=Path)
+    ap.add_argument("--at", nargs="+", required=True, help="CITY:M pairs")
+    ap.add_argument("--beside", type=Path, help="a second population, on the pairs it fits")
+    ap.add_argument("--config-dir", type=Path, action="append", default=[])
+    ap.add_argument("--csv", type=Path)
+    args = ap.parse_args(argv)
+    runs = members(args.runs)
+    other = members(args.beside) if args.beside else []
+    rows = []
+    print(f"{len(runs)} seeds of {args.runs}" + (f"; beside: {len(other)} seeds of "
+                                                 f"{args.beside}" if other else ""),
+          file=sys.stderr)
+    for at in args.at:
+        t0 = time.perf_counter()
+        over = overrides(at)
+        mine = learned(runs, over, args.config_dir)
+        if mine is None:
+            raise SystemExit(f"{args.runs}: its network does not fit {at}")
+        base = baselines(runs[0], over, args.config_dir)
+        theirs = learned(other, over, args.config_dir) if other else None
+        d, lo, hi = versus(mine, base["greedy"])
+        do, lo_o, hi_o = versus(mine, base["oracle"])
+        row = {"city": at.split(":")[0], "M": int(at.split(":")[1]),
+               "windows": int(base["greedy"].size), "seeds": len(mine),
+               "learned": float(np.mean([s.mean() for s in mine])),
+               "greedy": float(base["greedy"].mean()), "oracle": float(base["oracle"].mean()),
+               "learned_minus_greedy": d, "ci_low": lo, "ci_high": hi,
+               "learned_minus_oracle": do, "oracle_ci_low": lo_o, "oracle_ci_high": hi_o}
+        if theirs is not None:
+            d2, lo2, hi2 = versus(theirs, base["greedy"])
+            row.update(other=float(np.mean([s.mean() for s in theirs])),
+                       other_minus_greedy=d2, other_ci_low=lo2, other_ci_high=hi2)
+        rows.append(row)
+        print(f"{at}: {time.perf_counter() - t0:.0f} s", file=sys.stderr)
+    head = ("| city | M | windows | learned | greedy | oracle | learned − greedy [95 % CI] "
+            "| learned − oracle [95 % CI] |" + (" beside − greedy [95 % CI] |" if other else ""))
+    print(head)
+    print("|" + "---|" * (head.count("|") - 1))
+    for r in rows:
+        cells = [r["city"], str(r["M"]), str(r["windows"]), f"{100 * r['learned']:.2f} %",
+                 f"{100 * r['greedy']:.2f} %", f"{100 * r['oracle']:.2f} %",
+                 f"{pt(r['learned_minus_greedy'])} [{pt(r['ci_low'])}, {pt(r['ci_high'])}]",
+                 f"{pt(r['learned_minus_oracle'])} [{pt(r['oracle_ci_low'])}, "
+                 f"{pt(r['oracle_ci_high'])}]"]
+        if other:
+            cells.append(f"{pt(r['other_minus_greedy'])} [{pt(r['other_ci_low'])}, "
+                         f"{pt(r['other_ci_high'])}]" if "other" in r else "does not fit")
+        print("| " + " | ".join(cells) + " |")
+    if args.csv:
+        args.csv.parent.mkdir(parents=True, exist_ok=True)
+        keys = sorted({k for r in rows for k in r}, key=lambda k: list(rows[0]).index(k)
+                      if k in rows[0] else 99)
+        with args.csv.open("w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=keys)
+            w.writeheader()
+            w.writerows(rows)
+
+
+if __name__ == "__main__":
+    main()
