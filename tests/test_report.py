@@ -287,7 +287,7 @@ def test_run_labels_name_a_family_by_its_cities():
            "masking": {"recoverable": True}, "algo": {}, "train": {"n_envs": 4},
            "traces": {}, "seed": 0, "family": [{}, {"name": "blocks60"}, {"name": "b"}]}
     assert Run(Path("x"), "rank", 0, 1000, [], [], cfg).label == (
-        "egocentric family=manhattan+blocks60+b train.n_envs=4")
+        "egocentric family=scenario+blocks60+b train.n_envs=4")
 
 
 def test_runs_written_before_recoverable_masks_are_literal():

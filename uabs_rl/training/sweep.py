@@ -34,9 +34,13 @@ class ReportError(ValueError):
 
 
 def fmt_value(v: Any) -> str:
-    """A setting's value as typed on the command line (``true``, ``null``, ``0.001``)."""
+    """A setting's value as typed on the command line (``true``, ``null``, ``0.001``);
+    a family of cities by their names (``scenario+blocks60+...``, ``none`` when empty:
+    ``{}`` is the run's scenario)."""
     if isinstance(v, bool):
         return "true" if v else "false"
+    if isinstance(v, list) and all(isinstance(c, dict) for c in v):
+        return "+".join(str(c.get("name", "scenario")) for c in v) or "none"
     return "null" if v is None else str(v)
 
 
@@ -111,10 +115,6 @@ def describe(settings: dict[str, Any], skip: tuple[str, ...] = (), words: bool =
     section as ``algo.{hidden=[32, 32], batch_size=32, ...}``. With ``words=False``,
     settings only (``obs.lookahead=true``), "" for none."""
     defaults = _default_settings()
-    if settings.get("family"):  # the cities by name: family=manhattan+blocks60+...
-        home = settings.get("scenario.name", "manhattan")
-        settings = {**settings, "family": "+".join(
-            str((c or {}).get("name", home)) for c in settings["family"])}
     obs = ("obs.frame", "obs.lookahead", "obs.motion", "masking.recoverable")
     keys = [k for k, v in settings.items()
             if k not in skip and (k not in obs or not words) and v != defaults.get(k)]
