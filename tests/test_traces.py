@@ -179,17 +179,22 @@ def test_user_scenario_with_route_file(tmp_path, trace_cache):
     assert ts.max_vehicles < 25
 
 
-def test_net_file_is_built_from_its_netgcfg(tmp_path, monkeypatch):
-    """A network kept in the repository as its netgenerate config (sumo/city) is built
-    on first use, next to the config, and then found as any network."""
-    from uabs_rl.traces.store import net_file
-
+def tiny_netgcfg(tmp_path, monkeypatch) -> None:
+    """``g/tiny.netgcfg`` (a 3 x 3 grid) under ``tmp_path``, the working folder."""
     monkeypatch.chdir(tmp_path)
     (tmp_path / "g").mkdir()
     (tmp_path / "g" / "tiny.netgcfg").write_text(
         '<netgenerateConfiguration><grid_network><grid value="true"/>'
         '<grid.number value="3"/><grid.length value="50"/></grid_network>'
         '</netgenerateConfiguration>')
+
+
+def test_net_file_is_built_from_its_netgcfg(tmp_path, monkeypatch):
+    """A network kept in the repository as its netgenerate config (sumo/city) is built
+    on first use, next to the config, and then found as any network."""
+    from uabs_rl.traces.store import net_file
+
+    tiny_netgcfg(tmp_path, monkeypatch)
     built = net_file("g/tiny.net.xml")
     assert built == (tmp_path / "g" / "tiny.net.xml").resolve() and built.stat().st_size > 1000
     assert [p.name for p in (tmp_path / "g").iterdir() if p.name.startswith(".")] == []
@@ -201,6 +206,18 @@ def test_net_file_is_built_from_its_netgcfg(tmp_path, monkeypatch):
     assert not (tmp_path / "g" / "bad.net.xml").exists()
     with pytest.raises(ConfigError, match="file not found"):
         net_file("g/absent.net.xml")
+
+
+def test_two_builds_of_a_network_are_byte_identical(tmp_path, monkeypatch):
+    """netgenerate writes its start time and the temporary output name into the header:
+    both are normalised, so a fresh checkout's build keys the same cached traces."""
+    from uabs_rl.traces.store import net_file
+
+    tiny_netgcfg(tmp_path, monkeypatch)
+    first = net_file("g/tiny.net.xml").read_bytes()
+    (tmp_path / "g" / "tiny.net.xml").unlink()
+    assert net_file("g/tiny.net.xml").read_bytes() == first
+    assert b"generated on" not in first and b".tmp" not in first
 
 
 def test_city_scenario_holds_its_fleet():
