@@ -41,26 +41,24 @@ def overrides(at: str) -> list[str]:
     return ([] if city == "home" else [f"scenario={city}"]) + [f"scenario.n_uabs={m}"]
 
 
-def learned(runs: list[Path], over: list[str], dirs: list[Path]) -> list[np.ndarray] | None:
-    """Per seed, the learned policy's served fraction per window; None where the
-    network does not fit (the paper's observation at another M)."""
-    out = []
-    for run in runs:
+def evaluate(runs: list[Path], over: list[str], dirs: list[Path],
+             baselines: tuple[str, ...] = ()) -> tuple[list[np.ndarray], dict] | None:
+    """Per seed, the learned policy's served fraction per window, and those of the
+    ``baselines`` (on the first seed's env: they do not depend on the run's seed); None
+    where the network does not fit (the paper's observation at another M)."""
+    out, base = [], {}
+    for i, run in enumerate(runs):
         try:
             ev = load_evaluation(run, "best", split="test", overrides=over, config_dirs=dirs)
-        except ConfigError as e:
+        except ConfigError as e:  # check_network_fits' refusal; any other error stands
             if "observations of size" in str(e):
                 return None
             raise
-        rec = evaluate_policies(ev, ("learned",))["learned"][0]
-        out.append(np.asarray(rec[METRIC], dtype=float))
-    return out
-
-
-def baselines(run: Path, over: list[str], dirs: list[Path]) -> dict[str, np.ndarray]:
-    ev = load_evaluation(run, "best", split="test", overrides=over, config_dirs=dirs)
-    res = evaluate_policies(ev, ("greedy", "oracle"))
-    return {k: np.asarray(res[k][0][METRIC], dtype=float) for k in res}
+        res = evaluate_policies(ev, ("learned", *(baselines if i == 0 else ())))
+        values = {k: np.asarray(rec[METRIC], dtype=float) for k, (rec, _) in res.items()}
+        out.append(values.pop("learned"))
+        base = base or values
+    return out, base
 
 
 def versus(per_seed: list[np.ndarray], base: np.ndarray) -> tuple[float, float, float]:
@@ -90,11 +88,12 @@ def main(argv: list[str] | None = None) -> None:
     for at in args.at:
         t0 = time.perf_counter()
         over = overrides(at)
-        mine = learned(runs, over, args.config_dir)
-        if mine is None:
+        found = evaluate(runs, over, args.config_dir, ("greedy", "oracle"))
+        if found is None:
             raise SystemExit(f"{args.runs}: its network does not fit {at}")
-        base = baselines(runs[0], over, args.config_dir)
-        theirs = learned(other, over, args.config_dir) if other else None
+        mine, base = found
+        theirs = evaluate(other, over, args.config_dir) if other else None
+        theirs = theirs and theirs[0]
         d, lo, hi = versus(mine, base["greedy"])
         do, lo_o, hi_o = versus(mine, base["oracle"])
         row = {"city": at.split(":")[0], "M": int(at.split(":")[1]),
