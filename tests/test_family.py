@@ -6,19 +6,17 @@ from __future__ import annotations
 import pytest
 import torch
 
+from tests.test_observation import EGO, ego_size
 from uabs_rl.config import (
     AreaConfig,
     ChannelConfig,
     ConfigError,
-    ObsConfig,
     RunConfig,
     ScenarioConfig,
     family_scenarios,
 )
 from uabs_rl.env.uabs_env import UABSEnv
 from uabs_rl.traces.store import TraceSet, stack_cities
-
-EGO = ObsConfig(name="egocentric", frame="egocentric", motion=True)
 
 
 def parked(n_sims: int, v: int, w: float, h: float, steps: int = 40, seed: int = 0) -> TraceSet:
@@ -66,12 +64,9 @@ def test_each_env_draws_its_city_and_stays_in_its_area():
             mask = out["agents", "action_mask"]
             a = torch.multinomial(mask.flatten(0, 1).float(), 1).view(16, 3)
             out = env.step_direct(a)
-        assert out["agents", "observation"].shape == (16, 3, EGO_SIZE)
+        assert out["agents", "observation"].shape == (16, 3, ego_size())
     assert seen.all(-1).sum() >= 12  # (1 - 0.6^4 - 0.4^4) of the 16 envs expected: 13.6
     assert not small_left_default
-
-
-EGO_SIZE = 1 + 9 + 50 + 12 + 4
 
 
 def test_the_start_spacing_holds_in_every_city():
