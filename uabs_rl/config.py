@@ -262,6 +262,7 @@ def validate_masking(masking: MaskingConfig) -> None:
         v = getattr(masking, key)
         if v is not None and v < 0:
             raise ConfigError(f"masking.{key} must be null or >= 0, got {v}.")
+    check_ranges(masking, "masking.")
 
 
 @dataclass
@@ -373,6 +374,7 @@ def validate_obs(obs: ObsConfig) -> None:
         (obs.edge_range > 0, "obs.edge_range", "must be > 0 (lattice steps)",
          obs.edge_range),
     ])
+    check_ranges(obs, "obs.")
 
 
 # settings that moved: (section, old key) -> (section, new key); stored configs are
@@ -394,6 +396,52 @@ def check_moved_overrides(overrides: list[str]) -> None:
                     new, f"{new_sec}.{new}={value}")
                 raise ConfigError(f"{key} moved to the observation group: type {hint} "
                                   f"instead of {o} (conf/obs holds the observations).")
+
+
+# Hydra's flags that take the next word as their value (``--cfg job``, ``-cn config``)
+_FLAGS_WITH_VALUE = {"-c", "--cfg", "-p", "--package", "-cn", "--config-name", "-cp",
+                     "--config-path", "-cd", "--config-dir", "--experimental-rerun"}
+_INFO_TOPICS = {"all", "config", "defaults", "defaults-tree", "plugins", "searchpath"}
+# keys a command appends to what the user typed (uabs-train's resume= names the run's
+# folder again as hydra.run.dir, or hydra.sweep.dir with -m): typed once, they appear twice
+APPENDED_KEYS = ("hydra.run.dir", "hydra.sweep.dir", "hydra.output_subdir")
+
+
+def override_key(word: str) -> str | None:
+    """The setting a command-line word overrides (``+a.b=1``, ``~a.b``, ``a.b=1`` ->
+    ``a.b``; a group with a package, ``a@p=x``, stays whole), None for a flag."""
+    if word.startswith("-"):
+        return None
+    key, eq, _ = word.lstrip("+~").partition("=")
+    return key.strip() if (eq or word.startswith("~")) and key.strip() else None
+
+
+def check_duplicate_overrides(argv: list[str]) -> None:
+    """Refuse a setting given twice on the command line (``masking=flat
+    masking=penalty``, ``seed=1 seed=2``; with ``-m`` too): Hydra would keep the last
+    one silently, and the run folder would be named after both."""
+    seen: dict[str, list[str]] = {}
+    skip = False
+    for i, word in enumerate(argv):
+        if skip:
+            skip = False
+            continue
+        if word in _FLAGS_WITH_VALUE or (word == "--info" and i + 1 < len(argv)
+                                         and argv[i + 1] in _INFO_TOPICS):
+            skip = True
+            continue
+        key = override_key(word)
+        if key is not None:
+            seen.setdefault(key, []).append(word)
+    resumed = "resume" in seen
+    for key, words in seen.items():
+        allowed = 2 if key in APPENDED_KEYS and resumed else 1
+        if len(words) > allowed:
+            n = len(words) - allowed + 1
+            values = ",".join(w.partition("=")[2] for w in words[:n])
+            raise ConfigError(f"{key} is given {'twice' if n == 2 else f'{n} times'} on the "
+                              f"command line ({', '.join(words[:n])}): give it once (a "
+                              f"sweep over several values: -m {key}={values}).")
 
 
 def validate_world(cfg: RunConfig) -> None:
@@ -443,17 +491,49 @@ def validate_run(cfg: RunConfig) -> None:
     built or written before they pass."""
     check_finite(cfg)
     validate_world(cfg)
-    for city in family_scenarios(cfg):
-        validate_scenario_traces(city, cfg.traces)
-        validate_env(city, cfg.channel)
+    for i, city in enumerate(family_scenarios(cfg)):
+        try:
+            validate_scenario_traces(city, cfg.traces)
+            validate_env(city, cfg.channel)
+        except ConfigError as e:  # what a city sets: name it as the family entry's
+            raise ConfigError(str(e).replace("scenario.area", f"family[{i}].area")
+                              .replace("scenario.sumo", f"family[{i}].sumo")) from None
     validate_algo_name(cfg.algo)
     enum_value(LossKind, cfg.algo.loss, "algo.loss")
     enum_value(ReplayKind, cfg.algo.replay, "algo.replay")
     enum_value(LoggerKind, cfg.train.logger, "train.logger")
     _raise_first(_algo_checks(cfg) + _train_checks(cfg))
+    check_ranges(cfg)
+    _check_eval_windows(cfg)
     if not (cfg.device in ("cpu", "cuda", "auto") or cfg.device.startswith("cuda:")):
         raise ConfigError(f"device must be cpu, cuda, cuda:N or auto, got {cfg.device!r}.")
     check_memory(cfg)
+
+
+def _check_eval_windows(cfg: RunConfig) -> None:
+    """Training and validation traces long enough for an episode, and
+    ``train.eval_windows`` against the windows the validation traces will hold
+    (n_sims x duration_s / dt steps, as they are built), before any trace is built:
+    the refusals the env and :func:`~uabs_rl.evaluation.evaluator.eval_window_count`
+    give once they are."""
+    from types import SimpleNamespace
+
+    from uabs_rl.evaluation.evaluator import eval_window_count
+
+    need = cfg.scenario.episode_steps + 1
+    for name in ("train", "eval"):  # as uabs_rl.env.uabs_env refuses them once built
+        split = getattr(cfg.traces, name)
+        steps = int(round(split.duration_s / cfg.scenario.dt))
+        if steps < need:
+            raise ConfigError(
+                f"the {name} traces hold {steps} steps but an episode needs "
+                f"scenario.episode_steps + 1 = {need}: raise traces.{name}.duration_s "
+                f"(now {split.duration_s:g} s at scenario.dt={cfg.scenario.dt:g} s) or "
+                f"lower scenario.episode_steps.")
+    split = cfg.traces.eval
+    shape = SimpleNamespace(n_sims=split.n_sims,
+                            steps=int(round(split.duration_s / cfg.scenario.dt)))
+    eval_window_count(cfg, shape, "eval")
 
 
 def validate_algo_name(algo: AlgoConfig) -> None:
@@ -518,8 +598,8 @@ def _train_checks(cfg: RunConfig) -> list[tuple[bool, str, str, Any]]:
          "must be a multiple of train.n_envs", (t.episodes, t.n_envs)),
         (t.threads is None or t.threads >= 1, "train.threads",
          "must be null (chosen for the machine) or >= 1", t.threads),
-        (SEED_MIN <= t.eval_seed < SEED_END, "train.eval_seed", f"must be {seeds}",
-         t.eval_seed),
+        (0 <= t.eval_seed < SEED_END, "train.eval_seed", "must be in [0, 2^64) (TorchRL's "
+         "env.set_seed hands it to numpy, which takes no negative seed)", t.eval_seed),
         (SEED_MIN <= cfg.seed < SEED_END, "seed", f"must be {seeds}", cfg.seed),
         (cfg.seed + t.population - 1 < SEED_END, "seed",
          f"+ train.population - 1 (the last member's seed) must be {seeds}",
@@ -584,12 +664,26 @@ def validate_scenario_traces(scenario: ScenarioConfig, traces: TracesConfig) -> 
             "scenario.sumo.fleet_size is 0 and no scenario.sumo.route_files or "
             "scenario.sumo.sumocfg is given: there would be no vehicle. Set "
             "scenario.sumo.fleet_size >= 1 or give routes.")
+    for key in ("dt", "area", "sumo"):  # what sizes the traces
+        _check_field(scenario, key, "scenario.")
     host = available_memory("cpu")  # traces are built and cached on the host
     for name in TRACE_SPLITS:
         _validate_split(name, getattr(traces, name), scenario, host)
     _check_disjoint_seeds(traces)
     if traces.workers < 0:
         raise ConfigError(f"traces.workers must be >= 0, got {traces.workers}.")
+    check_ranges(traces, "traces.")
+
+
+def _check_field(obj: Any, name: str, prefix: str) -> None:
+    """:func:`check_ranges` of the one field ``name`` of ``obj``."""
+    value = getattr(obj, name)
+    if is_dataclass(value):
+        check_ranges(value, f"{prefix}{name}.")
+        return
+    rng = RANGES[type(obj)][name]
+    if value is not None and not rng.holds(value):
+        raise ConfigError(f"{prefix}{name} must be in {rng}, got {value!r}.")
 
 
 def _validate_split(name: str, split: SplitConfig, scenario: ScenarioConfig,
@@ -607,6 +701,7 @@ def _validate_split(name: str, split: SplitConfig, scenario: ScenarioConfig,
          f"{SUMO_SEED_MAX} (SUMO's --seed is a 32-bit integer)",
          split.first_seed + split.n_sims - 1),
     ])
+    check_ranges(split, f"{key}.")  # before sizing them: a huge size is no float
     _check_fits(f"{key}.n_sims x {key}.duration_s", trace_bytes(scenario, split),
                 f"the {name} traces", host, f"lower {key}.n_sims or {key}.duration_s")
 
@@ -673,7 +768,8 @@ def validate_env(scenario: ScenarioConfig, channel: ChannelConfig) -> None:
          >= scenario.collision_distance, "scenario.safety_distance",
          "must be null or >= scenario.collision_distance", scenario.safety_distance),
         (min(scenario.area.width, scenario.area.height) >= scenario.speed * scenario.dt,
-         "scenario.area", "must be at least v·δt wide and high so every UABS can move",
+         "scenario.area", f"must be at least v·δt (scenario.speed x scenario.dt = "
+         f"{scenario.speed * scenario.dt:g} m) wide and high so every UABS can move",
          (scenario.area.width, scenario.area.height)),
         (channel.carrier_ghz > 0, "channel.carrier_ghz", "must be > 0", channel.carrier_ghz),
         (channel.ue_height >= 0, "channel.ue_height", "must be >= 0 (m above ground)",
@@ -693,6 +789,17 @@ def validate_env(scenario: ScenarioConfig, channel: ChannelConfig) -> None:
     if channel.name not in CHANNELS:
         raise ConfigError(f"channel.name={channel.name!r} is not a channel model: use one of "
                           f"{', '.join(sorted(CHANNELS))} (uabs_rl.env.channel.CHANNELS).")
+    check_ranges(scenario, "scenario.")
+    check_ranges(channel, "channel.")
+    points = lattice_points(scenario)
+    if points > MAX_LATTICE_POINTS:
+        shown = points if points < 1e6 else format(points, ".3g")
+        raise ConfigError(
+            f"scenario.area / (scenario.speed x scenario.dt) must give at most "
+            f"{MAX_LATTICE_POINTS} lattice points (the start positions compare every pair "
+            f"of them), got {shown} ({scenario.area.width:g} m x {scenario.area.height:g} m "
+            f"at a pitch of {scenario.speed * scenario.dt:g} m): raise scenario.speed or "
+            f"scenario.dt, or shrink scenario.area.")
 
 
 def check_finite(obj: Any, prefix: str = "") -> None:
@@ -716,6 +823,129 @@ def _raise_first(checks: list[tuple[bool, str, str, Any]]) -> None:
     for ok, key, rule, value in checks:
         if not ok:
             raise ConfigError(f"{key} {rule}, got {value!r}.")
+
+
+# ----------------------------------------------------------------------------- ranges
+@dataclass(frozen=True)
+class Range:
+    """The values a numeric setting may take: ``lo`` to ``hi`` (``lo_open`` /
+    ``hi_open``: the bound itself excluded), in ``unit``; ``text`` shows a bound that
+    reads better as a power (2^64)."""
+
+    lo: float
+    hi: float
+    unit: str = ""
+    lo_open: bool = False
+    hi_open: bool = False
+    text: tuple[str, str] | None = None
+
+    def holds(self, v: float) -> bool:
+        above = v > self.lo if self.lo_open else v >= self.lo
+        below = v < self.hi if self.hi_open else v <= self.hi
+        return above and below
+
+    def __str__(self) -> str:
+        lo, hi = self.text or (_num(self.lo), _num(self.hi))
+        unit = f" {self.unit}" if self.unit else ""
+        return f"{'(' if self.lo_open else '['}{lo}, {hi}{')' if self.hi_open else ']'}{unit}"
+
+
+def _num(x: float) -> str:
+    """A bound as people write it: 3600, 0.001, 10^9, -1e+08."""
+    if float(x).is_integer() and abs(x) < 1e7:
+        return str(int(x))
+    k = math.log10(abs(x)) if x else 0.0
+    return f"{'-' if x < 0 else ''}10^{round(k)}" if k.is_integer() and k > 0 else f"{x:g}"
+
+
+def _r(lo: float, hi: float, unit: str = "", **kw: Any) -> Range:
+    return Range(lo, hi, unit, **kw)
+
+
+def _pos(hi: float, unit: str = "") -> Range:  # (0, hi]
+    return Range(0, hi, unit, lo_open=True)
+
+
+# Every number a config holds, by dataclass and field: finite, physically meaningful
+# ranges, wide enough for every preset and documented experiment (a list: each entry).
+# Checked at start-up after the checks that relate settings to each other, so a value
+# those explain better (scenario.dt=-1: "must be > 0 seconds") keeps their message.
+SEED_RANGE = Range(SEED_MIN, SEED_END, hi_open=True, text=("-2^63", "2^64"))
+RANGES: dict[type, dict[str, Range]] = {}  # filled below, once every dataclass exists
+
+
+def check_ranges(obj: Any, prefix: str = "") -> None:
+    """Refuse a number of the dataclass ``obj`` (nested configs and lists included)
+    outside its :data:`RANGES` entry, naming its key (``prefix`` + the field's path)."""
+    table = RANGES.get(type(obj), {})
+    for f in fields(obj):
+        key, value = f"{prefix}{f.name}", getattr(obj, f.name)
+        if is_dataclass(value):
+            check_ranges(value, f"{key}.")
+            continue
+        rng = table.get(f.name)
+        if rng is None or value is None:
+            continue
+        for v in value if isinstance(value, list | tuple) else [value]:
+            if isinstance(v, bool) or not isinstance(v, int | float):
+                continue
+            if not rng.holds(v):
+                each = " (each entry)" if isinstance(value, list | tuple) else ""
+                raise ConfigError(f"{key}{each} must be in {rng}, got {v!r}.")
+
+
+_UNIT = Range(0, 1)  # a probability, a share, a discount
+RANGES.update({
+    AreaConfig: {"x_min": _r(-1e8, 1e8, "m"), "y_min": _r(-1e8, 1e8, "m"),
+                 "width": _pos(1e5, "m"), "height": _pos(1e5, "m")},
+    SumoConfig: {"fleet_size": _r(0, 100_000, "vehicles")},
+    SplitConfig: {"first_seed": _r(0, SUMO_SEED_MAX), "n_sims": _r(1, 100_000),
+                  "duration_s": _pos(1e7, "s"), "warmup_s": _r(0, 1e7, "s")},
+    TracesConfig: {"workers": _r(0, 1024)},
+    ScenarioConfig: {
+        "dt": _r(0.001, 3600, "s"), "n_uabs": _r(1, 1000), "altitude": _pos(10_000, "m"),
+        "speed": _r(0.01, 1000, "m/s"), "episode_steps": _r(1, 1_000_000),
+        "window_steps": _r(1, 1_000_000), "nhat_s": _r(1, 1_000_000),
+        "lambda_s": _r(0, 1e6), "lambda_c": _r(0, 1e6),
+        "collision_distance": _pos(10_000, "m"), "safety_distance": _r(0, 1e5, "m")},
+    ObsConfig: {"priority_scale": _pos(1e6), "map_radius": _r(0, 100, "lattice steps"),
+                "neighbours": _r(0, 1000), "neighbour_range": _pos(1e6, "lattice steps"),
+                "edge_range": _pos(1e6, "lattice steps")},
+    ChannelConfig: {
+        "carrier_ghz": _pos(300, "GHz"), "ue_height": _r(0, 1000, "m"),
+        "tx_power_dbm": _r(-100, 100, "dBm"), "tx_gain_db": _r(-100, 100, "dB"),
+        "noise_dbm": _r(-200, 100, "dBm"), "snr_threshold_db": _r(-100, 100, "dB"),
+        "fov_deg": Range(0, 180, "degrees", lo_open=True, hi_open=True),
+        "n_beams": _r(1, 10_000), "shadow_sigma_los_db": _r(0, 50, "dB"),
+        "shadow_sigma_nlos_db": _r(0, 50, "dB"), "outside_beam_gain_db": _r(-200, 100, "dB")},
+    MaskingConfig: {"flat_margin": _r(0, 1e5, "m"), "collider_margin": _r(0, 1e5, "m")},
+    AlgoConfig: {
+        "hidden": _r(1, 65_536), "lr": _pos(1), "gamma": _UNIT, "batch_size": _r(1, 1_000_000),
+        "buffer_size": _r(1, 1e12, "transitions"), "learning_starts": _r(1, 1e12, "transitions"),
+        "update_every": _r(1, 1_000_000, "env steps"), "target_update": _r(1, 1e9, "updates"),
+        "eps_start": _UNIT, "eps_end": _UNIT, "eps_fraction": _pos(1), "grad_clip": _pos(1e6),
+        "n_step": _r(1, 1_000_000), "priority_alpha": _r(0, 10), "priority_beta": _UNIT,
+        "mixing_embed_dim": _r(1, 65_536)},
+    TrainConfig: {
+        "episodes": _r(1, 1e9), "eval_every": _r(1, 1e9, "episodes"),
+        "eval_windows": _r(1, 1_000_000),
+        # torchrl's env.set_seed hands the seed to numpy, which takes no negative seed
+        "eval_seed": Range(0, SEED_END, hi_open=True, text=("0", "2^64")),
+        "n_envs": _r(1, 1_000_000), "population": _r(1, 1000), "threads": _r(1, 1024)},
+    RunConfig: {"seed": SEED_RANGE},
+})
+RANGES[TracesAppConfig] = RANGES[RunConfig]
+
+# the lattice of pitch v·δt over the area: the start-position packing
+# (uabs_rl.env.geometry.lattice_packing) compares every pair of its points
+MAX_LATTICE_POINTS = 20_000
+
+
+def lattice_points(scenario: ScenarioConfig) -> int:
+    """Points of the lattice of pitch v·δt over the area (``Geometry.lattice_n``)."""
+    step = scenario.speed * scenario.dt
+    return ((math.floor(scenario.area.width / step) + 1)
+            * (math.floor(scenario.area.height / step) + 1))
 
 
 # ----------------------------------------------------------------------------- memory

@@ -14,6 +14,7 @@ from omegaconf import OmegaConf
 from uabs_rl.config import (
     CONF_DIR,
     ConfigError,
+    check_duplicate_overrides,
     check_moved_overrides,
     register_configs,
     to_container,
@@ -70,6 +71,7 @@ def hydra_main(config_name: str, body: Callable[..., Any],
 
     try:  # before Hydra, whose own message would not say what to type instead
         check_moved_overrides(sys.argv[1:])
+        check_duplicate_overrides(sys.argv[1:])
     except ConfigError as e:
         print(f"error: {e}", file=sys.stderr)
         sys.exit(2)

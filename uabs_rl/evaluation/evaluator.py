@@ -4,6 +4,7 @@ replay buffer or optimiser."""
 
 from __future__ import annotations
 
+import logging
 from typing import Any
 
 import torch
@@ -19,6 +20,8 @@ from uabs_rl.rng import make_generator
 from uabs_rl.safety.make import make_env, make_selector
 from uabs_rl.safety.masking import ACTION_VALUE
 from uabs_rl.traces.store import TraceSet, get_traces
+
+log = logging.getLogger(__name__)
 
 
 def greedy_policy(qnet: nn.Module, env: TransformedEnv, cfg: RunConfig,
@@ -82,6 +85,20 @@ def eval_window_count(cfg: RunConfig, traces: TraceSet, split: str,
     return n
 
 
+def vehicle_windows(base) -> torch.Tensor | None:
+    """``[n]`` (CPU) whether each fixed window of the eval-mode env ``base`` holds a
+    vehicle at one of its T + 1 steps, or None when every one does (or ``base`` draws
+    random windows: training)."""
+    windows = getattr(base, "eval_windows", None)
+    if windows is None:
+        return None
+    sim, start = windows[:, 0].cpu(), windows[:, 1].cpu()
+    steps = start[:, None] + torch.arange(base.params.episode_steps + 1)  # [n, T+1]
+    present = base.veh_present.cpu()[sim[:, None], steps]  # [n, T+1, V]
+    has = present.flatten(1).any(-1)
+    return None if bool(has.all()) else has
+
+
 class Evaluator:
     """Runs a policy on every fixed held-out window of ``env``, seeded with ``seed`` so
     every call sees the same episodes and start positions."""
@@ -89,6 +106,14 @@ class Evaluator:
     def __init__(self, env: TransformedEnv, seed: int):
         self.env, self.seed = env, seed
         self.params = env.base_env.params
+        # which fixed windows hold a vehicle at some step; in one without any, the served
+        # fraction and P_g are undefined: NaN, left out of the means (None: all hold one)
+        self.has_vehicles = vehicle_windows(env.base_env)
+        if self.has_vehicles is not None:
+            empty = int((~self.has_vehicles).sum())
+            log.warning("%d of %d evaluation windows had no vehicle: their served fraction "
+                        "and P_g are undefined (NaN) and left out of the means", empty,
+                        self.has_vehicles.numel())
 
     @torch.no_grad()
     def evaluate(self, policy: TensorDictModuleBase, episode: int = 0,
@@ -109,7 +134,7 @@ class Evaluator:
         population member's)."""
         last = td["next", DIAG][:, -1]
         ret = last["ep_return"]
-        return {
+        record = {
             "kind": "eval", "episode": episode, "env_steps": env_steps,
             "return": ret.mean().item(),
             "return_std": ret.std().item() if ret.numel() > 1 else 0.0,
@@ -126,6 +151,26 @@ class Evaluator:
             "closest_approach": td["next", DIAG, "closest_approach"].min().item(),
             "coverage": self.coverage(td["next", POSITION]),
             "windows": int(ret.numel())}
+        if self.has_vehicles is not None:
+            record.update(self.without_empty_windows(td, last))
+        return record
+
+    def without_empty_windows(self, td: TensorDictBase, last: TensorDictBase) -> dict[str, Any]:
+        """The served fraction and P_g entries of a record over the windows that hold a
+        vehicle (NaN per window for the others, NaN overall when none does), and
+        ``no_vehicle_windows``, their count. Rows are windows ``row % n`` (a
+        population's block of ``n`` rows each)."""
+        rows = torch.arange(td.shape[0]) % self.has_vehicles.numel()
+        keep = self.has_vehicles[rows].to(td.device)
+        nan = torch.full((), float("nan"), device=td.device)
+        sf, pg = td["next", DIAG, "served_fraction"], last["pg"]
+        return {
+            "served_fraction": sf[keep].mean().item(),
+            "served_fractions": torch.where(keep, sf.mean(-1), nan).tolist(),
+            "pg": pg[keep].mean().item(),
+            "pgs": torch.where(keep, pg, nan).tolist(),
+            "pg_curve": last["pg_curve"][keep].mean(0).tolist(),
+            "no_vehicle_windows": int((~keep).sum())}
 
     def coverage(self, pos: torch.Tensor) -> float:
         """Mean share of the area under footprints over the evaluated steps (10 m grid)."""

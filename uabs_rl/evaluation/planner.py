@@ -371,6 +371,8 @@ def gap_share(learned: list[float], greedy: list[float], planner: list[float],
     a, g, p = (np.asarray(x, dtype=float) for x in (learned, greedy, planner))
     if not a.shape == g.shape == p.shape:
         raise ValueError(f"per-window values of unequal shapes {a.shape}, {g.shape}, {p.shape}")
+    kept = ~(np.isnan(a) | np.isnan(g) | np.isnan(p))  # windows without a vehicle: left out
+    a, g, p = a[kept], g[kept], p[kept]
     nan = float("nan")
     if a.size == 0 or (p - g).mean() <= 0:  # no gap to share: the planner is not above greedy
         return {"share": nan, "ci_low": nan, "ci_high": nan, "n": int(a.size)}

@@ -23,10 +23,13 @@ def bootstrap_ci(x: np.ndarray | list[float], level: float = 0.95, n_boot: int =
 
 
 def paired_difference(a: list[float], b: list[float], **kw) -> dict[str, float]:
-    """Mean of ``a − b`` entry by entry (the same windows) with its bootstrap CI."""
+    """Mean of ``a − b`` entry by entry (the same windows) with its bootstrap CI, over
+    the pairs where both are defined (``n`` of them)."""
     a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
     if a.shape != b.shape:
         raise ValueError(f"paired samples need equal shapes, got {a.shape} and {b.shape}")
+    kept = ~(np.isnan(a) | np.isnan(b))  # a window without a vehicle: no served fraction
+    a, b = a[kept], b[kept]
     mean, lo, hi = bootstrap_ci(a - b, **kw)
     return {"diff": mean, "ci_low": lo, "ci_high": hi, "n": int(a.size)}
 

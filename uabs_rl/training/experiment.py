@@ -42,6 +42,17 @@ class Stopped(Interrupted):
         self.exit_code = 128 + signum
 
 
+class NotFinite(Interrupted):
+    """Training stopped because a loss or a network weight is not a finite number
+    (a diverging run): nothing is logged or saved from that round on, the checkpoints
+    saved before it are kept. One line on stderr (``error: ...``) and exit status 2."""
+
+    exit_code = 2
+
+    def __init__(self, message: str):
+        super().__init__(f"error: {message}")
+
+
 class DeferredInterrupt:
     """While active, Ctrl-C (SIGINT) and SIGTERM (a scheduler's preemption) only set
     :attr:`requested`: the loop saves at the end of the round and stops with one line
@@ -153,16 +164,27 @@ class Experiment:
         self.interrupt = DeferredInterrupt()
         self.total_steps = tr.episodes * p.episode_steps  # per-env steps of the protocol
         self.episode = 0  # per member
+        self.saved_episode: int | None = None  # the episode of the last ``last`` saved
         self.identity: dict | None = None  # the run folder's (set by train.prepare)
         self.run_lock = None  # the run folder's lock, released when fit ends
 
     # ------------------------------------------------------------------ steps
     def collect(self) -> list[list[dict[str, Any]]]:
         """One round of ``n_envs`` training episodes per member with their updates; the
-        records of each member's episodes."""
+        records of each member's episodes. A loss that is not finite stops training
+        (:class:`NotFinite`) before anything of the round is logged."""
+        updates = self.learner.updates
         last, served, eps, loss, q = self.collector.round(
             lambda s: epsilon(self.cfg.algo, s, self.total_steps), self.updates)
         loss, q = loss.expand(self.n).tolist(), q.expand(self.n).tolist()
+        if self.learner.updates > updates:  # NaN stands for "no update" otherwise
+            for i, (x, y) in enumerate(zip(loss, q, strict=True)):
+                if not (math.isfinite(x) and math.isfinite(y)):
+                    k = self.cfg.train.n_envs
+                    at = (f"episode {self.episode + 1}" if k == 1 else
+                          f"episodes {self.episode + 1}..{self.episode + k}")
+                    what = f"the loss is {x}" if not math.isfinite(x) else f"the mean Q is {y}"
+                    self.stop_not_finite(at, what, i)
         k = self.cfg.train.n_envs
         out = []
         for i in range(self.n):
@@ -180,7 +202,9 @@ class Experiment:
         checkpoints ``best`` (by evaluation return) and ``last``, and draws its pictures
         (``eval/``, the logger's figures): a single run at every evaluation, a
         population's members at a new best and at the end only (each member's pictures
-        take longer to draw than the batched rollout of all). Returns their returns."""
+        take longer to draw than the batched rollout of all). Returns their returns.
+        Weights that are not all finite stop training first (:class:`NotFinite`)."""
+        self.check_weights()
         td = self.evaluator.rollout(self.greedy)
         w = td.shape[0] // self.n
         final = self.episode >= self.cfg.train.episodes
@@ -198,7 +222,30 @@ class Experiment:
                 self.checkpoints.save(i, "best")
             returns.append(record["return"])
         self.checkpoints.save_all("last")
+        self.saved_episode = self.episode
         return returns
+
+    def check_weights(self) -> None:
+        """Stop (:class:`NotFinite`) when a weight of a member's networks (Q-network,
+        QMIX's mixer) is not finite: checked before anything is evaluated or saved, in
+        one device sync."""
+        params = [p for m in (self.learner.policy, *getattr(self.learner, "extras", []))
+                  if m is not None for p in m.parameters()]
+        if params and not bool(torch.stack([p.isfinite().all() for p in params]).all()):
+            self.stop_not_finite(f"episode {self.episode}", "a network weight is not finite")
+
+    def stop_not_finite(self, at: str, what: str, member: int | None = None) -> None:
+        """Raise :class:`NotFinite`: ``what`` happened (to ``member``) ``at`` an episode;
+        the last checkpoint is kept."""
+        who = "" if self.solo or member is None else f" (member seed={self.members[member].seed})"
+        if self.saved_episode:
+            kept = (f"the checkpoints of episode {self.saved_episode} and before are kept "
+                    f"(resume={self.run_dir} continues from it)")
+        else:
+            kept = "no checkpoint had been saved yet"
+        raise NotFinite(f"training stopped at {at}: {what}{who} (after "
+                        f"{self.learner.updates} updates); nothing later is saved, {kept}. "
+                        f"Lower algo.lr or set algo.grad_clip.")
 
     # ------------------------------------------------------------------ loop
     def rounds(self) -> None:
@@ -219,6 +266,7 @@ class Experiment:
             if self.episode % tr.eval_every == 0 or self.episode >= tr.episodes:
                 self.progress.last_eval = sum(self.evaluate()) / self.n
             if self.interrupt.requested:
+                self.check_weights()
                 path = self.checkpoints.save_all("last")
                 saved = path if self.solo else "every member's last.pt"
                 self.interrupt.stop(f"interrupted at episode {self.episode}: saved {saved}; "
@@ -232,6 +280,7 @@ class Experiment:
         ends, however it ends, and only after the last save. The summary's ``members``
         hold each member's returns; a single run's are also at its top level."""
         try:
+            self.saved_episode = self.episode or None  # a resume: the checkpoint it loaded
             for m in self.members:
                 m.log.open(resume_episode=self.episode if self.episode else None)
             self.progress = Progress(self.cfg.train, self.episode)
@@ -244,6 +293,7 @@ class Experiment:
                 for m in self.members:
                     m.log.close()
             minutes = (time.perf_counter() - t0) / 60
+            self.check_weights()
             self.checkpoints.save_all("last")
         except OSError as e:
             raise write_error(e, self.run_dir) from None
