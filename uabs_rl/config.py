@@ -899,7 +899,8 @@ RANGES.update({
     AreaConfig: {"x_min": _r(-1e8, 1e8, "m"), "y_min": _r(-1e8, 1e8, "m"),
                  "width": _pos(1e5, "m"), "height": _pos(1e5, "m")},
     SumoConfig: {"fleet_size": _r(0, 100_000, "vehicles")},
-    SplitConfig: {"first_seed": _r(0, SUMO_SEED_MAX), "n_sims": _r(1, 100_000),
+    SplitConfig: {"first_seed": Range(0, SUMO_SEED_MAX, text=("0", "2^31 - 1")),
+                  "n_sims": _r(1, 100_000),
                   "duration_s": _pos(1e7, "s"), "warmup_s": _r(0, 1e7, "s")},
     TracesConfig: {"workers": _r(0, 1024)},
     ScenarioConfig: {
