@@ -43,7 +43,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 from dataclasses import dataclass, fields
@@ -70,6 +69,7 @@ from uabs_rl.evaluation.baselines import BASELINES, HEURISTICS, PLANNER, baselin
 from uabs_rl.evaluation.evaluator import Evaluator, greedy_policy, make_eval_env
 from uabs_rl.evaluation.planner import gap_share, junction_sites
 from uabs_rl.evaluation.stats import paired_difference
+from uabs_rl.paths import OutputFolder, OutputInterrupted, check_path, safe_component
 from uabs_rl.safety.make import make_selector, resolve_device
 from uabs_rl.training.checkpoint import (
     CheckpointError,
@@ -112,6 +112,17 @@ def _group_file(group: str, option: str, config_dirs: list[Path]) -> Path:
                       f"that holds {group}/{option}.yaml with --config-dir.")
 
 
+def _load_yaml(path: Path, override: str) -> Any:
+    """A config file as OmegaConf reads it (YAML tags such as ``!!python/object`` are
+    refused, never run); unreadable or not YAML is a :class:`ConfigError` naming it."""
+    try:
+        return OmegaConf.load(path)
+    except Exception as e:  # yaml's scanner, parser and constructor errors, OSError
+        first = (str(e).strip().splitlines() or [type(e).__name__])[0][:160]
+        raise ConfigError(f"{override}: {path} is not a readable config file ({first}). "
+                          f"Fix the file or choose another.") from None
+
+
 def with_overrides(cfg: RunConfig, overrides: list[str],
                    config_dirs: list[Path] | None = None) -> RunConfig:
     """``cfg`` (a run's own config) with command-line style ``overrides`` of the
@@ -139,8 +150,9 @@ def with_overrides(cfg: RunConfig, overrides: list[str],
         if "." in key or key == "device":
             dotted.append(f"{key}={value}")
             continue
+        safe_component(value, key)  # a config file's name in the group's folder
         path = _group_file(key, value, list(config_dirs or []))
-        body = OmegaConf.load(path)
+        body = _load_yaml(path, o)
         if "defaults" in body:  # a schema reference: the section starts from it anyway
             body.pop("defaults")
         others = {}
@@ -222,6 +234,18 @@ def find_checkpoint(path: Path, which: str = "best") -> Path:
                           f"by uabs-train.")
 
 
+def check_belongs(state: dict, ckpt: Path) -> None:
+    """A checkpoint in a run's ``checkpoints/`` must be that run's own: its run id that
+    of the folder's ``run.json``, its result-changing settings those of the folder's
+    ``.hydra/config.yaml`` (as ``resume`` checks); one copied in from another run is
+    refused, naming the file and the fix, instead of being evaluated as this run's."""
+    if ckpt.parent.name != "checkpoints":
+        return
+    from uabs_rl.cli.train import check_own  # here: it imports the training stack
+
+    check_own(state, ckpt.parent.parent, ckpt)
+
+
 def load_evaluation(path: Path, which: str = "best", windows: int | None = None,
                     split: str = "test", overrides: list[str] | None = None,
                     config_dirs: list[Path] | None = None,
@@ -232,6 +256,7 @@ def load_evaluation(path: Path, which: str = "best", windows: int | None = None,
     infinite weights is refused."""
     ckpt = find_checkpoint(path, which)
     state = load_checkpoint(ckpt)
+    check_belongs(state, ckpt)
     check_finite(state["learner"]["qnet"], ckpt, "learner.qnet")
     cfg = config_from_checkpoint(state, ckpt)
     device = "cpu"  # where the run trained does not matter here, unless device= is given
@@ -265,30 +290,6 @@ def default_out_dir(path: Path, overrides: list[str] | None = None) -> Path:
         run = path.parent.parent if path.parent.name == "checkpoints" else path.parent
     out = run / "evaluation"
     return out / ",".join(o.replace("/", "_") for o in overrides) if overrides else out
-
-
-def check_out_dir(out: Path, given: bool) -> None:
-    """Refuse an output folder that cannot be made or written before anything is
-    evaluated: ``out`` or its nearest existing parent must be a writable folder."""
-    name = f"--out {out}" if given else f"the output folder {out}"
-    fix = "pass a folder you can write with --out"
-    p = out
-    while not p.exists() and p != p.parent:
-        p = p.parent
-    if p.exists() and not p.is_dir():
-        what = "is a file" if p == out else f"cannot be made: {p} is a file"
-        raise ConfigError(f"{name} {what}, not a folder: {fix}.")
-    if not os.access(p, os.W_OK | os.X_OK):
-        raise ConfigError(f"{name} cannot be written: {p} is not writable here; {fix}.")
-
-
-def make_out_dir(out: Path, given: bool) -> None:
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        name = f"--out {out}" if given else f"the output folder {out}"
-        raise ConfigError(f"{name} cannot be made ({e.strerror or type(e).__name__}): pass "
-                          f"a folder you can write with --out.") from None
 
 
 def evaluate_policies(ev: Evaluation, policies: tuple[str, ...], seed: int = 0,
@@ -403,7 +404,10 @@ def _print_table(results: dict[str, tuple[dict, Any]], nhat: int) -> None:
 
 def parser() -> argparse.ArgumentParser:
     """``uabs-eval``'s command line."""
-    ap = argparse.ArgumentParser(
+    from uabs_rl.cli.report import Parser
+
+    ap = Parser(
+        prog="uabs-eval",
         description="Evaluate a uabs-train run on held-out traces, under its own settings "
                     "or other scenario/channel/masking/traces values.")
     ap.add_argument("path", type=Path, help="a run directory or a checkpoint (.pt)")
@@ -439,23 +443,50 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--windows must be >= 1, got {args.windows}")
     if args.horizon < 1:
         ap.error(f"--horizon must be >= 1, got {args.horizon}")
-    out = args.out or default_out_dir(args.path, args.overrides)
     try:  # the output folder is checked before anything is evaluated
+        check_path(args.path, "PATH")
+        for d in args.config_dir:
+            check_path(d, "--config-dir")
+        out = output_folder(args.out or default_out_dir(args.path, args.overrides),
+                            args.out is not None)
         find_checkpoint(args.path, args.checkpoint)
-        check_out_dir(out, args.out is not None)
+        out.check()
         ev = load_evaluation(args.path, args.checkpoint, args.windows, args.split,
                              args.overrides, args.config_dir, windows_name="--windows")
-        make_out_dir(out, args.out is not None)
+        with out.writing() as folder:  # the previous evaluation stays whole until the end
+            _evaluate_and_write(ev, args, folder)
     except (CheckpointError, ConfigError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    except OutputInterrupted as e:
+        print(str(e), file=sys.stderr)
+        return e.exit_code
+    except KeyboardInterrupt:
+        print("interrupted: nothing was written", file=sys.stderr)
+        return 130
+    print(f"wrote {out.path / 'eval.json'} and pictures under {out.path}")
+    return 0
+
+
+# every file uabs-eval writes (an evaluation folder written before the marker file
+# existed is recognised by these)
+EVAL_FILES = ("eval.json", "trajectories_*.png", "trajectories_*.pdf", "episode_learned.gif")
+
+
+def output_folder(out: Path, given: bool) -> OutputFolder:
+    """The evaluation's output folder, written whole or not at all
+    (:class:`uabs_rl.paths.OutputFolder`); the folders of evaluations under overrides
+    inside it (``evaluation/<overrides>/``) are kept."""
+    return OutputFolder(out, "uabs-eval", EVAL_FILES,
+                        "--out" if given else "the output folder", keep_dirs=True)
+
+
+def _evaluate_and_write(ev: Evaluation, args: argparse.Namespace, out: Path) -> None:
+    """Evaluate the policies ``args`` asks for, print the tables, and write eval.json and
+    the pictures into ``out``."""
     policies = tuple(dict.fromkeys(
         q for p in args.policy or ["learned"] for q in (POLICIES if p == "all" else [p])))
-    try:
-        results = evaluate_policies(ev, policies, horizon=args.horizon)
-    except ConfigError as e:  # a baseline this scenario cannot hold (junctions)
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    results = evaluate_policies(ev, policies, horizon=args.horizon)
     n = ev.evaluator.env.base_env.n_envs
     tc = getattr(ev.cfg.traces, args.split)
     print(f"split: {args.split} (traces.{args.split}: SUMO seeds {tc.first_seed}.."
@@ -475,8 +506,6 @@ def main(argv: list[str] | None = None) -> int:
          **({"gap_share": shares} if shares else {})},
         indent=1))
     _write_pictures(ev, results, out, args.gif, args.split)
-    print(f"wrote {out / 'eval.json'} and pictures under {out}")
-    return 0
 
 
 def _write_pictures(ev: Evaluation, results: dict, out: Path, gif: bool, split: str) -> None:

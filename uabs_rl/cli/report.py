@@ -51,6 +51,7 @@ from uabs_rl.config import ConfigError
 from uabs_rl.env.channel import beam_footprint_radius, coverage_bound
 from uabs_rl.evaluation.baselines import BASELINES, PLANNER
 from uabs_rl.evaluation.stats import bootstrap_ci, spread_name, spread_over_seeds
+from uabs_rl.paths import OutputFolder, OutputInterrupted, check_path
 from uabs_rl.safety.masking import PAPER_ORDER, masks_collisions, mode_phrase
 from uabs_rl.training.checkpoint import CheckpointError
 from uabs_rl.training.runlog import read_metrics  # noqa: F401  (the metrics reader, for callers)
@@ -648,12 +649,13 @@ def _write_baselines(path: Path, baselines: dict[str, dict]) -> None:
 
 
 def build_report(roots: Path | list[Path], out: Path, with_baselines: bool = True,
-                 command: str = "", planner: int | None = None) -> dict[str, Any]:
-    """Every file of the report of the runs under ``roots``, written to ``out``
-    (``planner``: the planner's horizon, to place the learned runs between greedy and
-    it)."""
+                 command: str = "", planner: int | None = None,
+                 runs: list[Run] | None = None) -> dict[str, Any]:
+    """Every file of the report of the runs under ``roots`` (``runs``: those already
+    found there), written to ``out`` (``planner``: the planner's horizon, to place the
+    learned runs between greedy and it)."""
     roots = [roots] if isinstance(roots, str | Path) else list(roots)
-    grouping = group_runs(find_runs(*roots))
+    grouping = group_runs(find_runs(*roots) if runs is None else runs)
     groups = grouping.groups
     out.mkdir(parents=True, exist_ok=True)
     rows = table2(groups)
@@ -691,8 +693,32 @@ def default_out(roots: list[Path]) -> Path:
     return Path(os.path.commonpath([os.path.abspath(r) for r in roots])) / "report"
 
 
+# every file uabs-report writes (a report folder written before the marker file
+# existed is recognised by these)
+REPORT_FILES = ("table2.md", "table2.csv", "fig3_eval_return.png", "fig3_eval_return.pdf",
+                "fig4_pg.png", "fig4_pg.pdf", "curves.png", "curves.pdf", "comparison.csv",
+                "baselines.csv", "summary.md", "learned_vs_baselines.csv",
+                "learned_vs_baselines.md")
+
+
+class Parser(argparse.ArgumentParser):
+    """An argument parser whose refusal is one line on stderr (and exit status 2), not
+    the usage text followed by the error."""
+
+    def error(self, message: str):
+        self.exit(2, f"error: {message} (see {self.prog} --help)\n")
+
+
+def output_folder(out: Path, given: bool) -> OutputFolder:
+    """The report's output folder: written whole or not at all
+    (:class:`uabs_rl.paths.OutputFolder`), never one holding files of others."""
+    return OutputFolder(out, "uabs-report", REPORT_FILES,
+                        "--out" if given else "the report folder")
+
+
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(
+    ap = Parser(
+        prog="uabs-report",
         description="Table 2, Fig. 3 and Fig. 4 of uabs-train runs, grouped by the settings "
                     "that differ between them, with the baselines on the test traces.")
     ap.add_argument("roots", type=Path, nargs="+", metavar="FOLDER",
@@ -715,24 +741,40 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.planner is not None and (args.planner < 1 or not args.baselines):
         ap.error("--planner H needs H >= 1 and the test-trace evaluation (no --no-baselines)")
-    out = args.out or default_out(args.roots)
     cmd = "uabs-report " + " ".join(sys.argv[1:] if argv is None else argv)
     try:
-        if args.curves:
-            out.mkdir(parents=True, exist_ok=True)
-            files = curves_figure(group_runs(find_runs(*args.roots)), out / "curves")
-            print(f"wrote {files[0]} (and .pdf)")
-            return 0
-        res = build_report(args.roots, out, args.baselines, cmd, args.planner)
+        for root in args.roots:
+            check_path(root, "FOLDER")
+        out = output_folder(args.out or default_out(args.roots), args.out is not None)
+        out.check()
+        runs = find_runs(*args.roots)  # the inputs are refused before any folder is made
+        with out.writing() as folder:  # the previous report stays whole until the end
+            if args.curves:
+                curves_figure(group_runs(runs), folder / "curves")
+            else:
+                res = build_report(args.roots, folder, args.baselines, cmd, args.planner,
+                                   runs=runs)
+                text = (folder / "summary.md").read_text()
     except (ReportError, ConfigError, CheckpointError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    except OutputInterrupted as e:
+        print(str(e), file=sys.stderr)
+        return e.exit_code
     except SystemExit as e:  # read_metrics: a damaged metrics line, one line already
         if isinstance(e.code, str):
             print(e.code, file=sys.stderr)
             return 2
         raise
-    print((out / "summary.md").read_text())
+    except OSError as e:  # an input that cannot be read (permissions, a name too long)
+        print(f"error: cannot read {e.filename or 'an input'} ({e.strerror or e}): check "
+              f"the FOLDER arguments.", file=sys.stderr)
+        return 2
+    if args.curves:
+        print(f"wrote {out.path / 'curves.png'} (and .pdf)")
+        return 0
+    out = out.path
+    print(text)
     warning = short_run_warning(res["grouping"].groups)
     if warning:
         print(warning, file=sys.stderr)

@@ -8,29 +8,39 @@ import time
 from pathlib import Path
 
 from uabs_rl.cli.hydra import hydra_main
-from uabs_rl.config import TracesAppConfig, family_scenarios
-from uabs_rl.traces.store import SPLITS, TracesInterrupted, cache_path, get_traces
+from uabs_rl.config import ConfigError, TracesAppConfig, family_scenarios
+from uabs_rl.traces.store import (
+    SPLITS,
+    TracesInterrupted,
+    cache_path,
+    check_names,
+    get_traces,
+)
 
 
 def build(cfg: TracesAppConfig, _output_dir: Path | None = None) -> None:
     """Body of ``uabs-traces``: build or load the requested splits and say which (with
     a ``family``, the training traces of each of its cities too). An interrupted build
     is one line on stderr and exit status 130 (143 after SIGTERM)."""
+    if cfg.split not in (*SPLITS, "all"):
+        raise ConfigError(f"split must be one of {', '.join(SPLITS)} or all, got "
+                          f"{cfg.split!r}.")
     splits = SPLITS if cfg.split == "all" else (cfg.split,)
-    jobs = [(cfg.scenario, split) for split in splits]
+    check_names(cfg)  # before any SUMO run: every name becomes a cache file's
+    jobs = [(cfg.scenario, split, "scenario.name") for split in splits]
     if "train" in splits:
-        jobs += [(city, "train") for city in family_scenarios(cfg)
-                 if city != cfg.scenario]
-    for scenario, split in jobs:
+        jobs += [(city, "train", f"family[{i}].name")
+                 for i, city in enumerate(family_scenarios(cfg)) if city != cfg.scenario]
+    for scenario, split, setting in jobs:
         t0 = time.perf_counter()
         try:
-            ts = get_traces(scenario, cfg.traces, split, verbose=False)
+            ts = get_traces(scenario, cfg.traces, split, verbose=False, name_setting=setting)
         except TracesInterrupted as e:
             print(str(e), file=sys.stderr)
             sys.exit(e.exit_code)
         how = "built with SUMO" if ts.source == "built" else "loaded from cache"
         print(f"{scenario.name} {how} in {time.perf_counter() - t0:.2f} s: {ts.summary()}\n"
-              f"  {cache_path(scenario, cfg.traces, split)}")
+              f"  {cache_path(scenario, cfg.traces, split, setting)}")
 
 
 def main() -> None:

@@ -58,6 +58,7 @@ from uabs_rl.config import (
     resolve_path,
     validate_scenario_traces,
 )
+from uabs_rl.paths import check_path, inside, pid_alive, safe_component
 from uabs_rl.traces.sumo_sim import (
     SimRequest,
     SimResult,
@@ -425,20 +426,10 @@ def remove_stale_work_folders() -> list[Path]:
     removed = []
     for folder in Path(tempfile.gettempdir()).glob(f"{WORK_PREFIX}*_*"):
         pid = folder.name[len(WORK_PREFIX):].split("_")[0]
-        if folder.is_dir() and pid.isdigit() and not _alive(int(pid)):
+        if folder.is_dir() and pid.isdigit() and not pid_alive(int(pid)):
             shutil.rmtree(folder, ignore_errors=True)
             removed.append(folder)
     return removed
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # another user's process
-        return True
-    return True
 
 
 def _run_all(requests: list[SimRequest], workers: int, desc: str) -> list[SimResult]:
@@ -584,13 +575,20 @@ def check_has_vehicles(ts: TraceSet, scenario: ScenarioConfig, split: str) -> No
 def cache_dir(traces_cfg: TracesConfig) -> Path:
     """``traces.cache_dir``, or ``$UABS_RL_CACHE/traces`` (default ``~/.cache/uabs_rl``)."""
     if traces_cfg.cache_dir:
-        return Path(str(traces_cfg.cache_dir)).expanduser()
-    return Path(os.environ.get("UABS_RL_CACHE", "~/.cache/uabs_rl")).expanduser() / "traces"
+        return check_path(Path(str(traces_cfg.cache_dir)).expanduser(), "traces.cache_dir")
+    return check_path(Path(os.environ.get("UABS_RL_CACHE", "~/.cache/uabs_rl")).expanduser()
+                      / "traces", "traces.cache_dir (unset: $UABS_RL_CACHE/traces)")
 
 
-def cache_path(scenario: ScenarioConfig, traces_cfg: TracesConfig, split: str) -> Path:
+def cache_path(scenario: ScenarioConfig, traces_cfg: TracesConfig, split: str,
+               name_setting: str = "scenario.name") -> Path:
+    """The cache file of the split: ``<cache_dir>/<scenario.name>-<split>-<hash>.pt``.
+    The name must be a plain file name (``name_setting`` names it in the refusal) and
+    the file lies inside the cache folder, whatever the name."""
+    safe_component(scenario.name, name_setting)
     key, _ = split_key(scenario, getattr(traces_cfg, split), split)
-    return cache_dir(traces_cfg) / f"{key}.pt"
+    d = cache_dir(traces_cfg)
+    return inside(d / f"{key}.pt", d, name_setting)
 
 
 def check_cache_dir(traces_cfg: TracesConfig) -> Path:
@@ -648,13 +646,17 @@ def _sigterm_interrupts() -> Iterator[None]:
 
 
 def get_traces(scenario: ScenarioConfig, traces_cfg: TracesConfig, split: str,
-               verbose: bool = True) -> TraceSet:
-    """The split's traces: from the cache when sound, else built with SUMO and cached."""
+               verbose: bool = True, name_setting: str = "scenario.name") -> TraceSet:
+    """The split's traces: from the cache when sound, else built with SUMO and cached.
+    ``name_setting`` is the setting that named the scenario (``family[i].name`` for a
+    family's city), for the refusal of a name that is not a plain file name."""
     if split not in SPLITS:
         raise ConfigError(f"split must be one of {SPLITS}, got {split!r}.")
+    safe_component(scenario.name, name_setting)  # it names the cache file
     validate_scenario_traces(scenario, traces_cfg)
     key, desc = split_key(scenario, getattr(traces_cfg, split), split)
-    path = cache_dir(traces_cfg) / f"{key}.pt"
+    d = cache_dir(traces_cfg)
+    path = inside(d / f"{key}.pt", d, name_setting)
     ts = _load_cached(path, key, desc)
     if ts is not None:
         check_has_vehicles(ts, scenario, split)  # a file cached before this check
@@ -700,15 +702,24 @@ def stack_cities(sets: list[TraceSet], areas: list[tuple[float, float]],
     return TraceSet(pos, present, meta, source="family")
 
 
+def check_names(cfg: RunConfig) -> None:
+    """``scenario.name`` and every ``family[i].name`` name trace cache files: each must
+    be a plain file name (:func:`uabs_rl.paths.safe_component`)."""
+    safe_component(cfg.scenario.name, "scenario.name")
+    for i, city in enumerate(family_scenarios(cfg)):
+        safe_component(city.name, f"family[{i}].name")
+
+
 def training_traces(cfg: RunConfig) -> TraceSet:
     """The training traces of ``cfg``: its scenario's, or every city of its family
     stacked (:func:`stack_cities`), each built with SUMO or read from the cache."""
     cities = family_scenarios(cfg)
     if not cities:
         return get_traces(cfg.scenario, cfg.traces, "train")
+    check_names(cfg)
     sets = []
-    for city in cities:
-        ts = get_traces(city, cfg.traces, "train")
+    for i, city in enumerate(cities):
+        ts = get_traces(city, cfg.traces, "train", name_setting=f"family[{i}].name")
         log.info("family city %s: %s", city.name, ts.summary())
         sets.append(ts)
     return stack_cities(sets, [(c.area.width, c.area.height) for c in cities],
