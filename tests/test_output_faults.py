@@ -321,7 +321,8 @@ def test_report_refusals_are_one_line(sweep, tmp_path, capsys, args, words):
 # ----------------------------------------------------------------------------- eval folders
 def test_eval_on_another_split_leaves_none_of_the_previous_pictures(runs, tmp_path):
     out = tmp_path / "ev"
-    first = command("evaluate", str(runs["dqn"]), "--policy", "all", "--out", str(out))
+    first = command("evaluate", str(runs["dqn"]), "--policy", "learned", "--policy", "greedy",
+                    "--out", str(out))
     assert first.returncode == 0, first.stderr
     assert (out / "trajectories_greedy.png").is_file()
     second = command("evaluate", str(runs["dqn"]), "--split", "eval", "--out", str(out))
@@ -374,4 +375,20 @@ def test_eval_refusals_are_one_line(runs, tmp_path, capsys, args, words):
     assert code == 2
     err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
     assert len(err) == 1 and all(w in err[0] for w in words), err
+    assert os.listdir(tmp_path) == []
+
+
+def test_uabs_traces_checks_its_split_and_cache_folder(tmp_path):
+    from tests.conftest import compose_cfg
+    from uabs_rl.cli.traces import build
+    from uabs_rl.config import ConfigError
+
+    cfg = compose_cfg("build_traces", [*SMALL_TRACES, "split=bogus",
+                                       f"traces.cache_dir={tmp_path}"])
+    with pytest.raises(ConfigError, match="^split must be one of train, eval, test or all"):
+        build(cfg)
+    cfg = compose_cfg("build_traces", [*SMALL_TRACES, "split=eval",
+                                       f"traces.cache_dir={tmp_path / LONG}"])
+    with pytest.raises(ConfigError, match="^traces.cache_dir: .* 300 bytes long"):
+        build(cfg)
     assert os.listdir(tmp_path) == []
