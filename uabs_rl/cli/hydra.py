@@ -2,9 +2,8 @@
 
 from __future__ import annotations
 
-import shutil
+import logging
 import sys
-import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -20,26 +19,25 @@ from uabs_rl.config import (
     to_container,
 )
 from uabs_rl.training.checkpoint import CheckpointError, Interrupted
-from uabs_rl.training.runfolder import RunLock
-
-_STARTED = time.time()
+from uabs_rl.training.runfolder import Before
 
 
-def _remove_if_empty(run_dir: Path) -> None:
-    """Remove the folder Hydra made for a run that failed its start-up checks: only
-    when it holds nothing but Hydra's config and log (never a run's results)."""
-    hydra_dir = run_dir / ".hydra"
-    if not hydra_dir.is_dir() or run_dir.resolve() == Path.cwd().resolve():
-        return
-    if hydra_dir.stat().st_mtime < _STARTED - 1.0:  # an earlier run's folder (a resume)
-        return
-    names = {p.name for p in run_dir.iterdir()}
-    if not names <= {".hydra", ".lock"} | {p.name for p in run_dir.glob("*.log")}:
-        return
-    lock = RunLock(run_dir)
-    if lock.acquire():  # never a folder another process is writing
-        shutil.rmtree(run_dir, ignore_errors=True)
-        lock.release()
+def start_folders(argv: list[str]) -> list[Path]:
+    """The folders a command line may write a run in or under: those it names
+    (``hydra.run.dir``, ``hydra.sweep.dir``, ``resume``) and the default run and sweep
+    folders (``outputs/runs``, ``outputs/multirun``)."""
+    out = [Path("outputs/runs"), Path("outputs/multirun")]
+    for a in argv:
+        key, _, value = a.partition("=")
+        if key in ("hydra.run.dir", "hydra.sweep.dir", "resume") and value.strip("'\""):
+            out.append(Path(value.strip("'\"").replace("\\'", "'")))
+    return out
+
+
+def path_safe(text: str) -> str:
+    """``text`` (a run's overrides) as one folder name: a ``/`` in a value (a file path,
+    ``..``) would nest the run folder or lead it out of ``outputs/``; it reads ``%2F``."""
+    return str(text).replace("/", "%2F")
 
 
 def hydra_main(config_name: str, body: Callable[..., Any],
@@ -48,18 +46,23 @@ def hydra_main(config_name: str, body: Callable[..., Any],
     ``conf/<config_name>``: the config arrives as checked dataclasses; a config or
     checkpoint error is one line on stderr and exit status 2, Ctrl-C one line and
     status 130 (143 after SIGTERM), never a traceback."""
-    interrupted = ("interrupted: the last checkpoint is kept" if pass_overrides
-                   else "interrupted")
+    interrupted = ("interrupted: the last checkpoint, if the run had one, is kept"
+                   if pass_overrides else "interrupted")
     import hydra
     from hydra.core.hydra_config import HydraConfig
 
     def app(dcfg) -> None:
         hc = HydraConfig.get()
+        # a log file that cannot be written (a full disk) loses lines, not the run
+        # (the run says what failed, in one line); no "--- Logging error ---" traces
+        logging.raiseExceptions = False
         extra = (list(hc.overrides.task),) if pass_overrides else ()
         try:
             body(to_container(dcfg), Path(hc.runtime.output_dir), *extra)
         except (ConfigError, CheckpointError) as e:
-            _remove_if_empty(Path(hc.runtime.output_dir))
+            # only what this invocation made: never a folder or file that was there
+            before.undo_start(Path(hc.runtime.output_dir),
+                              {".hydra", ".lock", "run.json", f"{hc.job.name}.log"})
             print(f"error: {e}", file=sys.stderr)
             sys.exit(2)
         except Interrupted as e:
@@ -75,8 +78,11 @@ def hydra_main(config_name: str, body: Callable[..., Any],
     except ConfigError as e:
         print(f"error: {e}", file=sys.stderr)
         sys.exit(2)
+    before = Before(start_folders(sys.argv[1:]))  # what exists before Hydra makes folders
     register_configs()
     # ${prefixed:_,<text>}: "_<text>", or nothing when <text> is empty (run folder names)
     OmegaConf.register_new_resolver("prefixed", lambda sep, text: f"{sep}{text}" if text
                                     else "", replace=True)
+    # ${path_safe:<text>}: <text> as one folder name (run and sweep job folder names)
+    OmegaConf.register_new_resolver("path_safe", path_safe, replace=True)
     hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name=config_name)(app)()

@@ -31,7 +31,7 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
-from uabs_rl.cli.hydra import hydra_main
+from uabs_rl.cli.hydra import hydra_main, path_safe
 from uabs_rl.config import (
     ConfigError,
     LoggerKind,
@@ -40,6 +40,7 @@ from uabs_rl.config import (
     to_container,
     validate_run,
 )
+from uabs_rl.traces.store import check_names
 from uabs_rl.training import runfolder
 from uabs_rl.training.checkpoint import (
     CheckpointError,
@@ -53,6 +54,7 @@ from uabs_rl.training.checkpoint import (
 from uabs_rl.training.experiment import Experiment
 from uabs_rl.training.members import complete_save, member_dir, member_seeds
 from uabs_rl.training.runfolder import check_identity
+from uabs_rl.training.runlog import check_history as check_metrics_history
 from uabs_rl.training.runlog import read_metrics
 
 log = logging.getLogger(__name__)
@@ -65,6 +67,8 @@ def _load_hydra_config(run_dir: Path) -> dict | None:
         return None
     try:
         stored = OmegaConf.to_container(OmegaConf.load(path))
+        if not isinstance(stored, dict) or not stored:  # cut by a full disk, or emptied
+            raise ValueError("empty, or not a mapping of settings")
         merged = OmegaConf.merge(OmegaConf.structured(RunConfig), upgrade_config(stored))
     except Exception as e:  # yaml, type and key errors all mean: not this run's config
         first = (str(e).strip().splitlines() or [type(e).__name__])[0][:160]
@@ -77,6 +81,7 @@ def saved_config(run_dir: Path) -> tuple[RunConfig, dict | None]:
     """The configuration a run was started with, and its last checkpoint if it has one.
     A checkpoint must be this run's own: its run id (``run.json``) and its settings
     (``.hydra/config.yaml``) are checked."""
+    check_checkpoints_folder(run_dir)
     ckpt = run_dir / "checkpoints" / "last.pt"
     if ckpt.is_file():
         state = load_checkpoint(ckpt)
@@ -94,6 +99,37 @@ def saved_config(run_dir: Path) -> tuple[RunConfig, dict | None]:
                               f".hydra/config.yaml there: pass the folder of a uabs-train "
                               f"run (the one printed when it started).")
     return to_container(OmegaConf.merge(OmegaConf.structured(RunConfig), hydra_cfg)), None
+
+
+def check_checkpoints_folder(run_dir: Path) -> None:
+    """Refuse a run folder whose ``checkpoints`` is not a folder (a file, a dangling
+    link) before anything in it is written or truncated."""
+    ckpts = run_dir / "checkpoints"
+    if (ckpts.exists() or ckpts.is_symlink()) and not ckpts.is_dir():
+        raise CheckpointError(f"{ckpts} is not a folder: a run keeps its checkpoints "
+                              f"there. Move that file away (nothing was changed), then "
+                              f"run the command again.")
+
+
+def check_history(run_dir: Path, members: list[Path]) -> None:
+    """A run (or population) with no ``last.pt`` may start again in place only when it
+    stopped before its first evaluation (the first checkpoint is written with it): a
+    member folder that logged an evaluation or holds ``best.pt`` lost its checkpoint,
+    and starting again would replace its history. Refused, naming what is missing."""
+    for folder in members:
+        metrics = folder / "metrics.jsonl"
+        evals = 0
+        if metrics.is_file():
+            evals = sum(1 for line in metrics.read_bytes().splitlines()
+                        if b'"kind": "eval"' in line)
+        best = (folder / "checkpoints" / "best.pt").is_file()
+        if evals or best:
+            held = f"{evals} evaluations in metrics.jsonl" if evals else "checkpoints/best.pt"
+            raise CheckpointError(
+                f"{folder} holds a run's history ({held}) but no checkpoints/last.pt: "
+                f"its checkpoint was removed or moved, and starting again would replace "
+                f"that history. Put checkpoints/last.pt back to continue (nothing was "
+                f"changed), or start a new run in another folder.")
 
 
 def check_own(state: dict, run_dir: Path, source: Path) -> None:
@@ -206,15 +242,19 @@ def requeued() -> bool:
 
 def prepare(cfg: RunConfig, run_dir: Path, overrides: list[str] | None = None,
             auto_named: bool = False, sweep_dir: Path | None = None,
-            on_move: Callable[[Path], None] | None = None) -> Experiment:
+            on_move: Callable[[Path], None] | None = None,
+            record: Callable[[Path], None] | None = None) -> Experiment:
     """The experiment of one run, or of a population (``train.population`` > 1), new or
     resumed, holding its run folder's lock (released when its fit ends). With
     ``resume`` and ``overrides`` (the command line's), the run's own config is used.
+    ``record(run_dir)`` writes a new run's settings of record (``.hydra/``) once every
+    check has passed, so a refused start never changes a folder's record.
     A new run whose automatically named folder another process took writes beside it
     (:func:`uabs_rl.training.runfolder.claim`, which ``auto_named``, ``sweep_dir`` and
     ``on_move`` are passed to)."""
     if not cfg.resume:
         validate_run(cfg)  # before anything is sized from it (member folders, ...)
+        check_names(cfg)  # names of trace files: before anything is built or logged
     if not cfg.resume and requeued() and runfolder.holds_run(Path(run_dir)):
         log.info("SLURM requeued this job: continuing the run in %s", run_dir)
         cfg.resume = str(run_dir)
@@ -231,8 +271,11 @@ def prepare(cfg: RunConfig, run_dir: Path, overrides: list[str] | None = None,
     else:
         run_dir, lk = runfolder.claim(Path(run_dir), auto_named, sweep_dir, on_move)
     try:
-        exp = _prepare_locked(cfg, run_dir, overrides)
+        exp = _prepare_locked(cfg, run_dir, overrides, record)
         exp.identity = dict(runfolder.identity(run_dir), folder=run_dir.name)
+    except OSError as e:  # a full disk or a read-only folder at start-up: one line
+        lk.release()
+        raise runfolder.write_error(e, run_dir) from None
     except BaseException:
         lk.release()
         raise
@@ -240,14 +283,18 @@ def prepare(cfg: RunConfig, run_dir: Path, overrides: list[str] | None = None,
     return exp
 
 
-def _prepare_locked(cfg: RunConfig, run_dir: Path,
-                    overrides: list[str] | None) -> Experiment:
+def _prepare_locked(cfg: RunConfig, run_dir: Path, overrides: list[str] | None,
+                    record: Callable[[Path], None] | None = None) -> Experiment:
     if not cfg.resume:
-        held = [d for d in [run_dir, *(member_dir(run_dir, s) for s in member_seeds(cfg))]
-                if (d / "metrics.jsonl").exists()]
+        folders = [run_dir, *(member_dir(run_dir, s) for s in member_seeds(cfg))]
+        held = [d for d in folders if (d / "metrics.jsonl").exists()]
         if held:
             raise ConfigError(f"{held[0]} already holds a run (metrics.jsonl): continue it "
                               f"with resume={run_dir}, or choose another hydra.run.dir.")
+        for folder in folders:
+            check_checkpoints_folder(folder)
+        if record is not None:  # the run's settings of record, once every check passed
+            record(run_dir)
         return Experiment(cfg, run_dir)
     saved, state = saved_config(run_dir)
     if overrides is not None:
@@ -255,6 +302,10 @@ def _prepare_locked(cfg: RunConfig, run_dir: Path,
     cfg.resume = str(run_dir)
     if cfg.train.population > 1:
         return _resume_population(cfg, run_dir)
+    if state is None:
+        check_history(run_dir, [run_dir])
+    else:  # before anything is built, logged or truncated
+        check_metrics_history(run_dir / "metrics.jsonl", int(state["counters"]["episode"]))
     exp = Experiment(cfg, run_dir)
     if state is None:  # stopped before its first checkpoint: start it again, in place
         log.info("%s has no checkpoint yet: starting it again from episode 0", run_dir)
@@ -271,10 +322,17 @@ def _resume_population(cfg: RunConfig, run_dir: Path) -> Experiment:
     members with one is refused by name: a member cannot be restarted alone (its updates
     are batched with the others'), and no completed member is ever wiped."""
     complete_save(run_dir)  # a save_all that a kill interrupted
+    folders = [member_dir(run_dir, s) for s in member_seeds(cfg)]
+    for folder in folders:
+        check_checkpoints_folder(folder)
+    if not any((f / "checkpoints" / "last.pt").is_file() for f in folders):
+        check_history(run_dir, folders)
     pop = Experiment(cfg, run_dir)
     have = [(m.run_dir / "checkpoints" / "last.pt").is_file() for m in pop.members]
     if all(have):
         pop.checkpoints.load()
+        for m in pop.members:  # every member's history, before any is truncated
+            m.log.check_history(pop.episode)
         log.info("resuming the population %s at episode %d", run_dir, pop.episode)
     elif not any(have):  # stopped before its first checkpoint: start again, in place
         log.info("%s has no checkpoint of any member yet: starting it again from "
@@ -392,16 +450,17 @@ def population_summary_text(cfg: RunConfig, summary: dict[str, Any], run_dir: Pa
 
 def _quote_resume(argv: list[str]) -> list[str]:
     """``resume=<dir>`` as Hydra would not parse it: a run folder named after overrides
-    holds '=' and ','. Quote it, and make the resumed job log into that folder without
-    writing a new .hydra/ there. With ``-m`` (a sweep re-typed with ``resume=<sweep
-    folder>`` appended), every job continues its own folder under that sweep."""
+    holds '=' and ','. Quote it, and make the resumed job log into that folder (Hydra
+    writes no .hydra/ there: conf/config.yaml's ``hydra.output_subdir`` is null). With
+    ``-m`` (a sweep re-typed with ``resume=<sweep folder>`` appended), every job
+    continues its own folder under that sweep."""
     multirun = any(a in ("-m", "--multirun") for a in argv)
     out = []
     for a in argv:
         if a.startswith("resume=") and a[7:] and a[7] not in "'\"":
             path = a[7:].replace("\\", "\\\\").replace("'", "\\'")
             where = "hydra.sweep.dir" if multirun else "hydra.run.dir"
-            out += [f"resume='{path}'", f"{where}='{path}'", "hydra.output_subdir=null"]
+            out += [f"resume='{path}'", f"{where}='{path}'"]
         else:
             out.append(a)
     return out
@@ -414,6 +473,8 @@ def _check_paths(argv: list[str]) -> None:
     for a in argv:
         key, _, value = a.partition("=")
         path = Path(value.strip("'\""))
+        if key in ("resume", "hydra.run.dir", "hydra.sweep.dir") and value:
+            _check_name_lengths(key, path)  # before a stat that would fail on it
         if key == "resume" and value:
             if not path.exists():
                 raise ConfigError(f"resume={path}: no such folder. Pass the folder of a "
@@ -427,19 +488,93 @@ def _check_paths(argv: list[str]) -> None:
             if blocking is not None and not blocking.is_dir():
                 raise ConfigError(f"{key}={value}: {blocking} is a file, not a folder: "
                                   f"name a folder for the run.")
+            resuming = any(b.startswith("resume=") and b[7:] for b in argv)
+            if (key == "hydra.sweep.dir" and multirun and not resuming
+                    and (path / "multirun.yaml").exists()):
+                raise ConfigError(f"hydra.sweep.dir={value} holds another sweep "
+                                  f"(multirun.yaml): continue it by re-typing its command "
+                                  f"with resume={value} appended, or choose another "
+                                  f"hydra.sweep.dir. Nothing was changed.")
+    _check_auto_name(argv, multirun)
+
+
+def _name_max(path: Path) -> int:
+    """The longest file name the file system of ``path`` (or its nearest existing
+    folder) takes, in bytes."""
+    try:
+        here = next((p for p in path.absolute().parents if p.is_dir()), Path("/"))
+        return os.pathconf(here, "PC_NAME_MAX")
+    except (OSError, ValueError):
+        return 255
+
+
+def _check_name_lengths(key: str, path: Path) -> None:
+    """Refuse a folder name the file system cannot hold (one line, not Hydra's
+    traceback from mkdir)."""
+    limit = _name_max(path)
+    for part in path.parts:
+        if len(os.fsencode(part)) > limit:
+            raise ConfigError(f"{key}: the folder name {part[:40]}... is "
+                              f"{len(os.fsencode(part))} bytes long, more than the "
+                              f"{limit} the file system takes: choose a shorter name.")
+
+
+def _check_auto_name(argv: list[str], multirun: bool) -> None:
+    """A run folder named after its overrides (the default) whose name the file system
+    cannot hold: refused before Hydra makes it, saying how to name the folder."""
+    typed = "hydra.sweep.subdir" if multirun else "hydra.run.dir"
+    if any(a.split("=", 1)[0] == typed for a in argv):
+        return
+    from uabs_rl.config import CONF_DIR
+
+    exclude = set(OmegaConf.load(CONF_DIR / "config.yaml").hydra.job.config
+                  .override_dirname.exclude_keys)
+    parts = []
+    for a in argv:
+        key, eq, value = a.partition("=")
+        if not eq or key.startswith(("hydra.", "-")) or key.lstrip("+~") in exclude:
+            continue
+        # a sweep's job is named after one value of each list
+        value = max(value.split(","), key=len) if multirun else value
+        parts.append(path_safe(f"{key}={value}"))
+    name = "2000-01-01_00-00-00_" + ",".join(sorted(parts))
+    limit = _name_max(Path("outputs"))
+    if len(os.fsencode(name)) > limit:
+        raise ConfigError(f"the run folder would be named after the overrides, "
+                          f"{len(os.fsencode(name))} bytes, more than the {limit} the file "
+                          f"system takes: name it with {typed}=<folder>.")
 
 
 def _write_hydra_files(cfg: RunConfig, folder: Path) -> None:
-    """The Hydra record of this job (config, overrides, Hydra's config) in ``folder``:
-    for a run that moved to another folder than the one Hydra wrote them in."""
+    """The Hydra record of this job (config, overrides, Hydra's config) in
+    ``folder/.hydra``, each file written whole or not at all. Hydra itself writes none
+    (``hydra.output_subdir`` is null): the run writes its record once its start-up
+    checks have passed, so a refused command never changes a run's record."""
     from hydra.core.hydra_config import HydraConfig
 
     hc = HydraConfig.get()
     out = folder / ".hydra"
     out.mkdir(parents=True, exist_ok=True)
-    OmegaConf.save(OmegaConf.structured(cfg), out / "config.yaml")
-    OmegaConf.save(OmegaConf.create(list(hc.overrides.task)), out / "overrides.yaml")
-    OmegaConf.save(OmegaConf.create({"hydra": hc}), out / "hydra.yaml")
+    for name, node in (("config.yaml", OmegaConf.structured(cfg)),
+                       ("overrides.yaml", OmegaConf.create(list(hc.overrides.task))),
+                       ("hydra.yaml", OmegaConf.create({"hydra": hc}))):
+        tmp = out / f".{name}.{os.getpid()}.tmp"
+        try:
+            OmegaConf.save(node, tmp)
+            os.replace(tmp, out / name)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+
+
+def _copy_sweep_record(sweep_dir: Path, folder: Path) -> None:
+    """A sweep's job that moved to ``<sweep>-k/<job>``: that sweep folder gets the
+    sweep's ``multirun.yaml`` too (re-typing the sweep with resume= needs it)."""
+    src, dst = sweep_dir / "multirun.yaml", folder.parent / "multirun.yaml"
+    if src.is_file() and not dst.exists():
+        tmp = dst.with_name(f".multirun.yaml.{os.getpid()}.tmp")
+        shutil.copyfile(src, tmp)
+        os.replace(tmp, dst)
 
 
 def _run_and_report(cfg: RunConfig, run_dir: Path, overrides: list[str]) -> None:
@@ -448,15 +583,17 @@ def _run_and_report(cfg: RunConfig, run_dir: Path, overrides: list[str]) -> None
 
     hc = HydraConfig.get()
     multirun = hc.mode == RunMode.MULTIRUN
+    sweep_dir = Path(hc.sweep.dir) if multirun else None
     if cfg.resume and multirun:  # a re-typed sweep: this job's own folder under it
         if runfolder.holds_run(run_dir) or (run_dir / ".hydra" / "config.yaml").is_file():
             cfg.resume = str(run_dir)
         else:  # a job the stopped sweep never reached: it starts now, in its folder
             cfg.resume = None
-            _write_hydra_files(cfg, run_dir)
     exp = prepare(cfg, run_dir, overrides, auto_named=not os.environ.get(_TYPED_DIR),
-                  sweep_dir=Path(hc.sweep.dir) if multirun else None,
-                  on_move=lambda folder: _write_hydra_files(cfg, folder))
+                  sweep_dir=sweep_dir,
+                  on_move=(lambda folder: _copy_sweep_record(sweep_dir, folder))
+                  if multirun else None,
+                  record=lambda folder: _write_hydra_files(cfg, folder))
     print(f"{'resuming' if cfg.resume else 'run folder:'} {exp.run_dir}", file=sys.stderr)
     text = summary_text if exp.solo else population_summary_text
     print(text(exp.cfg, exp.fit(), exp.run_dir))

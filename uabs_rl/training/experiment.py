@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import signal
 import sys
 import threading
@@ -53,26 +54,47 @@ class NotFinite(Interrupted):
         super().__init__(f"error: {message}")
 
 
+class StoppedNow(KeyboardInterrupt):
+    """A second signal stopped training at once; ``str()`` says what was kept,
+    ``exit_code`` is 128 + the signal's number (130 Ctrl-C, 143 SIGTERM, 129 SIGHUP)."""
+
+    def __init__(self, message: str, signum: int):
+        super().__init__(message)
+        self.exit_code = 128 + signum
+
+
 class DeferredInterrupt:
-    """While active, Ctrl-C (SIGINT) and SIGTERM (a scheduler's preemption) only set
-    :attr:`requested`: the loop saves at the end of the round and stops with one line
-    (:meth:`stop`); a second one raises KeyboardInterrupt at once. A handler installed
-    before for SIGTERM or SIGUSR2 (the submitit launcher's, which requeues a preempted
-    SLURM job) runs after the save. Outside the main thread it does nothing."""
+    """While active, Ctrl-C (SIGINT), SIGTERM (a scheduler's preemption) and SIGHUP (a
+    closed terminal, a dropped SSH connection) only set :attr:`requested`: the loop
+    saves at the end of the round and stops with one line (:meth:`stop`); a second one
+    stops at once (:class:`StoppedNow`, saying what ``kept()`` reports was kept). A
+    handler installed before for SIGTERM or SIGUSR2 (the submitit launcher's, which
+    requeues a preempted SLURM job) runs after the save. After SIGHUP, output to the
+    terminal that is gone goes nowhere instead of failing. Outside the main thread it
+    does nothing."""
 
-    SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGUSR2)
+    SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGUSR2)
 
-    def __init__(self):
+    def __init__(self, kept: Any = None, round_s: Any = None):
         self.requested: int | None = None  # the signal received
         self._previous: dict[int, Any] = {}
+        self._kept = kept or (lambda: "the last checkpoint, if any, is kept")
+        self._round_s = round_s or (lambda: None)  # seconds a round takes, if known
 
     def _handle(self, signum, frame) -> None:
+        if signum == signal.SIGHUP:
+            _detach_terminal()
         if self.requested is not None:
-            raise KeyboardInterrupt
+            raise StoppedNow(f"stopped at once: {self._kept()}", signum)
         self.requested = signum
         name = "Ctrl-C" if signum == signal.SIGINT else signal.Signals(signum).name
-        print(f"\n{name}: stopping after this round (again to stop now, keeping the last "
-              f"checkpoint)", file=sys.stderr)
+        secs = self._round_s()
+        within = f" (a round takes about {secs:.0f} s)" if secs and secs >= 1 else ""
+        try:
+            print(f"\n{name}: stopping after this round{within}; again to stop now, "
+                  f"keeping the last checkpoint", file=sys.stderr)
+        except OSError:
+            pass
 
     def __enter__(self) -> DeferredInterrupt:
         if threading.current_thread() is threading.main_thread():
@@ -80,6 +102,8 @@ class DeferredInterrupt:
                 before = signal.getsignal(sig)
                 if sig == signal.SIGUSR2 and not callable(before):
                     continue  # only chained where someone (submitit) listens
+                if sig == signal.SIGHUP and before is signal.SIG_IGN:
+                    continue  # started with nohup: a hang-up does not stop it
                 self._previous[sig] = signal.signal(sig, self._handle)
         return self
 
@@ -97,6 +121,18 @@ class DeferredInterrupt:
         if callable(before) and before is not signal.default_int_handler:
             before(signum, None)
         raise Stopped(message, signum)
+
+
+def _detach_terminal() -> None:
+    """Point standard output and error that write to a terminal at /dev/null (after
+    SIGHUP the terminal is gone: writing to it would fail); files stay as they are."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        for fd in (1, 2):
+            if os.isatty(fd):
+                os.dup2(devnull, fd)
+    finally:
+        os.close(devnull)
 
 
 class Progress:
@@ -161,7 +197,8 @@ class Experiment:
         self.members = [Member(cfg, s, self.run_dir if self.solo else
                                member_dir(self.run_dir, s)) for s in seeds]
         self.checkpoints = Checkpoints(self)
-        self.interrupt = DeferredInterrupt()
+        self.interrupt = DeferredInterrupt(self.kept, lambda: self.round_s)
+        self.round_s: float | None = None  # how long the last training round took
         self.total_steps = tr.episodes * p.episode_steps  # per-env steps of the protocol
         self.episode = 0  # per member
         self.saved_episode: int | None = None  # the episode of the last ``last`` saved
@@ -225,6 +262,14 @@ class Experiment:
         self.saved_episode = self.episode
         return returns
 
+    def kept(self) -> str:
+        """What a run stopped at once keeps, in words."""
+        last = [m.run_dir / "checkpoints" / "last.pt" for m in self.members]
+        if all(p.is_file() for p in last):
+            return (f"the last checkpoint is kept; continue with resume={self.run_dir}")
+        return ("no checkpoint had been written yet: nothing to resume, start the run "
+                "again")
+
     def check_weights(self) -> None:
         """Stop (:class:`NotFinite`) when a weight of a member's networks (Q-network,
         QMIX's mixer) is not finite: checked before anything is evaluated or saved, in
@@ -253,7 +298,9 @@ class Experiment:
         round, so the saved state is consistent) when Ctrl-C or SIGTERM came."""
         tr = self.cfg.train
         while self.episode < tr.episodes:
+            t0 = time.perf_counter()
             per_member = self.collect()
+            self.round_s = time.perf_counter() - t0
             self.threads.check()
             for member, records in zip(self.members, per_member, strict=True):
                 for rec in records:

@@ -1,9 +1,11 @@
 """A run folder has one writer and one identity.
 
-- :class:`RunLock`: an advisory lock (``flock``) on ``<run>/.lock``, held by the process
-  that writes the run for as long as it runs. A second writer is refused with one line
-  naming the PID that holds it; the kernel drops the lock when its holder dies (kill -9
-  included), so a stale lock is taken over without anyone removing a file.
+- :class:`RunLock`: an advisory lock (``flock``) on the run folder itself, held by the
+  process that writes the run for as long as it runs; ``<run>/.lock`` only names the
+  holder. A second writer is refused with one line naming the PID that holds it; the
+  kernel drops the lock when its holder dies (kill -9 included), so a stale lock is
+  taken over without anyone removing a file, and removing ``.lock`` under a live holder
+  does not free the folder (the lock is on the folder, which stays while it is written).
 - :func:`claim`: a new run takes its folder, or, when another process took the same
   automatically named folder first (two identical commands started in the same second),
   a fresh sibling ``<name>-2``, ``-3``, ...; a folder the user named is never swapped.
@@ -40,27 +42,49 @@ class RunFolderError(ConfigError):
 
 
 class RunLock:
-    """``flock`` on ``<run_dir>/.lock``; :meth:`acquire` returns False while another
-    process holds it (:meth:`holder` says which)."""
+    """``flock`` on the folder ``run_dir`` (on ``<run_dir>/.lock`` where the file system
+    cannot lock a folder); :meth:`acquire` returns False while another process holds it
+    (:meth:`holder` says which, from ``.lock``)."""
 
     def __init__(self, run_dir: Path):
         self.run_dir = Path(run_dir)
         self.path = self.run_dir / LOCK_NAME
-        self._file = None
+        self._fd: int | None = None
 
-    def acquire(self) -> bool:
-        f = open(self.path, "a+")  # held open for the lifetime of the run
-        try:
-            fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            f.close()
+    def _locked_fd(self) -> int | None:
+        """A descriptor of the folder (or, where folders cannot be locked, of ``.lock``)
+        holding the exclusive lock, or None while another process holds it."""
+        for path, flags in ((self.run_dir, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0)),
+                            (self.path, os.O_RDWR | os.O_CREAT)):
+            fd = os.open(path, flags, 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                return fd
+            except BlockingIOError:
+                os.close(fd)
+                return None
+            except OSError:  # a file system that locks files only (NFS without flock)
+                os.close(fd)
+                if path == self.path:
+                    raise
+        return None
+
+    def acquire(self, record: bool = True) -> bool:
+        """Take the lock; with ``record``, write who holds it into ``.lock``."""
+        fd = self._locked_fd()
+        if fd is None:
             return False
-        f.seek(0)
-        f.truncate()
-        f.write(json.dumps({"pid": os.getpid(), "host": socket.gethostname(),
-                            "since": time.strftime("%Y-%m-%d %H:%M:%S")}) + "\n")
-        f.flush()
-        self._file = f
+        self._fd = fd  # held open for the lifetime of the run
+        if not record:
+            return True
+        info = json.dumps({"pid": os.getpid(), "host": socket.gethostname(),
+                           "since": time.strftime("%Y-%m-%d %H:%M:%S")}) + "\n"
+        tmp = self.path.with_name(f"{LOCK_NAME}.{os.getpid()}.tmp")
+        try:  # who holds it, for the refusal's message; the lock does not depend on it
+            tmp.write_text(info)
+            os.replace(tmp, self.path)
+        except OSError:
+            tmp.unlink(missing_ok=True)
         return True
 
     def holder(self) -> str:
@@ -69,14 +93,14 @@ class RunLock:
             info = json.loads(self.path.read_text() or "{}")
         except (OSError, json.JSONDecodeError):
             info = {}
-        if not info.get("pid"):
+        if not isinstance(info, dict) or not info.get("pid"):
             return "another process"
         return f"pid {info['pid']} on {info.get('host', '?')} since {info.get('since', '?')}"
 
     def release(self) -> None:
-        if self._file is not None:
-            self._file.close()  # closing drops the flock
-            self._file = None
+        if self._fd is not None:
+            os.close(self._fd)  # closing drops the flock
+            self._fd = None
 
 
 def _check_writable(run_dir: Path) -> None:
@@ -182,8 +206,12 @@ def identity(run_dir: Path) -> dict[str, Any]:
     ident = {"id": uuid.uuid4().hex, "started": time.strftime("%Y-%m-%d %H:%M:%S"),
              "host": socket.gethostname(), "command": " ".join(sys.argv)}
     tmp = path.with_name(f".{IDENTITY_NAME}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(ident, indent=1) + "\n")
-    os.replace(tmp, path)
+    try:
+        tmp.write_text(json.dumps(ident, indent=1) + "\n")
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
     return ident
 
 
@@ -204,6 +232,16 @@ def check_identity(state: dict, run_dir: Path, source: Path) -> None:
             f"resume the run it belongs to.")
 
 
+def _then(run_dir: Path) -> str:
+    """What the user does once the cause is fixed: resume from the last checkpoint, or,
+    where the run stopped before its first one, start it again."""
+    if (run_dir / "checkpoints" / "last.pt").is_file() or any(
+            run_dir.glob("seed=*/checkpoints/last.pt")):
+        return f"continue with resume={run_dir} (its last complete checkpoint is kept)"
+    return (f"start the run again (it stopped before its first checkpoint; remove "
+            f"{run_dir} or choose another hydra.run.dir)")
+
+
 def write_error(e: OSError | RuntimeError, run_dir: Path) -> Exception:
     """A failed write of a run's files as one line saying why and what to do; ``e``
     itself when it is not about the run folder."""
@@ -212,12 +250,101 @@ def write_error(e: OSError | RuntimeError, run_dir: Path) -> Exception:
                               f"run was writing it: the run stopped; nothing more was "
                               f"written.")
     where = getattr(e, "filename", None) or run_dir
-    if getattr(e, "errno", None) == errno.ENOSPC or "unexpected pos" in str(e):
+    if isinstance(where, bytes):
+        where = os.fsdecode(where)
+    if getattr(e, "errno", None) == errno.ENOENT:
+        return RunFolderError(f"{where} (or its folder) was removed while the run wrote "
+                              f"it: the run stopped. Then {_then(run_dir)}; TensorBoard's "
+                              f"curves are rebuilt from metrics.jsonl.")
+    if getattr(e, "errno", None) in (errno.ENOSPC, errno.EDQUOT) or "unexpected pos" in str(e):
         free = shutil.disk_usage(run_dir).free / 2**20
         return RunFolderError(f"no space left on the device while writing {where} "
-                              f"({free:.0f} MiB free): free some space, then continue with "
-                              f"resume={run_dir} (the last complete checkpoint is kept).")
+                              f"({free:.0f} MiB free): free some space, then "
+                              f"{_then(run_dir)}.")
     if getattr(e, "errno", None) in (errno.EACCES, errno.EROFS, errno.EPERM):
         return RunFolderError(f"cannot write {where} ({e.strerror}): make the run folder "
-                              f"writable, then continue with resume={run_dir}.")
+                              f"writable, then {_then(run_dir)}.")
     return e
+
+
+# ------------------------------------------------------------------- a refused start
+_ABSENT = object()
+
+
+class Before:
+    """What existed before a command made anything: for each folder a run may be
+    written in or under, and each of their parents, the names it held (or that it was
+    absent). A start refused after Hydra made the run folder is undone with it
+    (:meth:`undo_start`): only what this invocation made goes, never a folder or file
+    that was there before."""
+
+    def __init__(self, folders: list[Path]):
+        self.names: dict[str, Any] = {}
+        for folder in folders:
+            path = Path(os.path.abspath(folder))
+            for p in (path, *path.parents):
+                key = str(p)
+                if key in self.names:
+                    continue
+                try:
+                    self.names[key] = frozenset(os.listdir(p)) if p.is_dir() else (
+                        _ABSENT if not p.exists() else frozenset())
+                except OSError:  # unreadable: known to exist, contents unknown
+                    self.names[key] = None
+
+    def created(self, path: Path) -> bool:
+        """True when ``path`` did not exist before (known from the nearest recorded
+        folder at or above it); False when it did, or when that cannot be told."""
+        path = Path(os.path.abspath(path))
+        child = None  # the name, under the nearest recorded folder, on the way to path
+        for p in (path, *path.parents):
+            if str(p) not in self.names:
+                child = p.name
+                continue
+            held = self.names[str(p)]
+            if held is _ABSENT:
+                return True
+            if p == path or held is None:
+                return False
+            return child not in held
+        return False
+
+    def held(self, path: Path) -> frozenset[str] | None:
+        """The names ``path`` held before, when it was recorded and existed."""
+        held = self.names.get(str(Path(os.path.abspath(path))))
+        return held if isinstance(held, frozenset) else None
+
+    def undo_start(self, run_dir: Path, ours: set[str]) -> None:
+        """Remove what a refused start made in ``run_dir``: the folder itself (and the
+        empty parents made with it) when it is new and holds only ``ours`` (Hydra's log,
+        the lock's record, the run's .hydra record); in a folder that was there before,
+        those of ``ours`` it did not hold. A folder another process writes is left."""
+        run_dir = Path(run_dir)
+        if not run_dir.is_dir() or run_dir.resolve() == Path.cwd().resolve():
+            return
+        lk = RunLock(run_dir)
+        if not lk.acquire(record=False):  # another process writes it
+            return
+        try:
+            if self.created(run_dir):
+                if {p.name for p in run_dir.iterdir()} <= ours:
+                    shutil.rmtree(run_dir, ignore_errors=True)
+                    for parent in run_dir.parents:
+                        if not self.created(parent):
+                            break
+                        try:
+                            parent.rmdir()  # only an empty folder: nothing of anyone's
+                        except OSError:
+                            break
+                return
+            before = self.held(run_dir)
+            if before is None:
+                return
+            for p in run_dir.iterdir():
+                if p.name in ours and p.name not in before:
+                    if p.is_dir() and not p.is_symlink():
+                        shutil.rmtree(p, ignore_errors=True)
+                    else:
+                        p.unlink(missing_ok=True)
+        finally:
+            lk.release()

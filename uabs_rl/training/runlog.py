@@ -11,10 +11,12 @@ event files (rewritten into one, each scalar once per env step, equal to
 
 from __future__ import annotations
 
+import errno
 import importlib.util
 import json
 import os
 import shutil
+import threading
 import time
 from collections import defaultdict
 from pathlib import Path
@@ -25,7 +27,7 @@ from tensordict import TensorDictBase
 
 from uabs_rl.config import ConfigError, LoggerKind, RunConfig
 from uabs_rl.evaluation.evaluator import Evaluator
-from uabs_rl.training.runfolder import RunFolderError
+from uabs_rl.training.runfolder import RunFolderError, write_error
 
 # record fields that count or index rather than measure: kept in metrics.jsonl, never
 # plotted as curves
@@ -59,6 +61,18 @@ def flat_hparams(d: dict, prefix: str = "") -> dict[str, Any]:
     return out
 
 
+def _quiet_writer_thread(args) -> None:
+    """``threading.excepthook`` that leaves a file error of TensorBoard's writer thread
+    to the run: the writer raises it again in the run's thread, which stops with one
+    line (:func:`uabs_rl.training.runfolder.write_error`); anything else as before."""
+    if isinstance(args.exc_value, OSError) and type(args.thread).__name__ == "_AsyncWriterThread":
+        return
+    _THREAD_HOOK(args)
+
+
+_THREAD_HOOK = threading.excepthook
+
+
 def make_logger(kind: LoggerKind, run_dir: Path):
     """TorchRL's logger of ``kind`` writing under ``run_dir`` (``tb/``, ``csv/``,
     ``mlruns/``; wandb under its own project ``uabs_rl``), or None for ``none``."""
@@ -70,6 +84,7 @@ def make_logger(kind: LoggerKind, run_dir: Path):
     check_logger(kind)
     run_dir = Path(run_dir)
     if kind is LoggerKind.tensorboard:
+        threading.excepthook = _quiet_writer_thread
         return get_logger("tensorboard", str(run_dir), "tb")
     if kind is LoggerKind.csv:
         return get_logger("csv", str(run_dir), "csv")
@@ -160,7 +175,55 @@ def read_metrics(path: Path) -> list[dict]:
                              f"(uabs-train resume={path.parent}) to repair its metrics, or "
                              f"move the folder out of the sweep.")
         recs.append(rec)
+    gap = history_gap([r["episode"] for r in recs if r["kind"] == "train"])
+    if gap:
+        raise SystemExit(f"error: {path} {gap}: the file was removed, cut or mixed while "
+                         f"its run wrote it. Restore it from a copy, or move the folder "
+                         f"out of the sweep.")
     return recs
+
+
+def history_gap(episodes: list[int], upto: int | None = None) -> str | None:
+    """Why the training episodes of a metrics.jsonl are not 1, 2, ... (``upto``: and
+    up to that episode), as a phrase; None when they are."""
+    want = list(range(1, (len(episodes) if upto is None else upto) + 1))
+    if episodes == want:
+        return None
+    if not episodes:
+        return f"holds no training episode, where its checkpoint is at episode {upto}"
+    if episodes[0] != 1:
+        return f"starts at episode {episodes[0]} (episodes 1 to {episodes[0] - 1} are missing)"
+    for i, (a, b) in enumerate(zip(episodes, episodes[1:], strict=False)):
+        if b != a + 1:
+            return f"jumps from episode {a} to {b} (line {i + 2} of its training records)"
+    return (f"ends at episode {episodes[-1]}, where its checkpoint is at episode {upto}"
+            if upto is not None else None)
+
+
+def check_history(metrics: Path, episode: int) -> None:
+    """Before a resume from a checkpoint at ``episode`` changes anything: ``metrics``
+    holds each training episode 1 .. ``episode`` (a file removed or cut would continue
+    as a history with a hole), else refused naming the gap. A damaged line is left for
+    :meth:`RunLog.truncate` to judge (it repairs a last line cut by a crash)."""
+    if not metrics.exists():
+        raise RunFolderError(f"{metrics} is missing, where the run's checkpoint is at "
+                             f"episode {episode}: restore it from a copy to continue "
+                             f"(nothing was changed).")
+    lines = [raw for raw in metrics.read_bytes().splitlines() if raw.strip()]
+    episodes = []
+    for i, raw in enumerate(lines, 1):
+        rec = _record(raw)
+        if isinstance(rec, str):
+            if i < len(lines):
+                return  # not cut by a crash: truncate refuses it, naming the line
+            continue
+        if rec["kind"] == "train" and rec["episode"] <= episode:
+            episodes.append(rec["episode"])
+    gap = history_gap(episodes, episode)
+    if gap:
+        raise RunFolderError(f"{metrics} {gap}: its history was cut or mixed. Restore it "
+                             f"from a copy to continue (nothing was changed), or start a "
+                             f"new run.")
 
 
 class RunLog:
@@ -171,6 +234,7 @@ class RunLog:
         self.metrics_path = self.run_dir / "metrics.jsonl"
         self.logger = None
         self._rate: tuple[float, int] | None = None  # (time, env steps) of the last record
+        self._file: tuple[int, int, int] | None = None  # metrics.jsonl as last written
 
     def open(self, resume_episode: int | None = None) -> None:
         """Create the run folder; on resume, drop what was logged after the checkpoint
@@ -182,6 +246,7 @@ class RunLog:
         tb = self.run_dir / "tb"
         old = sorted(tb.glob("events.out.tfevents.*")) if kind is LoggerKind.tensorboard else []
         records = self.truncate(resume_episode) if resume_episode is not None else []
+        self._file = self._identity()
         # env steps of the checkpoint: those of the last record kept (records are written
         # before the checkpoint that follows them); a fresh start keeps no old event
         cutoff = max((r["env_steps"] for r in records), default=-1)
@@ -230,6 +295,18 @@ class RunLog:
                     break
             self.logger = None
 
+    def _identity(self) -> tuple[int, int, int] | None:
+        """metrics.jsonl's device, inode and size (None when absent)."""
+        try:
+            st = os.stat(self.metrics_path)
+        except FileNotFoundError:
+            return None
+        return st.st_dev, st.st_ino, st.st_size
+
+    def check_history(self, episode: int) -> None:
+        """See :func:`check_history` (this run's metrics.jsonl)."""
+        check_history(self.metrics_path, episode)
+
     def truncate(self, episode: int) -> list[dict[str, Any]]:
         """Keep the records of episodes up to ``episode`` and drop a last line cut by a
         crash; returns the records kept. A damaged line before the last one was not cut
@@ -261,8 +338,20 @@ class RunLog:
         """One line of ``metrics.jsonl``; its measured numbers also go to the logger,
         against env steps (the counters do not; training records add the env steps per
         second since the previous one, a figure of the machine kept out of the file)."""
+        if self._identity() != self._file:
+            if not self.run_dir.is_dir():  # the whole folder: write_error says so
+                raise write_error(FileNotFoundError(errno.ENOENT, "removed",
+                                                    str(self.metrics_path)), self.run_dir)
+            raise RunFolderError(
+                f"{self.metrics_path} was removed, replaced or changed by another process "
+                f"while this run wrote it: the run stopped so that its history is not "
+                f"mixed. Restore the file, then continue with resume={self.run_dir} (its "
+                f"last checkpoint is kept).")
         with open(self.metrics_path, "a") as f:
             f.write(json.dumps(record) + "\n")
+            f.flush()
+            st = os.fstat(f.fileno())
+        self._file = st.st_dev, st.st_ino, st.st_size
         if self.logger is None:
             return
         step = record["env_steps"]
