@@ -166,8 +166,9 @@ def test_learned_vs_baselines_on_test_traces(sweep, report):
     with open(out / "learned_vs_baselines.csv") as f:
         rows = list(csv.DictReader(f))
     assert list(rows[0]) == ["mode", "algo", "n_uabs", "config", "metric", "baseline", "learned",
-                             "diff", "ci_low", "ci_high", "n_seeds", "gap_share",
+                             "diff", "ci_low", "ci_high", "n_seeds", "method", "gap_share",
                              "gap_ci_low", "gap_ci_high"]
+    assert {r["method"] for r in rows} == {"95 % CI, Student-t over 2 seeds"}
     assert {r["gap_share"] for r in rows} == {""}  # no planner asked for
     # 2 modes x 3 metrics x 3 baselines, 2 seeds each, smoke runs: recoverable, paper obs
     assert len(rows) == 18 and {r["n_seeds"] for r in rows} == {"2"}
@@ -180,6 +181,7 @@ def test_learned_vs_baselines_on_test_traces(sweep, report):
     assert md.count("algo.{hidden=[32, 32]") == 1  # named once (common settings), not per row
     assert "\n## penalty (M = 4, 2 seeds)\n" in md and "\n## rank (M = 4, 2 seeds)\n" in md
     assert "| served fraction | greedy |" in md and " pt [" in md
+    assert "learned − baseline [95 % CI, Student-t over 2 seeds] |" in md
     for r, full in zip(rows, res["learned_vs_baselines"], strict=True):
         assert float(r["diff"]) == pytest.approx(full["learned"] - full["baseline_value"],
                                                  abs=1e-6)
@@ -428,12 +430,12 @@ def test_report_errors_are_one_line_and_status_2(sweep, tmp_path, capsys):
 # ----------------------------------------------------------------------------- figures
 def test_bands_are_drawn_and_named_only_where_there_are_seeds():
     """1 seed: no band and no CI words; 2 seeds: the min-max range, said so; 3 or more:
-    a 95 % bootstrap CI."""
+    a Student-t 95 % CI."""
     import matplotlib.pyplot as plt
     from matplotlib.collections import PolyCollection
 
     from uabs_rl.evaluation.plots import SeedCurve, band_label, return_curves_figure
-    from uabs_rl.evaluation.stats import bootstrap_ci, spread_over_seeds
+    from uabs_rl.evaluation.stats import spread_over_seeds, t_interval
 
     vals = np.array([[1.0, 4.0], [3.0, 0.0], [2.0, 2.0]])
     m, lo, hi = spread_over_seeds(vals[:1])
@@ -441,7 +443,7 @@ def test_bands_are_drawn_and_named_only_where_there_are_seeds():
     m, lo, hi = spread_over_seeds(vals[:2])
     assert list(m) == [2.0, 2.0] and list(lo) == [1.0, 0.0] and list(hi) == [3.0, 4.0]
     m, lo, hi = spread_over_seeds(vals)
-    assert (m[0], lo[0], hi[0]) == pytest.approx(bootstrap_ci(vals[:, 0], n_boot=2000))
+    assert (m[0], lo[0], hi[0]) == pytest.approx(t_interval(vals[:, 0]))
 
     def curve(seeds):
         return SeedCurve(f"rank ({seeds})", np.arange(30), np.zeros(30), -np.ones(30),
@@ -449,7 +451,7 @@ def test_bands_are_drawn_and_named_only_where_there_are_seeds():
 
     assert band_label([curve(1)]) is None
     assert band_label([curve(2)]) == "shaded: min-max range of the 2 seeds"
-    assert band_label([curve(5)]) == "shaded: 95 % bootstrap CI over seeds"
+    assert band_label([curve(5)]) == "shaded: 95 % CI, Student-t over seeds"
     assert band_label([curve(5), curve(2)]).endswith("(min-max range where 2 seeds)")
     fig = return_curves_figure([curve(1)])
     (ax,) = fig.axes

@@ -10,8 +10,9 @@ Finds every run under the folders given (following symbolic links), and groups t
 every setting that changes results (what ``uabs-train`` was told: masking mode,
 learning settings, scenario, observation, ...; seeds, device, threads, loggers, cache
 folders and the like are left out): each group is one line in the figures and one row
-(or block) in the tables, with its spread over the group's seeds (a 95 % bootstrap CI
-with 3 seeds or more, the min-max range with 2, none with 1). Groups are named by the
+(or block) in the tables, with its spread over the group's seeds (a Student-t 95 % CI
+with 3 seeds or more, the min-max range with 2, none with 1; each table names its
+method, :mod:`uabs_rl.evaluation.stats`). Groups are named by the
 settings that differ between them only (``rank, algo.lr=0.001``; the masking mode alone
 for a sweep over modes); the settings common to all runs are named once, in the
 summary. A run with no evaluation yet is left out with a warning.
@@ -31,6 +32,8 @@ evaluations on the validation traces); Fig. 4, the baselines and the learned-vs-
 differences come from each run's ``best.pt`` (chosen on validation) evaluated on the test
 traces beside the random, greedy and oracle baselines with the same masks
 (``--no-baselines``: Fig. 4 from the best validation evaluations instead).
+``--export marl-eval`` also writes ``marl_eval.json``, the runs in marl-eval's layout
+(:mod:`uabs_rl.evaluation.export`), for BenchMARL's and Mava's plotting tools.
 
 Numbers in the Markdown files: fractions as ``12.3 %``, their differences in percentage
 points as ``+1.2 pt [-0.3, +2.7]``, returns as integers.
@@ -50,7 +53,7 @@ import numpy as np
 from uabs_rl.config import ConfigError
 from uabs_rl.env.channel import beam_footprint_radius, coverage_bound
 from uabs_rl.evaluation.baselines import BASELINES, PLANNER
-from uabs_rl.evaluation.stats import bootstrap_ci, spread_name, spread_over_seeds
+from uabs_rl.evaluation.stats import paired_over_seeds, spread_name, spread_over_seeds
 from uabs_rl.safety.masking import PAPER_ORDER, masks_collisions, mode_phrase
 from uabs_rl.training.checkpoint import CheckpointError
 from uabs_rl.training.runlog import read_metrics  # noqa: F401  (the metrics reader, for callers)
@@ -298,16 +301,18 @@ def learned_pg_on_test(groups: dict[str, list[Run]],
 
 # ----------------------------------------------------------------------------- test set
 LVB_COLUMNS = ["mode", "algo", "n_uabs", "config", "metric", "baseline", "learned", "diff",
-               "ci_low", "ci_high", "n_seeds", "gap_share", "gap_ci_low", "gap_ci_high"]
+               "ci_low", "ci_high", "n_seeds", "method", "gap_share", "gap_ci_low",
+               "gap_ci_high"]
 
 
 def learned_vs_baselines(grouping: Grouping, tests: dict[Path, dict]) -> list[dict[str, Any]]:
     """Every run's ``best.pt`` (chosen on validation) and the baselines on the test
     traces, same windows and masks. Per group: the learned and baseline values (mean
     over seeds), the mean over seeds of each seed's per-window paired difference, and
-    its bootstrap 95 % CI over seeds (the min-max range with 2 seeds; over windows for
-    one seed). ``config`` names the group's settings against the defaults
-    (:attr:`Run.label`), so rows of several reports can be put in one table.
+    its Student-t 95 % CI over seeds (over the windows for one seed; ``method`` says
+    which: :func:`uabs_rl.evaluation.stats.paired_over_seeds`). ``config`` names the
+    group's settings against the defaults (:attr:`Run.label`), so rows of several reports
+    can be put in one table.
 
     Where the planner ran (``uabs-report --planner H``), the greedy rows of the served
     fraction and P_g also hold the learned share of the greedy-to-planner gap,
@@ -325,15 +330,15 @@ def learned_vs_baselines(grouping: Grouping, tests: dict[Path, dict]) -> list[di
         planner = planners[panel_of[group]].get(PLANNER)
         for metric, k in METRICS.items():
             for base in POLICIES[1:]:
-                diffs = [np.subtract(r["learned"][k], r[base][k]) for r in per_seed]
-                seed_means = [float(d.mean()) for d in diffs]
-                _, lo, hi = bootstrap_ci(seed_means if len(per_seed) > 1 else diffs[0])
+                d = paired_over_seeds([r["learned"][k] for r in per_seed],
+                                      [r[base][k] for r in per_seed])
                 rows.append({
                     "mode": runs[0].mode, "algo": runs[0].settings["algo.name"],
                     "n_uabs": int(runs[0].settings["scenario.n_uabs"]),
                     "config": runs[0].label, "metric": metric, "baseline": base,
                     "learned": float(np.mean([np.mean(r["learned"][k]) for r in per_seed])),
-                    "diff": float(np.mean(seed_means)), "ci_low": lo, "ci_high": hi,
+                    "diff": d["diff"], "ci_low": d["ci_low"], "ci_high": d["ci_high"],
+                    "method": d["method"],
                     "baseline_value": float(np.mean([np.mean(r[base][k]) for r in per_seed])),
                     "n_seeds": len(per_seed), "group": group,
                     "nhat": int(runs[0].settings["scenario.nhat_s"])})
@@ -382,9 +387,7 @@ def learned_vs_baselines_markdown(rows: list[dict[str, Any]], common: str = "") 
     for r in rows:
         groups.setdefault(r["group"], []).append(r)
     for group, rs in groups.items():
-        n = rs[0]["n_seeds"]
-        interval = (spread_name(n) if n > 1 else "95 % bootstrap CI over the windows of the "
-                    "one seed")
+        n, interval = rs[0]["n_seeds"], rs[0]["method"]
         text += (f"\n## {group} (M = {rs[0]['n_uabs']}, {n} seed{'s' if n != 1 else ''})\n\n"
                  f"| metric | baseline | learned | baseline value | learned − baseline "
                  f"[{interval}] |\n|---|---|---|---|---|\n")
@@ -465,8 +468,8 @@ def comparison_markdown(rows: list[dict[str, Any]], nhat: int | None) -> list[st
               f"{cell(r, 'return_last5')} | {cell(r, 'return_best')} | "
               f"{cell(r, 'served_fraction', True)} | {cell(r, 'pg', True)} | "
               f"{cell(r, 'train_collision_events')} |" for r in rows]
-    seeds = {min(r["seeds"], 3) for r in rows}
-    spreads = [spread_name(n) for n in (3, 2) if n in seeds] + (
+    seeds = sorted({r["seeds"] for r in rows}, reverse=True)
+    spreads = [spread_name(n) for n in seeds if n > 1] + (
         ["none with 1 seed"] if 1 in seeds else [])
     if spreads != ["none with 1 seed"]:
         lines += ["", "Spread: " + "; ".join(spreads) + "."]
