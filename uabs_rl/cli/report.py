@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import json
 import os
 import sys
 from pathlib import Path
@@ -651,10 +652,11 @@ def _write_baselines(path: Path, baselines: dict[str, dict]) -> None:
 
 
 def build_report(roots: Path | list[Path], out: Path, with_baselines: bool = True,
-                 command: str = "", planner: int | None = None) -> dict[str, Any]:
+                 command: str = "", planner: int | None = None,
+                 export: str | None = None) -> dict[str, Any]:
     """Every file of the report of the runs under ``roots``, written to ``out``
     (``planner``: the planner's horizon, to place the learned runs between greedy and
-    it)."""
+    it; ``export="marl-eval"``: also ``marl_eval.json``)."""
     roots = [roots] if isinstance(roots, str | Path) else list(roots)
     grouping = group_runs(find_runs(*roots))
     groups = grouping.groups
@@ -678,6 +680,10 @@ def build_report(roots: Path | list[Path], out: Path, with_baselines: bool = Tru
     if lvb:
         _write_csv(out / "learned_vs_baselines.csv", lvb, LVB_COLUMNS)
         (out / "learned_vs_baselines.md").write_text(learned_vs_baselines_markdown(lvb, common))
+    if export == "marl-eval":
+        from uabs_rl.evaluation.export import marl_eval
+
+        (out / "marl_eval.json").write_text(json.dumps(marl_eval(grouping, tests or None)))
     nhats = {run.settings["scenario.nhat_s"] for runs in groups.values() for run in runs}
     (out / "summary.md").write_text(summary(
         grouping, baselines, command or "uabs-report " + " ".join(map(str, roots)),
@@ -712,6 +718,10 @@ def main(argv: list[str] | None = None) -> int:
                          "vehicles' future positions: an upper reference) and give each "
                          "group's share of the greedy-to-planner gap; about 1 s per test "
                          "window and masking mode at H = 10")
+    ap.add_argument("--export", choices=("marl-eval",),
+                    help="also write the runs in marl-eval's JSON layout (marl_eval.json: "
+                         "per run, per evaluation, per metric; best.pt's test windows as "
+                         "absolute metrics), for BenchMARL's and Mava's plotting tools")
     ap.add_argument("--curves", action="store_true",
                     help="only overlay the runs' training and validation curves "
                          "(curves.png/.pdf), in seconds")
@@ -726,7 +736,7 @@ def main(argv: list[str] | None = None) -> int:
             files = curves_figure(group_runs(find_runs(*args.roots)), out / "curves")
             print(f"wrote {files[0]} (and .pdf)")
             return 0
-        res = build_report(args.roots, out, args.baselines, cmd, args.planner)
+        res = build_report(args.roots, out, args.baselines, cmd, args.planner, args.export)
     except (ReportError, ConfigError, CheckpointError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
