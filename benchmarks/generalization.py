@@ -104,6 +104,30 @@ def pt(x: float) -> str:
     return f"{100 * x:+.2f}"
 
 
+def table(rows: list[dict], other: bool, marks: dict[str, str] | None = None) -> str:
+    """The markdown table of the rows (``other``: with the beside population's column;
+    ``marks``: a word after each interval, by its value column)."""
+    marks = marks or {}
+    head = ("| city | M | windows | learned | greedy | oracle | learned − greedy [95 % CI] "
+            "| learned − oracle [95 % CI] |" + (" beside − greedy [95 % CI] |" if other else ""))
+    lines = [head, "|" + "---|" * (head.count("|") - 1)]
+
+    def cell(r: dict, value: str, lo: str, hi: str) -> str:
+        mark = f" ({r[marks[value]]})" if value in marks and r.get(marks[value]) else ""
+        return f"{pt(r[value])} [{pt(r[lo])}, {pt(r[hi])}]{mark}"
+
+    for r in rows:
+        cells = [r["city"], str(r["M"]), str(r["windows"]), f"{100 * r['learned']:.2f} %",
+                 f"{100 * r['greedy']:.2f} %", f"{100 * r['oracle']:.2f} %",
+                 cell(r, "learned_minus_greedy", "ci_low", "ci_high"),
+                 cell(r, "learned_minus_oracle", "oracle_ci_low", "oracle_ci_high")]
+        if other:
+            cells.append(cell(r, "other_minus_greedy", "other_ci_low", "other_ci_high")
+                         if r.get("other") not in (None, "") else "does not fit")
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("runs", type=Path)
@@ -147,20 +171,7 @@ def main(argv: list[str] | None = None) -> None:
                                / (base["oracle"].mean() - base["greedy"].mean())) for s in mine]
         rows.append(row)
         print(f"{at}: {time.perf_counter() - t0:.0f} s", file=sys.stderr)
-    head = ("| city | M | windows | learned | greedy | oracle | learned − greedy [95 % CI] "
-            "| learned − oracle [95 % CI] |" + (" beside − greedy [95 % CI] |" if other else ""))
-    print(head)
-    print("|" + "---|" * (head.count("|") - 1))
-    for r in rows:
-        cells = [r["city"], str(r["M"]), str(r["windows"]), f"{100 * r['learned']:.2f} %",
-                 f"{100 * r['greedy']:.2f} %", f"{100 * r['oracle']:.2f} %",
-                 f"{pt(r['learned_minus_greedy'])} [{pt(r['ci_low'])}, {pt(r['ci_high'])}]",
-                 f"{pt(r['learned_minus_oracle'])} [{pt(r['oracle_ci_low'])}, "
-                 f"{pt(r['oracle_ci_high'])}]"]
-        if other:
-            cells.append(f"{pt(r['other_minus_greedy'])} [{pt(r['other_ci_low'])}, "
-                         f"{pt(r['other_ci_high'])}]" if "other" in r else "does not fit")
-        print("| " + " | ".join(cells) + " |")
+    print(table(rows, bool(other)), end="")
     print(f"\nDifferences: {interval_words(rows)}.")
     aggregate(rows)
     if args.csv:
