@@ -1,6 +1,8 @@
 """Learner against learner under each mask: each run's best.pt on the test traces, the
 difference of the group means (QMIX or VDN minus the 3DQN) of the served fraction and
-P_g(N̂_s), with a 95 % bootstrap CI resampling each group's seeds independently.
+P_g(N̂_s), with Welch's 95 % CI (two independent groups of seeds), and rliable's
+probability of improvement over the two masks (the tasks) with its stratified bootstrap
+interval.
 
     python benchmarks/learners.py outputs/multirun/algorithms \
         > docs/results/algorithms/learners.md
@@ -14,6 +16,12 @@ from pathlib import Path
 import numpy as np
 
 from uabs_rl.cli.evaluate import evaluate_policies, load_evaluation
+from uabs_rl.evaluation.stats import (
+    AGGREGATE_METHOD,
+    probability_of_improvement,
+    stratified_bootstrap,
+    welch_difference,
+)
 
 
 def test_means(run: Path) -> dict[str, float]:
@@ -22,13 +30,10 @@ def test_means(run: Path) -> dict[str, float]:
     return {"served": float(np.mean(rec["served_fractions"])), "pg": float(np.mean(rec["pgs"]))}
 
 
-def difference(a: list[float], b: list[float], n_boot: int = 10_000) -> tuple[float, ...]:
-    """mean(a) − mean(b) and its percentile bootstrap interval (seeds resampled per group)."""
-    a, b = np.asarray(a), np.asarray(b)
-    rng = np.random.default_rng(0)
-    boot = (a[rng.integers(0, a.size, (n_boot, a.size))].mean(1)
-            - b[rng.integers(0, b.size, (n_boot, b.size))].mean(1))
-    return a.mean() - b.mean(), *np.quantile(boot, [0.025, 0.975])
+def difference(a: list[float], b: list[float]) -> tuple[float, float, float]:
+    """mean(a) − mean(b) and Welch's 95 % interval (two independent groups of seeds)."""
+    d = welch_difference(a, b)
+    return d["diff"], d["ci_low"], d["ci_high"]
 
 
 def main(root: Path) -> None:
@@ -55,6 +60,21 @@ def main(root: Path) -> None:
                     d, lo, hi = difference(x, [r[k] for r in values["dqn3", mode]])
                     cells.append(f"{100 * d:+.2f} pt [{100 * lo:+.2f}, {100 * hi:+.2f}]")
             print("| " + " | ".join(cells) + " |")
+    print("\nDifferences: 95 % CI, Welch over the two groups' seeds.")
+    print_improvement(values)
+
+
+def print_improvement(values: dict[tuple[str, str], list[dict[str, float]]]) -> None:
+    """P(learner > 3DQN) over the masks run by both (runs [seeds, masks]), served fraction."""
+    for algo in ("vdn", "qmix"):
+        modes = [m for m in ("flat", "rank") if (algo, m) in values and ("dqn3", m) in values]
+        if not modes:
+            continue
+        x, y = (np.array([[r["served"] for r in values[a, m]] for m in modes]).T
+                for a in (algo, "dqn3"))
+        p, lo, hi = stratified_bootstrap([x, y], probability_of_improvement)
+        print(f"P({algo} > dqn3), served fraction over {', '.join(modes)} masks: {p:.2f} "
+              f"[{lo:.2f}, {hi:.2f}] ({AGGREGATE_METHOD})")
 
 
 if __name__ == "__main__":

@@ -32,7 +32,8 @@ def sweep(trace_cache, tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def report(sweep):
     out = sweep / "report"
-    return out, build_report(sweep, out, with_baselines=True, command="uabs-report test")
+    return out, build_report(sweep, out, with_baselines=True, command="uabs-report test",
+                             export="marl-eval")
 
 
 def test_table2_equals_the_runs_metrics(sweep, report):
@@ -166,8 +167,9 @@ def test_learned_vs_baselines_on_test_traces(sweep, report):
     with open(out / "learned_vs_baselines.csv") as f:
         rows = list(csv.DictReader(f))
     assert list(rows[0]) == ["mode", "algo", "n_uabs", "config", "metric", "baseline", "learned",
-                             "diff", "ci_low", "ci_high", "n_seeds", "gap_share",
+                             "diff", "ci_low", "ci_high", "n_seeds", "method", "gap_share",
                              "gap_ci_low", "gap_ci_high"]
+    assert {r["method"] for r in rows} == {"95 % CI, Student-t over 2 seeds"}
     assert {r["gap_share"] for r in rows} == {""}  # no planner asked for
     # 2 modes x 3 metrics x 3 baselines, 2 seeds each, smoke runs: recoverable, paper obs
     assert len(rows) == 18 and {r["n_seeds"] for r in rows} == {"2"}
@@ -180,6 +182,7 @@ def test_learned_vs_baselines_on_test_traces(sweep, report):
     assert md.count("algo.{hidden=[32, 32]") == 1  # named once (common settings), not per row
     assert "\n## penalty (M = 4, 2 seeds)\n" in md and "\n## rank (M = 4, 2 seeds)\n" in md
     assert "| served fraction | greedy |" in md and " pt [" in md
+    assert "learned − baseline [95 % CI, Student-t over 2 seeds] |" in md
     for r, full in zip(rows, res["learned_vs_baselines"], strict=True):
         assert float(r["diff"]) == pytest.approx(full["learned"] - full["baseline_value"],
                                                  abs=1e-6)
@@ -428,12 +431,12 @@ def test_report_errors_are_one_line_and_status_2(sweep, tmp_path, capsys):
 # ----------------------------------------------------------------------------- figures
 def test_bands_are_drawn_and_named_only_where_there_are_seeds():
     """1 seed: no band and no CI words; 2 seeds: the min-max range, said so; 3 or more:
-    a 95 % bootstrap CI."""
+    a Student-t 95 % CI."""
     import matplotlib.pyplot as plt
     from matplotlib.collections import PolyCollection
 
     from uabs_rl.evaluation.plots import SeedCurve, band_label, return_curves_figure
-    from uabs_rl.evaluation.stats import bootstrap_ci, spread_over_seeds
+    from uabs_rl.evaluation.stats import spread_over_seeds, t_interval
 
     vals = np.array([[1.0, 4.0], [3.0, 0.0], [2.0, 2.0]])
     m, lo, hi = spread_over_seeds(vals[:1])
@@ -441,7 +444,7 @@ def test_bands_are_drawn_and_named_only_where_there_are_seeds():
     m, lo, hi = spread_over_seeds(vals[:2])
     assert list(m) == [2.0, 2.0] and list(lo) == [1.0, 0.0] and list(hi) == [3.0, 4.0]
     m, lo, hi = spread_over_seeds(vals)
-    assert (m[0], lo[0], hi[0]) == pytest.approx(bootstrap_ci(vals[:, 0], n_boot=2000))
+    assert (m[0], lo[0], hi[0]) == pytest.approx(t_interval(vals[:, 0]))
 
     def curve(seeds):
         return SeedCurve(f"rank ({seeds})", np.arange(30), np.zeros(30), -np.ones(30),
@@ -449,7 +452,7 @@ def test_bands_are_drawn_and_named_only_where_there_are_seeds():
 
     assert band_label([curve(1)]) is None
     assert band_label([curve(2)]) == "shaded: min-max range of the 2 seeds"
-    assert band_label([curve(5)]) == "shaded: 95 % bootstrap CI over seeds"
+    assert band_label([curve(5)]) == "shaded: 95 % CI, Student-t over seeds"
     assert band_label([curve(5), curve(2)]).endswith("(min-max range where 2 seeds)")
     fig = return_curves_figure([curve(1)])
     (ax,) = fig.axes
@@ -553,3 +556,57 @@ def test_runs_of_two_learners_are_two_groups_with_their_algo_column(sweep, trace
     assert sorted({r["algo"] for r in rows}) == ["dqn3", "qmix"]
     labels = {r["algo"]: r["config"] for r in rows}
     assert labels["dqn3"] != labels["qmix"] and "qmix" in labels["qmix"]
+
+
+# ----------------------------------------------------------------------------- marl-eval
+# marl-eval's README layout, written by hand: two runs of one algorithm on one task
+MARL_EVAL_EXAMPLE = {"env": {"task": {"algo": {
+    f"run_{k}": {"step_1": {"step_count": 100, "return": [1.0, 2.0], "win_rate": [0.5]},
+                 "step_2": {"step_count": 200, "return": [3.0, 4.0], "win_rate": [0.7]},
+                 "absolute_metrics": {"return": [3.5] * 20, "win_rate": [0.6]}}
+    for k in (1, 2)}}}}
+
+
+def test_marl_eval_export_matches_the_layout(sweep, report, tmp_path):
+    """``--export marl-eval``: env / task (mode) / algorithm / run per seed / a step per
+    validation evaluation of every run with its env steps and per-window metrics, and
+    best.pt's test windows as absolute metrics; the checker takes the hand-written
+    example of marl-eval's README and rejects what departs from it."""
+    import copy
+
+    from uabs_rl.evaluation.export import check_marl_eval
+
+    check_marl_eval(MARL_EVAL_EXAMPLE)
+    for breaking, match in (
+            (lambda d: d["env"]["task"]["algo"]["run_1"].pop("absolute_metrics"), "last entry"),
+            (lambda d: d["env"]["task"]["algo"]["run_1"]["step_1"].pop("step_count"),
+             "step_count"),
+            (lambda d: d["env"]["task"]["algo"]["run_1"]["step_2"].pop("win_rate"), "differ"),
+            (lambda d: d["env"]["task"]["algo"]["run_2"].pop("step_2"), "numbers of steps"),
+            (lambda d: d["env"]["task"]["algo"]["run_1"]["step_1"].update(
+                {"return": "high"}), "list of numbers")):
+        bad = copy.deepcopy(MARL_EVAL_EXAMPLE)
+        breaking(bad)
+        with pytest.raises(ValueError, match=match):
+            check_marl_eval(bad)
+    out, _ = report
+    data = json.loads((out / "marl_eval.json").read_text())
+    check_marl_eval(data)
+    assert list(data) == ["uabs_rl"] and sorted(data["uabs_rl"]) == ["penalty", "rank"]
+    with open(out / "learned_vs_baselines.csv") as f:
+        learned = {r["mode"]: float(r["learned"]) for r in csv.DictReader(f)
+                   if r["metric"] == "served_fraction"}
+    for mode in ("penalty", "rank"):
+        (algo,) = data["uabs_rl"][mode].values()
+        assert sorted(algo) == ["run_0", "run_1"]
+        evals = [r for r in records(sweep / f"masking={mode},seed=0") if r["kind"] == "eval"]
+        run0 = algo["run_0"]
+        assert len(run0) == len(evals) + 1 and list(run0)[-1] == "absolute_metrics"
+        assert run0["step_1"]["return"] == pytest.approx(evals[0]["returns"])
+        assert run0["step_2"]["step_count"] > run0["step_1"]["step_count"] > 0
+        assert np.mean([np.mean(r["absolute_metrics"]["served_fraction"])
+                        for r in algo.values()]) == pytest.approx(learned[mode])
+    cli = tmp_path / "cli"
+    assert report_main([str(sweep), "--out", str(cli), "--no-baselines",
+                        "--export", "marl-eval"]) == 0
+    check_marl_eval(json.loads((cli / "marl_eval.json").read_text()))

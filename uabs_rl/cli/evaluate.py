@@ -14,7 +14,7 @@ numbers, fractions as percentages, their differences in percentage points) and w
 ``eval.json`` (fractions as fractions): the split, per policy R, collisions, proximity
 events, fallbacks, served fraction, P_g at N̂_s, the whole P_g(N̂_s) curve and the
 per-window values, and with baselines the paired differences learned − baseline
-(same windows, same masks) with bootstrap 95 % confidence intervals. ``--policy`` may
+(same windows, same masks) with Student-t 95 % CIs over the windows. ``--policy`` may
 be given more than once; beyond ``all`` (learned, random, greedy, oracle) it takes the
 ``kmeans`` and ``junctions`` heuristics and ``planner``, a receding-horizon plan over
 the vehicles' true future positions ``--horizon`` steps ahead (an upper reference, not
@@ -316,7 +316,8 @@ def evaluate_policies(ev: Evaluation, policies: tuple[str, ...], seed: int = 0,
 
 def gap_shares(results: dict[str, tuple[dict, Any]]) -> dict[str, dict]:
     """The learned policy's share of the greedy-to-planner gap per metric (served
-    fraction, P_g), per window paired, with bootstrap CIs; {} unless all three ran."""
+    fraction, P_g), per window paired, with percentile bootstrap CIs over the windows
+    (a ratio; :func:`uabs_rl.evaluation.planner.gap_share`); {} unless all three ran."""
     if not {"learned", "greedy", PLANNER} <= set(results):
         return {}
     recs = {k: results[k][0] for k in ("learned", "greedy", PLANNER)}
@@ -328,9 +329,10 @@ METRICS = {"return": "returns", "served_fraction": "served_fractions", "pg": "pg
 
 
 def differences(results: dict[str, tuple[dict, Any]]) -> dict[str, dict[str, dict]]:
-    """Paired differences learned − baseline per window, with bootstrap 95 % CIs, for
-    R, the served fraction and P_g at N̂_s: ``{baseline: {metric: {diff, ci_low,
-    ci_high, n}}}``."""
+    """Paired differences learned − baseline per window, with Student-t 95 % CIs over
+    the windows of this one run (the windows are the unit: one seed), for R, the served
+    fraction and P_g at N̂_s: ``{baseline: {metric: {diff, ci_low, ci_high, n,
+    method}}}``."""
     if "learned" not in results:
         return {}
     learned = results["learned"][0]
@@ -368,8 +370,9 @@ DIFF_FORMATS = {"return": ("R", return_difference), "served_fraction": ("served"
 def _print_differences(diffs: dict[str, dict[str, dict]]) -> None:
     if not diffs:
         return
-    print("\nlearned − baseline, per window (mean [95 % bootstrap CI]; fractions in "
-          "percentage points):")
+    method = next(iter(next(iter(diffs.values())).values()))["method"]
+    print(f"\nlearned − baseline, per window (mean [{method}, one run: the windows are "
+          f"the unit, not seeds]; fractions in percentage points):")
     for name, per in diffs.items():
         print(f"{name:>8}  " + "   ".join(
             f"{DIFF_FORMATS[m][0]}: {DIFF_FORMATS[m][1](d):<24}" for m, d in per.items())
@@ -387,8 +390,8 @@ def _print_planner(results: dict[str, tuple[dict, Any]], shares: dict[str, dict]
     for m, d in shares.items():
         name = DIFF_FORMATS[m][0]
         print(f"learned share of the greedy-to-planner gap, {name}: {100 * d['share']:.0f} % "
-              f"[{100 * d['ci_low']:.0f}, {100 * d['ci_high']:.0f}] (95 % bootstrap CI "
-              f"over windows)")
+              f"[{100 * d['ci_low']:.0f}, {100 * d['ci_high']:.0f}] (95 % CI, percentile "
+              f"bootstrap over the {d['n']} windows)")
 
 
 def _print_table(results: dict[str, tuple[dict, Any]], nhat: int) -> None:

@@ -10,8 +10,9 @@ Finds every run under the folders given (following symbolic links), and groups t
 every setting that changes results (what ``uabs-train`` was told: masking mode,
 learning settings, scenario, observation, ...; seeds, device, threads, loggers, cache
 folders and the like are left out): each group is one line in the figures and one row
-(or block) in the tables, with its spread over the group's seeds (a 95 % bootstrap CI
-with 3 seeds or more, the min-max range with 2, none with 1). Groups are named by the
+(or block) in the tables, with its spread over the group's seeds (a Student-t 95 % CI
+with 3 seeds or more, the min-max range with 2, none with 1; each table names its
+method, :mod:`uabs_rl.evaluation.stats`). Groups are named by the
 settings that differ between them only (``rank, algo.lr=0.001``; the masking mode alone
 for a sweep over modes); the settings common to all runs are named once, in the
 summary. A run with no evaluation yet is left out with a warning.
@@ -31,6 +32,8 @@ evaluations on the validation traces); Fig. 4, the baselines and the learned-vs-
 differences come from each run's ``best.pt`` (chosen on validation) evaluated on the test
 traces beside the random, greedy and oracle baselines with the same masks
 (``--no-baselines``: Fig. 4 from the best validation evaluations instead).
+``--export marl-eval`` also writes ``marl_eval.json``, the runs in marl-eval's layout
+(:mod:`uabs_rl.evaluation.export`), for BenchMARL's and Mava's plotting tools.
 
 Numbers in the Markdown files: fractions as ``12.3 %``, their differences in percentage
 points as ``+1.2 pt [-0.3, +2.7]``, returns as integers.
@@ -40,6 +43,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import json
 import os
 import sys
 from pathlib import Path
@@ -50,7 +54,7 @@ import numpy as np
 from uabs_rl.config import ConfigError
 from uabs_rl.env.channel import beam_footprint_radius, coverage_bound
 from uabs_rl.evaluation.baselines import BASELINES, PLANNER
-from uabs_rl.evaluation.stats import bootstrap_ci, spread_name, spread_over_seeds
+from uabs_rl.evaluation.stats import paired_over_seeds, spread_name, spread_over_seeds
 from uabs_rl.paths import OutputFolder, OutputInterrupted, check_path
 from uabs_rl.safety.masking import PAPER_ORDER, masks_collisions, mode_phrase
 from uabs_rl.training.checkpoint import CheckpointError
@@ -299,16 +303,18 @@ def learned_pg_on_test(groups: dict[str, list[Run]],
 
 # ----------------------------------------------------------------------------- test set
 LVB_COLUMNS = ["mode", "algo", "n_uabs", "config", "metric", "baseline", "learned", "diff",
-               "ci_low", "ci_high", "n_seeds", "gap_share", "gap_ci_low", "gap_ci_high"]
+               "ci_low", "ci_high", "n_seeds", "method", "gap_share", "gap_ci_low",
+               "gap_ci_high"]
 
 
 def learned_vs_baselines(grouping: Grouping, tests: dict[Path, dict]) -> list[dict[str, Any]]:
     """Every run's ``best.pt`` (chosen on validation) and the baselines on the test
     traces, same windows and masks. Per group: the learned and baseline values (mean
     over seeds), the mean over seeds of each seed's per-window paired difference, and
-    its bootstrap 95 % CI over seeds (the min-max range with 2 seeds; over windows for
-    one seed). ``config`` names the group's settings against the defaults
-    (:attr:`Run.label`), so rows of several reports can be put in one table.
+    its Student-t 95 % CI over seeds (over the windows for one seed; ``method`` says
+    which: :func:`uabs_rl.evaluation.stats.paired_over_seeds`). ``config`` names the
+    group's settings against the defaults (:attr:`Run.label`), so rows of several reports
+    can be put in one table.
 
     Where the planner ran (``uabs-report --planner H``), the greedy rows of the served
     fraction and P_g also hold the learned share of the greedy-to-planner gap,
@@ -326,15 +332,15 @@ def learned_vs_baselines(grouping: Grouping, tests: dict[Path, dict]) -> list[di
         planner = planners[panel_of[group]].get(PLANNER)
         for metric, k in METRICS.items():
             for base in POLICIES[1:]:
-                diffs = [np.subtract(r["learned"][k], r[base][k]) for r in per_seed]
-                seed_means = [float(d.mean()) for d in diffs]
-                _, lo, hi = bootstrap_ci(seed_means if len(per_seed) > 1 else diffs[0])
+                d = paired_over_seeds([r["learned"][k] for r in per_seed],
+                                      [r[base][k] for r in per_seed])
                 rows.append({
                     "mode": runs[0].mode, "algo": runs[0].settings["algo.name"],
                     "n_uabs": int(runs[0].settings["scenario.n_uabs"]),
                     "config": runs[0].label, "metric": metric, "baseline": base,
                     "learned": float(np.mean([np.mean(r["learned"][k]) for r in per_seed])),
-                    "diff": float(np.mean(seed_means)), "ci_low": lo, "ci_high": hi,
+                    "diff": d["diff"], "ci_low": d["ci_low"], "ci_high": d["ci_high"],
+                    "method": d["method"],
                     "baseline_value": float(np.mean([np.mean(r[base][k]) for r in per_seed])),
                     "n_seeds": len(per_seed), "group": group,
                     "nhat": int(runs[0].settings["scenario.nhat_s"])})
@@ -383,9 +389,7 @@ def learned_vs_baselines_markdown(rows: list[dict[str, Any]], common: str = "") 
     for r in rows:
         groups.setdefault(r["group"], []).append(r)
     for group, rs in groups.items():
-        n = rs[0]["n_seeds"]
-        interval = (spread_name(n) if n > 1 else "95 % bootstrap CI over the windows of the "
-                    "one seed")
+        n, interval = rs[0]["n_seeds"], rs[0]["method"]
         text += (f"\n## {group} (M = {rs[0]['n_uabs']}, {n} seed{'s' if n != 1 else ''})\n\n"
                  f"| metric | baseline | learned | baseline value | learned − baseline "
                  f"[{interval}] |\n|---|---|---|---|---|\n")
@@ -466,8 +470,8 @@ def comparison_markdown(rows: list[dict[str, Any]], nhat: int | None) -> list[st
               f"{cell(r, 'return_last5')} | {cell(r, 'return_best')} | "
               f"{cell(r, 'served_fraction', True)} | {cell(r, 'pg', True)} | "
               f"{cell(r, 'train_collision_events')} |" for r in rows]
-    seeds = {min(r["seeds"], 3) for r in rows}
-    spreads = [spread_name(n) for n in (3, 2) if n in seeds] + (
+    seeds = sorted({r["seeds"] for r in rows}, reverse=True)
+    spreads = [spread_name(n) for n in seeds if n > 1] + (
         ["none with 1 seed"] if 1 in seeds else [])
     if spreads != ["none with 1 seed"]:
         lines += ["", "Spread: " + "; ".join(spreads) + "."]
@@ -650,10 +654,12 @@ def _write_baselines(path: Path, baselines: dict[str, dict]) -> None:
 
 def build_report(roots: Path | list[Path], out: Path, with_baselines: bool = True,
                  command: str = "", planner: int | None = None,
-                 runs: list[Run] | None = None) -> dict[str, Any]:
+                 runs: list[Run] | None = None, export: str | None = None
+                 ) -> dict[str, Any]:
     """Every file of the report of the runs under ``roots`` (``runs``: those already
     found there), written to ``out`` (``planner``: the planner's horizon, to place the
-    learned runs between greedy and it)."""
+    learned runs between greedy and it; ``export="marl-eval"``: also
+    ``marl_eval.json``)."""
     roots = [roots] if isinstance(roots, str | Path) else list(roots)
     grouping = group_runs(find_runs(*roots) if runs is None else runs)
     groups = grouping.groups
@@ -677,6 +683,10 @@ def build_report(roots: Path | list[Path], out: Path, with_baselines: bool = Tru
     if lvb:
         _write_csv(out / "learned_vs_baselines.csv", lvb, LVB_COLUMNS)
         (out / "learned_vs_baselines.md").write_text(learned_vs_baselines_markdown(lvb, common))
+    if export == "marl-eval":
+        from uabs_rl.evaluation.export import marl_eval
+
+        (out / "marl_eval.json").write_text(json.dumps(marl_eval(grouping, tests or None)))
     nhats = {run.settings["scenario.nhat_s"] for runs in groups.values() for run in runs}
     (out / "summary.md").write_text(summary(
         grouping, baselines, command or "uabs-report " + " ".join(map(str, roots)),
@@ -698,7 +708,7 @@ def default_out(roots: list[Path]) -> Path:
 REPORT_FILES = ("table2.md", "table2.csv", "fig3_eval_return.png", "fig3_eval_return.pdf",
                 "fig4_pg.png", "fig4_pg.pdf", "curves.png", "curves.pdf", "comparison.csv",
                 "baselines.csv", "summary.md", "learned_vs_baselines.csv",
-                "learned_vs_baselines.md")
+                "learned_vs_baselines.md", "marl_eval.json")
 
 
 class Parser(argparse.ArgumentParser):
@@ -735,6 +745,10 @@ def main(argv: list[str] | None = None) -> int:
                          "vehicles' future positions: an upper reference) and give each "
                          "group's share of the greedy-to-planner gap; about 1 s per test "
                          "window and masking mode at H = 10")
+    ap.add_argument("--export", choices=("marl-eval",),
+                    help="also write the runs in marl-eval's JSON layout (marl_eval.json: "
+                         "per run, per evaluation, per metric; best.pt's test windows as "
+                         "absolute metrics), for BenchMARL's and Mava's plotting tools")
     ap.add_argument("--curves", action="store_true",
                     help="only overlay the runs' training and validation curves "
                          "(curves.png/.pdf), in seconds")
@@ -753,7 +767,7 @@ def main(argv: list[str] | None = None) -> int:
                 curves_figure(group_runs(runs), folder / "curves")
             else:
                 res = build_report(args.roots, folder, args.baselines, cmd, args.planner,
-                                   runs=runs)
+                                   runs=runs, export=args.export)
                 text = (folder / "summary.md").read_text()
     except (ReportError, ConfigError, CheckpointError) as e:
         print(f"error: {e}", file=sys.stderr)

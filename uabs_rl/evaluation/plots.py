@@ -209,7 +209,7 @@ def band_label(curves: list[SeedCurve]) -> str | None:
         return None
     if seeds == {2}:
         return "shaded: min-max range of the 2 seeds"
-    return "shaded: 95 % bootstrap CI over seeds" + (
+    return "shaded: 95 % CI, Student-t over seeds" + (
         " (min-max range where 2 seeds)" if 2 in seeds else "")
 
 
