@@ -324,3 +324,14 @@ def test_a_full_disk_under_tensorboard_is_one_line_without_a_thread_trace(
         run(cfg, tmp_path / "run")
     err = capfd.readouterr().err
     assert "Traceback" not in err and "Exception in thread" not in err
+
+
+@pytest.mark.parametrize("value, says", [("", "names no folder"),
+                                         ("notes.txt", "is a file")])
+def test_resume_of_nothing_or_of_a_file_is_one_line(tmp_path, value, says):
+    """An empty shell variable (``resume=$RUN``) once started a new run silently; a
+    file once ended in Hydra's traceback."""
+    (tmp_path / "notes.txt").write_text("mine\n")
+    err = one_error(uabs_train(tmp_path, "experiment=smoke", f"resume={value}"), timeout=120)
+    assert says in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt"]

@@ -475,10 +475,18 @@ def _check_paths(argv: list[str]) -> None:
         path = Path(value.strip("'\""))
         if key in ("resume", "hydra.run.dir", "hydra.sweep.dir") and value:
             _check_name_lengths(key, path)  # before a stat that would fail on it
+        if key == "resume" and not value.strip("'\""):  # an empty shell variable
+            raise ConfigError("resume= names no folder: pass the folder of a uabs-train "
+                              "run (resume=outputs/runs/<run dir>), or drop resume= to "
+                              "start a new run.")
         if key == "resume" and value:
             if not path.exists():
                 raise ConfigError(f"resume={path}: no such folder. Pass the folder of a "
                                   f"uabs-train run (the one printed when it started).")
+            if not path.is_dir():
+                parent = path.parent.parent if path.suffix == ".pt" else path.parent
+                raise ConfigError(f"resume={path} is a file: pass the run folder that "
+                                  f"holds checkpoints/last.pt, e.g. resume={parent}.")
             if multirun and not (path / "multirun.yaml").is_file():
                 raise ConfigError(f"resume={path} with -m: pass the sweep's folder (the "
                                   f"one holding multirun.yaml) with the sweep's own "
