@@ -136,3 +136,20 @@ def test_every_test_that_bad_inputs_md_names_exists():
                if not re.search(rf"^def {t}\(", (PROJECT_ROOT / "tests" / f).read_text(),
                                 re.MULTILINE)]
     assert not missing
+
+
+SNIPPET_PAGES = [PROJECT_ROOT / "README.md", PROJECT_ROOT / "sumo" / "README.md",
+                 *sorted((PROJECT_ROOT / "docs").glob("*.md"))]
+SNIPPETS = [(page, i, code) for page in SNIPPET_PAGES if page.is_file() for i, code in
+            enumerate(re.findall(r"```python\n(.*?)```", page.read_text(), flags=re.S))]
+
+
+@pytest.mark.parametrize("page, i, code", SNIPPETS,
+                         ids=[f"{p.relative_to(PROJECT_ROOT)}#{i}" for p, i, _ in SNIPPETS])
+def test_every_python_snippet_of_the_docs_runs(page, i, code, trace_cache, monkeypatch,
+                                              tmp_path):
+    """Every ```python block of the README and docs/ runs as written (in a scratch
+    folder, with the tests' trace cache)."""
+    monkeypatch.setenv("UABS_RL_CACHE", str(trace_cache.parent))
+    monkeypatch.chdir(tmp_path)
+    exec(compile(code, f"{page.name} snippet {i}", "exec"), {"__name__": "__snippet__"})
