@@ -335,3 +335,14 @@ def test_resume_of_nothing_or_of_a_file_is_one_line(tmp_path, value, says):
     err = one_error(uabs_train(tmp_path, "experiment=smoke", f"resume={value}"), timeout=120)
     assert says in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt"]
+
+
+def test_resume_takes_a_setting_that_changes_no_result(finished_run, tmp_path):
+    """traces.workers (how many SUMO processes build traces) groups runs alike in a
+    sweep; a resume that types it is no change of results either."""
+    run_dir, args = finished_run
+    run_dir = copy_of(run_dir, tmp_path)
+    p = uabs_train(tmp_path, *args, "train.episodes=4", "traces.workers=4",
+                   f"resume={run_dir}")
+    _, err = p.communicate(timeout=300)
+    assert p.returncode == 0, err[-2000:]

@@ -32,7 +32,9 @@ CKPT_FORMAT = 2
 # config sections a checkpoint must agree with to be resumed or evaluated
 COMPAT_KEYS = ("scenario", "family", "obs", "channel", "masking", "algo", "traces", "seed",
                "train.n_envs", "train.population")
-LABELS = ("obs.name",)  # names, not settings: never compared
+# never compared: names, not settings (obs.name), and how traces are built, not what
+# they hold (traces.workers: SUMO worker processes; sweep.NEUTRAL groups runs alike)
+LABELS = ("obs.name", "traces.workers")
 # what members.Checkpoints.state writes, entry by entry: a nested layout, or the kind of value
 TENSORS, BYTES, NUMBER, INT, DICT = ("a dict of tensors", "a uint8 tensor (an RNG state)",
                                      "a number", "an integer", "a dict")
