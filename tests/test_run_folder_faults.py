@@ -20,6 +20,7 @@ import pytest
 from tests.test_faults import QUIET, error_lines, uabs_train, wait_for
 from tests.test_train import smoke
 from uabs_rl.cli.report import read_metrics
+from uabs_rl.cli.train import run
 from uabs_rl.training.runfolder import Before, RunFolderError, RunLock
 from uabs_rl.training.runlog import RunLog
 
@@ -346,3 +347,21 @@ def test_resume_takes_a_setting_that_changes_no_result(finished_run, tmp_path):
                    f"resume={run_dir}")
     _, err = p.communicate(timeout=300)
     assert p.returncode == 0, err[-2000:]
+
+
+def test_a_members_checkpoint_is_checked_against_its_population(trace_cache, tmp_path,
+                                                               capsys):
+    """A population's members have no run.json of their own: a checkpoint copied into a
+    member folder from another run is refused by uabs-report (and uabs-eval) all the
+    same, against the population's identity."""
+    from uabs_rl.cli.report import main as report_main
+
+    pop, other = tmp_path / "pop", tmp_path / "other"
+    run(smoke(trace_cache, *QUIET, "train.episodes=2", "train.eval_every=2",
+              "train.population=2"), pop)
+    run(smoke(trace_cache, *QUIET, "train.episodes=2", "train.eval_every=2"), other)
+    assert report_main([str(pop), "--no-baselines", "--out", str(tmp_path / "r1")]) == 0
+    shutil.copyfile(other / "checkpoints" / "last.pt", pop / "seed=1" / "checkpoints" / "last.pt")
+    capsys.readouterr()
+    assert report_main([str(pop), "--no-baselines", "--out", str(tmp_path / "r2")]) == 2
+    assert "belongs to another run" in capsys.readouterr().err

@@ -42,39 +42,23 @@ from uabs_rl.config import (
 )
 from uabs_rl.traces.store import check_names
 from uabs_rl.training import runfolder
-from uabs_rl.training.checkpoint import (
+from uabs_rl.training.checkpoint import (  # noqa: F401  (check_own: for callers)
     CheckpointError,
+    check_own,
     config_dict,
     config_differences,
     config_from_checkpoint,
     flatten,
     load_checkpoint,
+    load_hydra_config,
     upgrade_config,
 )
 from uabs_rl.training.experiment import Experiment
 from uabs_rl.training.members import complete_save, member_dir, member_seeds
-from uabs_rl.training.runfolder import check_identity
 from uabs_rl.training.runlog import check_history as check_metrics_history
 from uabs_rl.training.runlog import read_metrics
 
 log = logging.getLogger(__name__)
-
-
-def _load_hydra_config(run_dir: Path) -> dict | None:
-    """The run's ``.hydra/config.yaml`` in today's keys, or None when it has none."""
-    path = run_dir / ".hydra" / "config.yaml"
-    if not path.is_file():
-        return None
-    try:
-        stored = OmegaConf.to_container(OmegaConf.load(path))
-        if not isinstance(stored, dict) or not stored:  # cut by a full disk, or emptied
-            raise ValueError("empty, or not a mapping of settings")
-        merged = OmegaConf.merge(OmegaConf.structured(RunConfig), upgrade_config(stored))
-    except Exception as e:  # yaml, type and key errors all mean: not this run's config
-        first = (str(e).strip().splitlines() or [type(e).__name__])[0][:160]
-        raise CheckpointError(f"{path} is damaged ({first}): restore it from a copy, or "
-                              f"remove it to resume from the checkpoint's own config.") from None
-    return config_dict(to_container(merged))
 
 
 def saved_config(run_dir: Path) -> tuple[RunConfig, dict | None]:
@@ -93,7 +77,7 @@ def saved_config(run_dir: Path) -> tuple[RunConfig, dict | None]:
         return config_from_checkpoint(state), state
     if list(run_dir.glob("seed=*/checkpoints/last.pt")):  # a population
         return population_config(run_dir), None
-    hydra_cfg = _load_hydra_config(run_dir)
+    hydra_cfg = load_hydra_config(run_dir)
     if hydra_cfg is None:
         raise CheckpointError(f"resume={run_dir}: no checkpoints/last.pt and no "
                               f".hydra/config.yaml there: pass the folder of a uabs-train "
@@ -130,22 +114,6 @@ def check_history(run_dir: Path, members: list[Path]) -> None:
                 f"its checkpoint was removed or moved, and starting again would replace "
                 f"that history. Put checkpoints/last.pt back to continue (nothing was "
                 f"changed), or start a new run in another folder.")
-
-
-def check_own(state: dict, run_dir: Path, source: Path) -> None:
-    """Refuse a checkpoint that another run wrote: another run id, or other
-    result-changing settings than the run folder's own ``.hydra/config.yaml``."""
-    check_identity(state, run_dir, source)
-    started = _load_hydra_config(run_dir)
-    if started is None:
-        return
-    diffs = config_differences(upgrade_config(state["config"]), started)
-    if diffs:
-        raise CheckpointError(f"{source} does not belong to the run in {run_dir}: its "
-                              f"settings differ from the run's own .hydra/config.yaml ("
-                              + "; ".join(diffs[:3]) + (" ..." if len(diffs) > 3 else "")
-                              + "). Put this run's own checkpoint back, or resume the run "
-                              "it came from.")
 
 
 def population_config(run_dir: Path) -> RunConfig:

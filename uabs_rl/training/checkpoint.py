@@ -23,8 +23,9 @@ import torch
 from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from uabs_rl.config import MOVED, ConfigError, RunConfig
+from uabs_rl.config import MOVED, ConfigError, RunConfig, to_container
 from uabs_rl.env.params import EnvParams
+from uabs_rl.training.runfolder import IDENTITY_NAME, check_identity
 
 # 2: the replay keeps the agent dimension (step slots of M agents); format 1's flat
 # ring of per-agent transitions is converted on load (upgrade_state)
@@ -426,3 +427,43 @@ def check_compatible(state: dict, cfg: RunConfig, source: Path) -> None:
         raise CheckpointError(f"{source} was written with other settings:\n  "
                               + "\n  ".join(diffs)
                               + "\nRun with the checkpoint's settings to continue it.")
+
+
+def load_hydra_config(run_dir: Path) -> dict | None:
+    """The run's ``.hydra/config.yaml`` in today's keys, or None when it has none."""
+    path = run_dir / ".hydra" / "config.yaml"
+    if not path.is_file():
+        return None
+    try:
+        stored = OmegaConf.to_container(OmegaConf.load(path))
+        if not isinstance(stored, dict) or not stored:  # cut by a full disk, or emptied
+            raise ValueError("empty, or not a mapping of settings")
+        merged = OmegaConf.merge(OmegaConf.structured(RunConfig), upgrade_config(stored))
+    except Exception as e:  # yaml, type and key errors all mean: not this run's config
+        first = (str(e).strip().splitlines() or [type(e).__name__])[0][:160]
+        raise CheckpointError(f"{path} is damaged ({first}): restore it from a copy, or "
+                              f"remove it to resume from the checkpoint's own config.") from None
+    return config_dict(to_container(merged))
+
+
+def check_own(state: dict, run_dir: Path, source: Path) -> None:
+    """Refuse a checkpoint that another run wrote: another run id, or other
+    result-changing settings than the run folder's own ``.hydra/config.yaml``. A member
+    of a population (``<population>/seed=<s>``) is checked against its population's
+    folder (its seed aside: each member has its own)."""
+    member = run_dir.name.startswith("seed=") and (run_dir.parent / IDENTITY_NAME).is_file()
+    home = run_dir.parent if member else run_dir
+    check_identity(state, home, source)
+    started = load_hydra_config(home)
+    if started is None:
+        return
+    saved = upgrade_config(state["config"])
+    if member:
+        saved = {**saved, "seed": started.get("seed")}
+    diffs = config_differences(saved, started)
+    if diffs:
+        raise CheckpointError(f"{source} does not belong to the run in {home}: its "
+                              f"settings differ from the run's own .hydra/config.yaml ("
+                              + "; ".join(diffs[:3]) + (" ..." if len(diffs) > 3 else "")
+                              + "). Put this run's own checkpoint back, or resume the run "
+                              "it came from.")

@@ -160,13 +160,15 @@ def _metrics_files(root: Path) -> list[Path]:
 def _load_run(metrics: Path) -> Run | str:
     """The run of a metrics.jsonl, or why it cannot be reported (no checkpoint yet, no
     evaluation yet)."""
-    from uabs_rl.training.checkpoint import load_checkpoint
+    from uabs_rl.training.checkpoint import check_own, load_checkpoint
 
     run_dir = metrics.parent
     ckpt = run_dir / "checkpoints" / "last.pt"
     if not ckpt.is_file():
         return f"{run_dir} has no checkpoints/last.pt yet (stopped before its first checkpoint?)"
-    cfg = load_checkpoint(ckpt)["config"]
+    state = load_checkpoint(ckpt)
+    check_own(state, run_dir, ckpt)  # a last.pt copied in from another run is refused
+    cfg = state["config"]
     recs = read_metrics(metrics)
     evals = [r for r in recs if r["kind"] == "eval"]
     if not evals:
