@@ -14,7 +14,10 @@ seed and pair: its IQM with a stratified bootstrap CI.
 size; ``home:M`` is the run's own scenario. ``--beside RUNS`` evaluates a second
 population (for example a single-city policy of the paper's observation size) on the
 pairs where its network fits, in the columns ``other − greedy``, and the two-group
-difference learned − other with Welch's 95 % CI (``learned_minus_other``).
+difference learned − other with Welch's 95 % CI (``learned_minus_other``). ``--mpc H``
+adds the deployable receding-horizon planner of horizon H (constant-velocity prediction,
+``uabs-eval --policy mpc``) beside greedy and the oracle: its served fraction and
+learned − mpc (columns ``mpc``, ``learned_minus_mpc``).
 """
 
 from __future__ import annotations
@@ -51,7 +54,8 @@ def overrides(at: str) -> list[str]:
 
 
 def evaluate(runs: list[Path], over: list[str], dirs: list[Path],
-             baselines: tuple[str, ...] = ()) -> tuple[list[np.ndarray], dict] | None:
+             baselines: tuple[str, ...] = (), mpc_horizon: int = 5
+             ) -> tuple[list[np.ndarray], dict] | None:
     """Per seed, the learned policy's served fraction per window, and those of the
     ``baselines`` (on the first seed's env: they do not depend on the run's seed); None
     where the network does not fit (the paper's observation at another M)."""
@@ -63,7 +67,8 @@ def evaluate(runs: list[Path], over: list[str], dirs: list[Path],
             if "observations of size" in str(e):
                 return None
             raise
-        res = evaluate_policies(ev, ("learned", *(baselines if i == 0 else ())))
+        res = evaluate_policies(ev, ("learned", *(baselines if i == 0 else ())),
+                                mpc_horizon=mpc_horizon)
         values = {k: np.asarray(rec[METRIC], dtype=float) for k, (rec, _) in res.items()}
         out.append(values.pop("learned"))
         base = base or values
@@ -108,8 +113,11 @@ def table(rows: list[dict], other: bool, marks: dict[str, str] | None = None) ->
     """The markdown table of the rows (``other``: with the beside population's column;
     ``marks``: a word after each interval, by its value column)."""
     marks = marks or {}
-    head = ("| city | M | windows | learned | greedy | oracle | learned − greedy [95 % CI] "
-            "| learned − oracle [95 % CI] |" + (" beside − greedy [95 % CI] |" if other else ""))
+    mpc = any("mpc" in r for r in rows)
+    head = ("| city | M | windows | learned | greedy | oracle |" + (" mpc |" if mpc else "")
+            + " learned − greedy [95 % CI] | learned − oracle [95 % CI] |"
+            + (" learned − mpc [95 % CI] |" if mpc else "")
+            + (" beside − greedy [95 % CI] |" if other else ""))
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
 
     def cell(r: dict, value: str, lo: str, hi: str) -> str:
@@ -119,8 +127,10 @@ def table(rows: list[dict], other: bool, marks: dict[str, str] | None = None) ->
     for r in rows:
         cells = [r["city"], str(r["M"]), str(r["windows"]), f"{100 * r['learned']:.2f} %",
                  f"{100 * r['greedy']:.2f} %", f"{100 * r['oracle']:.2f} %",
+                 *([f"{100 * r['mpc']:.2f} %"] if mpc else []),
                  cell(r, "learned_minus_greedy", "ci_low", "ci_high"),
-                 cell(r, "learned_minus_oracle", "oracle_ci_low", "oracle_ci_high")]
+                 cell(r, "learned_minus_oracle", "oracle_ci_low", "oracle_ci_high"),
+                 *([cell(r, "learned_minus_mpc", "mpc_ci_low", "mpc_ci_high")] if mpc else [])]
         if other:
             cells.append(cell(r, "other_minus_greedy", "other_ci_low", "other_ci_high")
                          if r.get("other") not in (None, "") else "does not fit")
@@ -135,6 +145,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--beside", type=Path, help="a second population, on the pairs it fits")
     ap.add_argument("--config-dir", type=Path, action="append", default=[])
     ap.add_argument("--csv", type=Path)
+    ap.add_argument("--mpc", type=int, metavar="H",
+                    help="also the deployable mpc of horizon H (constant velocity)")
     args = ap.parse_args(argv)
     runs = members(args.runs)
     other = members(args.beside) if args.beside else []
@@ -145,11 +157,14 @@ def main(argv: list[str] | None = None) -> None:
     for at in args.at:
         t0 = time.perf_counter()
         over = overrides(at)
-        found = evaluate(runs, over, args.config_dir, ("greedy", "oracle"))
+        found = evaluate(runs, over, args.config_dir,
+                         ("greedy", "oracle", *(["mpc"] if args.mpc else [])), args.mpc or 5)
         if found is None:
             raise SystemExit(f"{args.runs}: its network does not fit {at}")
         mine, base = found
         theirs = evaluate(other, over, args.config_dir) if other else None
+        if args.mpc:
+            dm, lo_m, hi_m = versus(mine, base["mpc"])
         theirs = theirs and theirs[0]
         d, lo, hi = versus(mine, base["greedy"])
         do, lo_o, hi_o = versus(mine, base["oracle"])
@@ -159,6 +174,9 @@ def main(argv: list[str] | None = None) -> None:
                "greedy": float(base["greedy"].mean()), "oracle": float(base["oracle"].mean()),
                "learned_minus_greedy": d, "ci_low": lo, "ci_high": hi,
                "learned_minus_oracle": do, "oracle_ci_low": lo_o, "oracle_ci_high": hi_o}
+        if args.mpc:
+            row.update(mpc=float(base["mpc"].mean()), mpc_horizon=args.mpc,
+                       learned_minus_mpc=dm, mpc_ci_low=lo_m, mpc_ci_high=hi_m)
         if theirs is not None:
             d2, lo2, hi2 = versus(theirs, base["greedy"])
             row.update(other=float(np.mean([s.mean() for s in theirs])),

@@ -3,6 +3,7 @@
     uabs-eval outputs/runs/<run dir>                 # best checkpoint, test traces
     uabs-eval outputs/runs/<run dir> --policy all    # + random, greedy, oracle baselines
     uabs-eval outputs/runs/<run dir> --policy all --policy planner --horizon 10
+    uabs-eval outputs/runs/<run dir> --policy all --policy mpc --mpc-horizon 5 --sees 150
     uabs-eval path/to/last.pt --split eval --windows 20 --gif
     uabs-eval outputs/runs/<run dir> scenario.sumo.fleet_size=120 channel.los_mode=los
     uabs-eval outputs/runs/<run dir> --config-dir myconf scenario=grid6   # another city
@@ -17,9 +18,14 @@ per-window values, and with baselines the paired differences learned − baselin
 (same windows, same masks) with Student-t 95 % CIs over the windows. ``--policy`` may
 be given more than once; beyond ``all`` (learned, random, greedy, oracle) it takes the
 ``kmeans`` and ``junctions`` heuristics and ``planner``, a receding-horizon plan over
-the vehicles' true future positions ``--horizon`` steps ahead (an upper reference, not
-a deployable policy; its cost per window is printed). With learned, greedy and planner
-together it also prints the learned policy's share of the greedy-to-planner gap. Also a
+the vehicles' true future positions ``--horizon`` steps ahead (the clairvoyant ceiling),
+and ``mpc``, the same planner ``--mpc-horizon`` steps ahead over the positions a
+predictor gives (``--predictor cv``: constant velocity from the vehicles' current and
+previous positions, the default) seeing every vehicle or only those within ``--sees R``
+metres of a UABS: a deployable policy. Every policy's compute per decision (ms per step
+for the whole fleet, amortised over the windows run side by side) is printed. With
+learned, greedy and planner together it also prints the learned policy's share of the
+greedy-to-planner gap. Also a
 trajectory picture per policy and, with ``--gif``, an animation of one episode of the
 learned policy, into ``<run dir>/evaluation/`` (or ``--out``, checked before anything
 is evaluated).
@@ -65,9 +71,10 @@ from uabs_rl.config import (
 )
 from uabs_rl.env.params import EnvParams
 from uabs_rl.env.uabs_env import N_ACTIONS
-from uabs_rl.evaluation.baselines import BASELINES, HEURISTICS, PLANNER, baseline_policy
+from uabs_rl.evaluation.baselines import BASELINES, HEURISTICS, MPC, PLANNER, baseline_policy
 from uabs_rl.evaluation.evaluator import Evaluator, greedy_policy, make_eval_env
 from uabs_rl.evaluation.planner import gap_share, junction_sites
+from uabs_rl.evaluation.predict import PREDICTORS, make_predictor, parse_sees
 from uabs_rl.evaluation.stats import paired_difference
 from uabs_rl.paths import OutputFolder, OutputInterrupted, check_path, safe_component
 from uabs_rl.safety.make import make_selector, resolve_device
@@ -80,7 +87,7 @@ from uabs_rl.training.checkpoint import (
 )
 
 POLICIES = ("learned", *BASELINES)  # --policy all
-CHOICES = (*POLICIES, *HEURISTICS, PLANNER)  # every --policy
+CHOICES = (*POLICIES, *HEURISTICS, PLANNER, MPC)  # every --policy
 
 
 @dataclass
@@ -293,10 +300,14 @@ def default_out_dir(path: Path, overrides: list[str] | None = None) -> Path:
 
 
 def evaluate_policies(ev: Evaluation, policies: tuple[str, ...], seed: int = 0,
-                      horizon: int = 1) -> dict[str, tuple[dict[str, Any], Any]]:
+                      horizon: int = 1, mpc_horizon: int = 5, predictor: str = "cv",
+                      sees: str | float = "all") -> dict[str, tuple[dict[str, Any], Any]]:
     """Records and rollouts of each policy on the same held-out windows and masks
-    (``horizon``: the planner's). The planner's record holds its ``horizon`` and
-    ``seconds``, the wall time of its rollout of all the windows side by side."""
+    (``horizon``: the planner's; ``mpc_horizon``, ``predictor`` and ``sees``: the mpc's).
+    The planner's and the mpc's records hold their ``horizon`` and ``seconds``, the wall
+    time of the rollout of all the windows side by side (the mpc's also its
+    ``predictor`` and ``sees``); every record holds ``ms_per_decision``, that time per
+    step of one window (the whole fleet's decision, amortised over the windows)."""
     results = {}
     env = ev.evaluator.env
     for name in policies:
@@ -305,12 +316,19 @@ def evaluate_policies(ev: Evaluation, policies: tuple[str, ...], seed: int = 0,
         else:
             sites = junction_sites(ev.cfg, env.base_env) if name == "junctions" else None
             policy = baseline_policy(name, env, make_selector(env), seed,
-                                     horizon=horizon, sites=sites)
+                                     horizon=mpc_horizon if name == MPC else horizon,
+                                     sites=sites, predictor=make_predictor(predictor, sees)
+                                     if name == MPC else None)
         t0 = time.perf_counter()
         results[name] = ev.evaluator.evaluate(policy, ev.episode, ev.env_steps)
-        results[name][0]["policy"] = name
+        sec = time.perf_counter() - t0
+        rec = results[name][0]
+        rec["policy"] = name
+        rec["ms_per_decision"] = 1000 * sec / (rec["windows"] * ev.evaluator.params.episode_steps)
         if name == PLANNER:
-            results[name][0].update(horizon=horizon, seconds=time.perf_counter() - t0)
+            rec.update(horizon=horizon, seconds=sec)
+        elif name == MPC:
+            rec.update(horizon=mpc_horizon, seconds=sec, predictor=predictor, sees=sees)
     return results
 
 
@@ -386,12 +404,22 @@ def _print_planner(results: dict[str, tuple[dict, Any]], shares: dict[str, dict]
     print(f"\nplanner: horizon {rec['horizon']}, {rec['seconds'] / rec['windows']:.2f} s per "
           f"window ({rec['windows']} windows side by side, {rec['seconds']:.1f} s, "
           f"{torch.get_num_threads()} torch thread(s)); it knows the vehicles' future "
-          f"positions: an upper reference, not a deployable policy")
+          f"positions: the clairvoyant ceiling, not a deployable policy")
     for m, d in shares.items():
         name = DIFF_FORMATS[m][0]
         print(f"learned share of the greedy-to-planner gap, {name}: {100 * d['share']:.0f} % "
               f"[{100 * d['ci_low']:.0f}, {100 * d['ci_high']:.0f}] (95 % CI, percentile "
               f"bootstrap over the {d['n']} windows)")
+
+
+def _print_mpc(results: dict[str, tuple[dict, Any]]) -> None:
+    if MPC not in results:
+        return
+    rec = results[MPC][0]
+    sees = "every vehicle" if rec["sees"] == "all" else f"the vehicles within {rec['sees']:g} m"
+    print(f"\nmpc: horizon {rec['horizon']}, predictor {rec['predictor']}, sees {sees}; "
+          f"{rec['ms_per_decision']:.1f} ms per decision ({rec['windows']} windows side by "
+          f"side, {rec['seconds']:.1f} s, {torch.get_num_threads()} torch thread(s))")
 
 
 def _print_table(results: dict[str, tuple[dict, Any]], nhat: int) -> None:
@@ -403,6 +431,9 @@ def _print_table(results: dict[str, tuple[dict, Any]], nhat: int) -> None:
                  whole(rec["proximity"]), whole(rec["fallbacks"]),
                  percent(rec["served_fraction"]), percent(rec["pg"]))
         print(f"{name:>8} " + " ".join(f"{c:>12}" for c in cells))
+    print("compute per decision (the whole fleet, ms per step, amortised over the windows "
+          "run side by side): " + ", ".join(f"{name} {rec['ms_per_decision']:.2f}"
+                                            for name, (rec, _) in results.items()))
 
 
 def parser() -> argparse.ArgumentParser:
@@ -425,9 +456,19 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--policy", choices=(*CHOICES, "all"), action="append",
                     help="what to evaluate, may be repeated: learned (default), the "
                          "random, greedy and oracle baselines, all (these four), the "
-                         "kmeans and junctions heuristics, planner (see --horizon)")
+                         "kmeans and junctions heuristics, planner (see --horizon), mpc "
+                         "(see --mpc-horizon, --predictor, --sees)")
     ap.add_argument("--horizon", type=int, default=10,
                     help="the planner's horizon in steps (default 10; 1 = the oracle)")
+    ap.add_argument("--mpc-horizon", type=int, default=5,
+                    help="the mpc's horizon in steps (default 5)")
+    ap.add_argument("--predictor", choices=tuple(p for p in PREDICTORS), default="cv",
+                    help="what the mpc plans over: cv, the vehicles' current and previous "
+                         "positions extrapolated at constant velocity (default), or true, "
+                         "their true future (then it is the clairvoyant planner)")
+    ap.add_argument("--sees", default="all", metavar="all|R",
+                    help="the vehicles the mpc sees: all (centralised, default) or those "
+                         "within R metres of some UABS")
     ap.add_argument("--split", choices=("test", "eval"), default="test",
                     help="test traces (default; never seen by training or selection) or "
                          "eval, the validation traces training evaluated on")
@@ -446,6 +487,12 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--windows must be >= 1, got {args.windows}")
     if args.horizon < 1:
         ap.error(f"--horizon must be >= 1, got {args.horizon}")
+    if args.mpc_horizon < 1:
+        ap.error(f"--mpc-horizon must be >= 1, got {args.mpc_horizon}")
+    try:
+        args.sees = parse_sees(args.sees)
+    except ValueError as e:
+        ap.error(str(e))
     try:  # the output folder is checked before anything is evaluated
         check_path(args.path, "PATH")
         for d in args.config_dir:
@@ -489,7 +536,9 @@ def _evaluate_and_write(ev: Evaluation, args: argparse.Namespace, out: Path) -> 
     the pictures into ``out``."""
     policies = tuple(dict.fromkeys(
         q for p in args.policy or ["learned"] for q in (POLICIES if p == "all" else [p])))
-    results = evaluate_policies(ev, policies, horizon=args.horizon)
+    results = evaluate_policies(ev, policies, horizon=args.horizon,
+                                mpc_horizon=args.mpc_horizon, predictor=args.predictor,
+                                sees=args.sees)
     n = ev.evaluator.env.base_env.n_envs
     tc = getattr(ev.cfg.traces, args.split)
     print(f"split: {args.split} (traces.{args.split}: SUMO seeds {tc.first_seed}.."
@@ -502,6 +551,7 @@ def _evaluate_and_write(ev: Evaluation, args: argparse.Namespace, out: Path) -> 
     _print_differences(diffs)
     shares = gap_shares(results)
     _print_planner(results, shares)
+    _print_mpc(results)
     (out / "eval.json").write_text(json.dumps(
         {"split": args.split, "windows": n, "checkpoint": args.checkpoint,
          "overrides": args.overrides, "scenario": ev.cfg.scenario.name,

@@ -53,7 +53,7 @@ import numpy as np
 
 from uabs_rl.config import ConfigError
 from uabs_rl.env.channel import beam_footprint_radius, coverage_bound
-from uabs_rl.evaluation.baselines import BASELINES, PLANNER
+from uabs_rl.evaluation.baselines import BASELINES, MPC, PLANNER
 from uabs_rl.evaluation.stats import paired_over_seeds, spread_name, spread_over_seeds
 from uabs_rl.paths import OutputFolder, OutputInterrupted, check_path
 from uabs_rl.safety.masking import PAPER_ORDER, masks_collisions, mode_phrase
@@ -201,8 +201,15 @@ def fig4(grouping: Grouping, baselines: dict[str, dict[str, dict]], path: Path,
     validation evaluation) beside the baselines under the same masks
     (``baselines[panel][name]``; :func:`uabs_rl.evaluation.plots.pg_panels_figure`), as PNG
     and PDF."""
-    from uabs_rl.evaluation.plots import SeedCurve, pg_panels_figure, save_paper_figure
+    from uabs_rl.evaluation.plots import (
+        BASELINE_STYLES,
+        SeedCurve,
+        pg_panels_figure,
+        save_paper_figure,
+    )
 
+    # uabs-report --mpc: the deployable planner, a grey solid line with its own marker
+    BASELINE_STYLES.setdefault(MPC, {"color": "0.35", "ls": "-", "marker": "D"})
     colors = group_colors(grouping)
     panels, titles = {}, {}
     for key, labels in grouping.panels().items():
@@ -239,23 +246,32 @@ def curves_figure(grouping: Grouping, path: Path) -> list[Path]:
 
 # ----------------------------------------------------------------------------- baselines
 def evaluate_on_test(runs: list[Run], planner_runs: frozenset[Path] = frozenset(),
-                     horizon: int = 1) -> dict[Path, dict[str, dict]]:
+                     horizon: int = 1, mpc: int | None = None,
+                     mpc_runs: frozenset[Path] = frozenset()) -> dict[Path, dict[str, dict]]:
     """Each run's ``best.pt`` (chosen on validation) and the random, greedy and oracle
     baselines with the run's masks, on every window of the test traces; for the runs in
-    ``planner_runs`` also the receding-horizon planner of ``horizon`` (its cost per
-    window said on stderr)."""
+    ``planner_runs`` also the receding-horizon planner of ``horizon``, for those in
+    ``mpc_runs`` the deployable mpc of horizon ``mpc`` (constant velocity; their cost
+    per decision said on stderr)."""
     from uabs_rl.cli.evaluate import POLICIES, evaluate_policies, load_evaluation
 
     out = {}
     for run in runs:
         ev = load_evaluation(run.path, "best", split="test")
-        policies = (*POLICIES, PLANNER) if run.path in planner_runs else POLICIES
+        policies = ((*POLICIES, *([PLANNER] if run.path in planner_runs else []),
+                     *([MPC] if mpc is not None and run.path in mpc_runs else [])))
         out[run.path] = {k: rec for k, (rec, _) in
-                         evaluate_policies(ev, policies, horizon=horizon).items()}
+                         evaluate_policies(ev, policies, horizon=horizon,
+                                           mpc_horizon=mpc or 1).items()}
         if PLANNER in out[run.path]:
             rec = out[run.path][PLANNER]
             print(f"planner H={horizon} on {run.path}: {rec['seconds'] / rec['windows']:.2f} "
                   f"s per window ({rec['windows']} windows)", file=sys.stderr)
+        if MPC in out[run.path]:
+            rec = out[run.path][MPC]
+            print(f"mpc H={mpc} (constant velocity) on {run.path}: "
+                  f"{rec['ms_per_decision']:.1f} ms per decision ({rec['windows']} windows)",
+                  file=sys.stderr)
     return out
 
 
@@ -278,7 +294,7 @@ def baselines_by_panel(grouping: Grouping,
     out = {}
     for key, labels in grouping.panels().items():
         rec = tests[_panel_run(grouping, labels).path]
-        out[key] = {name: rec[name] for name in (*BASELINES, PLANNER) if name in rec}
+        out[key] = {name: rec[name] for name in (*BASELINES, MPC, PLANNER) if name in rec}
     return out
 
 
@@ -330,8 +346,11 @@ def learned_vs_baselines(grouping: Grouping, tests: dict[Path, dict]) -> list[di
     for group, runs in order:
         per_seed = [tests[run.path] for run in runs]
         planner = planners[panel_of[group]].get(PLANNER)
+        mpc = planners[panel_of[group]].get(MPC)  # deterministic: the same for every seed
+        bases = (*POLICIES[1:], *([MPC] if mpc is not None else []))
+        per_seed = [{**r, MPC: mpc} for r in per_seed] if mpc is not None else per_seed
         for metric, k in METRICS.items():
-            for base in POLICIES[1:]:
+            for base in bases:
                 d = paired_over_seeds([r["learned"][k] for r in per_seed],
                                       [r[base][k] for r in per_seed])
                 rows.append({
@@ -654,12 +673,12 @@ def _write_baselines(path: Path, baselines: dict[str, dict]) -> None:
 
 def build_report(roots: Path | list[Path], out: Path, with_baselines: bool = True,
                  command: str = "", planner: int | None = None,
-                 runs: list[Run] | None = None, export: str | None = None
-                 ) -> dict[str, Any]:
+                 runs: list[Run] | None = None, export: str | None = None,
+                 mpc: int | None = None) -> dict[str, Any]:
     """Every file of the report of the runs under ``roots`` (``runs``: those already
     found there), written to ``out`` (``planner``: the planner's horizon, to place the
-    learned runs between greedy and it; ``export="marl-eval"``: also
-    ``marl_eval.json``)."""
+    learned runs between greedy and it; ``mpc``: the deployable mpc's horizon, beside
+    greedy and the oracle; ``export="marl-eval"``: also ``marl_eval.json``)."""
     roots = [roots] if isinstance(roots, str | Path) else list(roots)
     grouping = group_runs(find_runs(*roots) if runs is None else runs)
     groups = grouping.groups
@@ -671,7 +690,8 @@ def build_report(roots: Path | list[Path], out: Path, with_baselines: bool = Tru
     curves_figure(grouping, out / "curves")
     tests = evaluate_on_test([r for runs in groups.values() for r in runs],
                              panel_runs(grouping) if planner is not None else frozenset(),
-                             planner or 1) if with_baselines else {}
+                             planner or 1, mpc, panel_runs(grouping) if mpc is not None
+                             else frozenset()) if with_baselines else {}
     baselines = baselines_on_test(grouping, tests) if tests else {}
     if baselines:
         _write_baselines(out / "baselines.csv", baselines)
@@ -745,6 +765,11 @@ def main(argv: list[str] | None = None) -> int:
                          "vehicles' future positions: an upper reference) and give each "
                          "group's share of the greedy-to-planner gap; about 1 s per test "
                          "window and masking mode at H = 10")
+    ap.add_argument("--mpc", type=int, metavar="H",
+                    help="also run the deployable receding-horizon planner of horizon H "
+                         "(mpc: the vehicles' current and previous positions extrapolated "
+                         "at constant velocity) beside greedy and the oracle, in the "
+                         "baseline tables and Fig. 4")
     ap.add_argument("--export", choices=("marl-eval",),
                     help="also write the runs in marl-eval's JSON layout (marl_eval.json: "
                          "per run, per evaluation, per metric; best.pt's test windows as "
@@ -755,6 +780,8 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.planner is not None and (args.planner < 1 or not args.baselines):
         ap.error("--planner H needs H >= 1 and the test-trace evaluation (no --no-baselines)")
+    if args.mpc is not None and (args.mpc < 1 or not args.baselines):
+        ap.error("--mpc H needs H >= 1 and the test-trace evaluation (no --no-baselines)")
     cmd = "uabs-report " + " ".join(sys.argv[1:] if argv is None else argv)
     try:
         for root in args.roots:
@@ -767,7 +794,7 @@ def main(argv: list[str] | None = None) -> int:
                 curves_figure(group_runs(runs), folder / "curves")
             else:
                 res = build_report(args.roots, folder, args.baselines, cmd, args.planner,
-                                   runs=runs, export=args.export)
+                                   runs=runs, export=args.export, mpc=args.mpc)
                 text = (folder / "summary.md").read_text()
     except (ReportError, ConfigError, CheckpointError) as e:
         print(f"error: {e}", file=sys.stderr)

@@ -11,8 +11,11 @@ action, so baselines obey exactly the masks the learned policy obeys.
   no deployable policy can see.
 * the coverage bound min(1, M·B·π·r_b² / (W·H)) is :func:`uabs_rl.env.channel.coverage_bound`.
 
-Beyond these (:mod:`uabs_rl.evaluation.planner`): the ``kmeans`` and ``junctions`` heuristics and
-the ``planner``, a receding-horizon plan over the vehicles' true future positions.
+Beyond these (:mod:`uabs_rl.evaluation.planner`): the ``kmeans`` and ``junctions`` heuristics,
+the ``planner``, a receding-horizon plan over the vehicles' true future positions (the
+clairvoyant ceiling), and ``mpc``, the same plan over the positions a predictor of
+:mod:`uabs_rl.evaluation.predict` gives from the present and the past only (constant
+velocity by default): a deployable policy.
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ from uabs_rl.safety.masking import ACTION_VALUE, MaskedActionSelector
 BASELINES = ("random", "greedy", "oracle")
 HEURISTICS = ("kmeans", "junctions")  # classic heuristics (uabs_rl.evaluation.planner)
 PLANNER = "planner"  # the receding-horizon planning reference (uabs_rl.evaluation.planner)
+MPC = "mpc"  # the same planner fed by a predictor (uabs_rl.evaluation.predict): deployable
 
 
 class CoverageScore(TensorDictModuleBase):
@@ -52,13 +56,17 @@ class CoverageScore(TensorDictModuleBase):
 
 def baseline_policy(name: str, env: TransformedEnv, selector: MaskedActionSelector,
                     seed: int = 0, horizon: int = 1,
-                    sites: torch.Tensor | None = None) -> TensorDictModuleBase:
-    """The baseline ``name`` (one of BASELINES, HEURISTICS or PLANNER) as a policy for
-    ``env`` (a transformed UABS env). ``horizon``: the planner's; ``sites [M, 2]``: the
-    junctions heuristic's sites (:func:`uabs_rl.evaluation.planner.junction_sites`)."""
+                    sites: torch.Tensor | None = None,
+                    predictor=None) -> TensorDictModuleBase:
+    """The baseline ``name`` (one of BASELINES, HEURISTICS, PLANNER or MPC) as a policy
+    for ``env`` (a transformed UABS env). ``horizon``: the planner's and the mpc's;
+    ``sites [M, 2]``: the junctions heuristic's sites
+    (:func:`uabs_rl.evaluation.planner.junction_sites`); ``predictor``: the mpc's
+    (:mod:`uabs_rl.evaluation.predict`, default constant velocity seeing every vehicle)."""
     from uabs_rl.evaluation.planner import ClusterScore, PlannerScore, SiteScore
+    from uabs_rl.evaluation.predict import ConstantVelocity
 
-    names = (*BASELINES, *HEURISTICS, PLANNER)
+    names = (*BASELINES, *HEURISTICS, PLANNER, MPC)
     if name not in names:
         raise ValueError(f"unknown baseline {name!r}: choose from {names}")
     if name == "junctions" and sites is None:
@@ -72,6 +80,9 @@ def baseline_policy(name: str, env: TransformedEnv, selector: MaskedActionSelect
     base = env.base_env
     if name == PLANNER:
         score = PlannerScore(base, horizon, gen)
+    elif name == MPC:
+        score = PlannerScore(base, horizon, gen,
+                             predictor=predictor if predictor is not None else ConstantVelocity())
     elif name == "kmeans":
         score = ClusterScore(base, gen)
     elif name == "junctions":

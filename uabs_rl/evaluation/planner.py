@@ -5,8 +5,11 @@ and the masking mode's :class:`~uabs_rl.safety.masking.MaskedActionSelector` (ε
 best legal action, so every one of them obeys the masks the learned policy obeys.
 
 * :class:`PlannerScore` (``uabs-eval --policy planner --horizon H``): a centralised
-  receding-horizon planner that knows the vehicles' true future positions: an upper
-  reference, not a deployable policy. See its docstring.
+  receding-horizon planner over the vehicles' true future positions: the clairvoyant
+  ceiling. See its docstring. Fed by a predictor of :mod:`uabs_rl.evaluation.predict`
+  instead of the true future (``uabs-eval --policy mpc --predictor cv``: constant
+  velocity from the vehicles' current and previous positions) the same search is a
+  deployable model-predictive controller.
 * :class:`ClusterScore` (``kmeans``): each UABS flies towards the weighted centroid of
   its cluster of a k-means of the vehicles' current positions, weighted by priority.
 * :class:`SiteScore` (``junctions``): each UABS flies to one of the M busiest junctions
@@ -24,6 +27,7 @@ from tensordict.nn import TensorDictModuleBase
 from uabs_rl.env.channel import assign_beams
 from uabs_rl.env.service import move_scores
 from uabs_rl.env.uabs_env import BEAM_PRIORITY, MASK, POSITION, UABSEnv
+from uabs_rl.evaluation.predict import Predictor, TrueFuture
 from uabs_rl.safety.masking import ACTION_VALUE, rank_order
 
 JITTER = 1e-3  # the baselines' seeded tie-break, scaled as in baselines.CoverageScore
@@ -61,7 +65,9 @@ def next_priority(p: torch.Tensor, served: torch.Tensor, present: torch.Tensor,
 
 
 class PlannerScore(TensorDictModuleBase):
-    """Receding-horizon planner over the vehicles' true positions ``horizon`` steps ahead.
+    """Receding-horizon planner over the vehicles' positions ``horizon`` steps ahead, as
+    ``predictor`` gives them (:mod:`uabs_rl.evaluation.predict`; default: the true future,
+    the clairvoyant planner; a constant-velocity predictor makes it the deployable mpc).
 
     The score of move a of UABS u is the oracle's (the priority under u's footprints
     after a, at the vehicles' next positions and current priorities) plus the best
@@ -81,51 +87,50 @@ class PlannerScore(TensorDictModuleBase):
 
     Only the first move is flown, through the masked selector; the plan is made again at
     the next step. With ``horizon = 1`` the scores are the oracle's, bit for bit, and
-    the seeded tie-break draws the same numbers, so the actions are the oracle's.
+    the seeded tie-break draws the same numbers, so the actions are the oracle's (with
+    the true future; with a predictor, those of greedy on the predicted next positions).
     """
 
     def __init__(self, env: UABSEnv, horizon: int, generator: torch.Generator,
-                 beam: int = 16, rounds: int = 2):
+                 beam: int = 16, rounds: int = 2, predictor: Predictor | None = None):
         super().__init__()
         if horizon < 1:
             raise ValueError(f"horizon must be >= 1, got {horizon}")
         self.env, self.horizon, self.generator = env, horizon, generator
         self.beam, self.rounds = beam, rounds
+        self.predictor = predictor if predictor is not None else TrueFuture()
         self.in_keys, self.out_keys = [POSITION, MASK, BEAM_PRIORITY], [ACTION_VALUE]
 
     def forward(self, td: TensorDictBase) -> TensorDictBase:
         env, p = self.env, self.env.params
-        veh, present = env.vehicles(1)
+        w = self.world()
         cand = td.get(POSITION)[:, :, None, :] + env.math.moves  # [E, M, 4, 2]
-        score = move_scores(cand, veh, present, env.priority, p.r_b, p.n_beams)
+        score = move_scores(cand, w["veh"][0], w["present"][1], env.priority, p.r_b,
+                            p.n_beams)
         if self.horizon > 1:
-            score = score + self.future(td)
+            score = score + self.future(td, w)
         jitter = torch.rand(score.shape, generator=self.generator, device=score.device)
         td.set(ACTION_VALUE, score + JITTER * jitter)
         return td
 
     # ------------------------------------------------------------------ the plan
     def world(self) -> dict[str, torch.Tensor]:
-        """The vehicles at steps t+1..t+H: positions ``veh [H, E, 2, V]``, presence
-        ``present [H+1, E, V]`` (index 0: now), window starts ``start [H, E]`` and
-        whether the step is still in the episode, ``live [H, E]``."""
-        env, h = self.env, self.horizon
-        ahead = [env.vehicles(k) for k in range(1, h + 1)]
-        t = env.state["t"]
-        k = torch.arange(1, h + 1, device=t.device)[:, None] + t  # [H, E]
-        return {"veh": torch.stack([v for v, _ in ahead]),
-                "present": torch.stack([env.state["prev_present"], *(q for _, q in ahead)]),
-                "start": k % env.params.window_steps == 0,
-                "live": k <= env.params.episode_steps}
+        """The vehicles at steps t+1..t+H as the predictor gives them: positions
+        ``veh [H, E, 2, V]``, presence ``present [H+1, E, V]`` (index 0: now), window
+        starts ``start [H, E]`` and whether the step is still in the episode,
+        ``live [H, E]``."""
+        return self.predictor(self.env, self.horizon)
 
     @torch.no_grad()
-    def future(self, td: TensorDictBase) -> torch.Tensor:
-        """[E, M, 4] the best value of steps 2..H after each first move of each UABS."""
+    def future(self, td: TensorDictBase, w: dict[str, torch.Tensor] | None = None
+               ) -> torch.Tensor:
+        """[E, M, 4] the best value of steps 2..H after each first move of each UABS
+        (over the world ``w``, default :meth:`world`)."""
         p = self.env.params
         pos, allowed = td.get(POSITION), td.get(MASK)
         e, m = pos.shape[:2]
         rows = torch.arange(e, device=pos.device)
-        w = self.world()
+        w = self.world() if w is None else w
         order = rank_order(td.get(BEAM_PRIORITY))  # [E, M]
         plan = pos[:, :, None, :].expand(e, m, self.horizon, 2).clone()  # [E, M, H, 2]
         cover = torch.zeros(e, m, self.horizon, w["veh"].shape[-1], dtype=torch.bool,
