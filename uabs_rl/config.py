@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass, field, fields, is_dataclass
+from dataclasses import dataclass, field, fields, is_dataclass, replace
 from enum import StrEnum
 from pathlib import Path
 from typing import Any
@@ -119,12 +119,18 @@ class SumoConfig:
 
 @dataclass
 class SplitConfig:
-    """One set of traces: simulations with seeds first_seed .. first_seed + n_sims - 1."""
+    """One set of traces: simulations with seeds first_seed .. first_seed + n_sims - 1,
+    each recording simulated seconds warmup_s + begin_s .. warmup_s + begin_s + duration_s."""
 
     first_seed: int = 0
     n_sims: int = 8
     duration_s: float = 3600.0  # recorded seconds per simulation (after warm-up)
     warmup_s: float = 60.0  # simulated seconds skipped before recording
+    # start of the recorded time range, in seconds after the warm-up. null: 0 for a
+    # fleet scenario; for a fixed-demand scenario (route files or a .sumocfg: the same
+    # vehicles depart at the same times under every seed) the splits follow one another
+    # in time, train first, then eval, then test (:func:`split_begin`)
+    begin_s: float | None = None
 
 
 # trace splits: training, validation ("eval": periodic evaluation and checkpoint
@@ -670,6 +676,7 @@ def validate_scenario_traces(scenario: ScenarioConfig, traces: TracesConfig) -> 
     for name in TRACE_SPLITS:
         _validate_split(name, getattr(traces, name), scenario, host)
     _check_disjoint_seeds(traces)
+    _check_disjoint_times(scenario, traces)
     if traces.workers < 0:
         raise ConfigError(f"traces.workers must be >= 0, got {traces.workers}.")
     check_ranges(traces, "traces.")
@@ -719,6 +726,70 @@ def _check_disjoint_seeds(traces: TracesConfig) -> None:
                     f"traces.{b}.first_seed={b0} makes the {b} SUMO seeds overlap the {a} "
                     f"seeds {a0}..{a1}: training, validation (eval) and test traces must "
                     f"come from disjoint seeds. Move traces.{b}.first_seed past them.")
+
+
+def fixed_demand(scenario: ScenarioConfig) -> bool:
+    """Whether the scenario's vehicles (some of them) come from route files or a
+    .sumocfg: a demand every SUMO seed replays, the same vehicles departing at the same
+    times, so only disjoint time ranges make its splits independent."""
+    return bool(scenario.sumo.route_files or scenario.sumo.sumocfg)
+
+
+def split_begin(scenario: ScenarioConfig, traces: TracesConfig, name: str) -> float:
+    """``traces.<name>.begin_s``, or where null: 0 for a fleet scenario, and for a
+    fixed-demand one the end of the previous split's recorded range (train, eval, test
+    in that order; train at 0), so the default splits are disjoint in time."""
+    split = getattr(traces, name)
+    if split.begin_s is not None:
+        return float(split.begin_s)
+    i = TRACE_SPLITS.index(name)
+    if not fixed_demand(scenario) or i == 0:
+        return 0.0
+    prev = TRACE_SPLITS[i - 1]
+    _, end = split_time_range(scenario, traces, prev)
+    return max(0.0, end - split.warmup_s)
+
+
+def split_time_range(scenario: ScenarioConfig, traces: TracesConfig,
+                     name: str) -> tuple[float, float]:
+    """The simulated seconds the split records: [warmup_s + begin, + duration_s)."""
+    split = getattr(traces, name)
+    start = split.warmup_s + split_begin(scenario, traces, name)
+    return start, start + split.duration_s
+
+
+def resolved_split(scenario: ScenarioConfig, traces: TracesConfig, name: str) -> SplitConfig:
+    """``traces.<name>`` with ``begin_s`` set to :func:`split_begin`."""
+    return replace(getattr(traces, name), begin_s=split_begin(scenario, traces, name))
+
+
+def _check_disjoint_times(scenario: ScenarioConfig, traces: TracesConfig) -> None:
+    """A fixed demand's training, validation and test traces record disjoint time
+    ranges: under every seed they would otherwise hold the same vehicles at the same
+    times. The refusal names a begin_s that was set (the later split's if both were)."""
+    if not fixed_demand(scenario):
+        return
+    ranges = {n: split_time_range(scenario, traces, n) for n in TRACE_SPLITS}
+    source = ("scenario.sumo.sumocfg" if scenario.sumo.sumocfg
+              else "scenario.sumo.route_files")
+    for i, a in enumerate(TRACE_SPLITS):
+        for b in TRACE_SPLITS[i + 1:]:
+            (a0, a1), (b0, b1) = ranges[a], ranges[b]
+            if not (a0 < b1 and b0 < a1):
+                continue
+            moved, other = ((b, a) if getattr(traces, b).begin_s is not None
+                            or getattr(traces, a).begin_s is None else (a, b))
+            (m0, m1), (o0, o1) = ranges[moved], ranges[other]
+            begin = split_begin(scenario, traces, moved)
+            raise ConfigError(
+                f"traces.{moved}.begin_s={begin:g} makes the {moved} time range "
+                f"{m0:g}..{m1:g} s (warm-up {getattr(traces, moved).warmup_s:g} s "
+                f"included) overlap the {other} range {o0:g}..{o1:g} s: the vehicles of "
+                f"{source} depart at the same times under every SUMO seed, so training, "
+                f"validation (eval) and test traces must come from disjoint time ranges. "
+                f"Move traces.{moved}.begin_s past the {other} range (begin_s >= "
+                f"{max(0.0, o1 - getattr(traces, moved).warmup_s):g}), or leave the begin_s "
+                f"settings null (the splits then follow one another).")
 
 
 def _check_known_keys(obj: Any, node: Any, prefix: str) -> None:
@@ -901,7 +972,8 @@ RANGES.update({
     SumoConfig: {"fleet_size": _r(0, 100_000, "vehicles")},
     SplitConfig: {"first_seed": Range(0, SUMO_SEED_MAX, text=("0", "2^31 - 1")),
                   "n_sims": _r(1, 100_000),
-                  "duration_s": _pos(1e7, "s"), "warmup_s": _r(0, 1e7, "s")},
+                  "duration_s": _pos(1e7, "s"), "warmup_s": _r(0, 1e7, "s"),
+                  "begin_s": _r(0, 1e7, "s")},
     TracesConfig: {"workers": _r(0, 1024)},
     ScenarioConfig: {
         "dt": _r(0.001, 3600, "s"), "n_uabs": _r(1, 1000), "altitude": _pos(10_000, "m"),

@@ -121,7 +121,7 @@ class Geometry:
         return d.flatten(1).amin(-1)
 
 
-PACKING_BUDGET = 500_000_000  # restarts x lattice points², about 2 s of CPU
+PACKING_BUDGET = 500_000_000  # restarts x lattice points², about 2 s of CPU (dense)
 
 
 @lru_cache(maxsize=32)
@@ -139,19 +139,41 @@ def lattice_packing(p: EnvParams, spacing: float, restarts: int = 2000) -> torch
     xy = geo.lattice_point(pts[:, 0], pts[:, 1])
     p_n = xy.shape[0]
     restarts = min(restarts, max(8, PACKING_BUDGET // (p_n * p_n)))
-    close = torch.cdist(xy.double(), xy.double()) < spacing - 1e-9  # [P, P]
+    near = _close_points(xy, spacing)  # [P, K] each point's close points, P = padding
     gen = torch.Generator().manual_seed(0)
     order = torch.rand(restarts, p_n, generator=gen).argsort(-1)
     order[0] = torch.arange(p_n)
     rows = torch.arange(restarts)
-    taken = torch.zeros(restarts, p_n, dtype=torch.bool)
+    taken = torch.zeros(restarts, p_n + 1, dtype=torch.bool)  # + the padding column
     chosen = torch.zeros(restarts, p_n, dtype=torch.bool)
+    sparse = near.shape[1] * 8 < p_n  # a large area: mark the close points only
+    if not sparse:  # a small one: whole rows of the dense [P, P + 1] matrix are faster
+        close = torch.zeros(p_n, p_n + 1, dtype=torch.bool).scatter_(1, near, True)
     for j in range(p_n):
         idx = order[:, j]
         free = ~taken[rows, idx]
         chosen[rows, idx] = free
-        taken |= close[idx] & free[:, None]
+        if sparse:
+            taken[rows[:, None], near[idx]] |= free[:, None]
+        else:
+            taken |= close[idx] & free[:, None]
     return xy[chosen[chosen.sum(-1).argmax()]]
+
+
+def _close_points(xy: torch.Tensor, spacing: float, chunk: int = 1024) -> torch.Tensor:
+    """[P, K] long: for each lattice point, the points closer than ``spacing`` (itself
+    included), padded with P; the pairs a dense [P, P] ``cdist < spacing`` would mark,
+    found a block of rows at a time (a city-size lattice's dense matrix is gigabytes)."""
+    pts = xy.double()
+    lists = []
+    for a in range(0, pts.shape[0], chunk):
+        close = torch.cdist(pts[a:a + chunk], pts) < spacing - 1e-9
+        lists += [row.nonzero().flatten() for row in close]
+    width = max(len(x) for x in lists)
+    near = torch.full((len(lists), width), pts.shape[0], dtype=torch.long)
+    for i, x in enumerate(lists):
+        near[i, :len(x)] = x
+    return near
 
 
 def path_distance(r0: torch.Tensor, dr: torch.Tensor) -> torch.Tensor:

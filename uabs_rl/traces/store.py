@@ -56,6 +56,7 @@ from uabs_rl.config import (
     TracesConfig,
     family_scenarios,
     resolve_path,
+    resolved_split,
     validate_scenario_traces,
 )
 from uabs_rl.paths import check_path, inside, pid_alive, safe_component
@@ -222,7 +223,8 @@ def split_key(scenario: ScenarioConfig, split_cfg: SplitConfig,
                         ("scenario.area.y_min", a.y_min), ("scenario.area.width", a.width),
                         ("scenario.area.height", a.height),
                         (f"traces.{split}.duration_s", split_cfg.duration_s),
-                        (f"traces.{split}.warmup_s", split_cfg.warmup_s)]:
+                        (f"traces.{split}.warmup_s", split_cfg.warmup_s),
+                        (f"traces.{split}.begin_s", _begin(split_cfg))]:
         if not math.isfinite(value):  # never a key (or a simulation) of nan / inf
             raise ConfigError(f"{name} must be a finite number, got {value}.")
     files = scenario_inputs(scenario)
@@ -242,7 +244,38 @@ def split_key(scenario: ScenarioConfig, split_cfg: SplitConfig,
         "duration_s": split_cfg.duration_s,
         "warmup_s": split_cfg.warmup_s,
     }
+    if _begin(split_cfg):  # keyed only when set: recordings from the warm-up on keep their keys
+        desc["begin_s"] = _begin(split_cfg)
+    if files["sumocfg"]:  # what the .sumocfg names: editing a route file is a new key
+        cfg_dir = files["sumocfg"].parent  # names relative to it: no checkout path
+        desc["sumocfg_inputs_sha256"] = {os.path.relpath(p, cfg_dir): _sha256_file(p) for p
+                                         in sumocfg_inputs(files["sumocfg"])}
     return f"{scenario.name}-{split}-{_digest(desc)}", desc
+
+
+def _begin(split_cfg: SplitConfig) -> float:
+    """The split's ``begin_s`` (null read as 0: callers pass :func:`resolved_split`)."""
+    return float(split_cfg.begin_s or 0.0)
+
+
+def sumocfg_inputs(sumocfg: Path) -> list[Path]:
+    """The existing files a .sumocfg's ``<input>`` section names (network, routes,
+    additional files), relative to the .sumocfg's folder as SUMO reads them, in the
+    order given; [] when the file is no XML this can read (SUMO says why when it runs)."""
+    import xml.etree.ElementTree as ET
+
+    try:
+        root = ET.parse(sumocfg).getroot()
+    except (ET.ParseError, OSError):
+        return []
+    found: list[Path] = []
+    for option in ("net-file", "route-files", "additional-files"):
+        for el in root.iter(option):
+            for name in re.split(r"[,\s]+", el.get("value", "").strip()):
+                p = Path(name) if Path(name).is_absolute() else sumocfg.parent / name
+                if name and p.is_file() and p not in found:
+                    found.append(p)
+    return found
 
 
 def _digest(desc: dict[str, Any]) -> str:
@@ -371,7 +404,7 @@ def _requests(scenario: ScenarioConfig, split_cfg: SplitConfig) -> list[SimReque
         sumocfg=str(files["sumocfg"]) if files["sumocfg"] else None,
         fleet_size=int(scenario.sumo.fleet_size),
         dt=dt,
-        warmup_steps=int(round(split_cfg.warmup_s / dt)),
+        warmup_steps=int(round((split_cfg.warmup_s + _begin(split_cfg)) / dt)),
         steps=int(round(split_cfg.duration_s / dt)),
         origin=(float(scenario.area.x_min), float(scenario.area.y_min)),
         extra_args=list(scenario.sumo.extra_args),
@@ -564,12 +597,16 @@ def check_has_vehicles(ts: TraceSet, scenario: ScenarioConfig, split: str) -> No
             f"the {split} traces hold no vehicle inside scenario.area (x {a.x_min}.."
             f"{a.x_min + a.width}, y {a.y_min}..{a.y_min + a.height}): the vehicles of "
             f"{source} drive elsewhere. Set scenario.area to the rectangle they drive in.")
+    begin = ts.meta.get("begin_s")
+    when = (f"{ts.meta.get('warmup_s')} + {ts.meta.get('duration_s')} s simulated" if not begin
+            else f"{ts.meta.get('duration_s')} s recorded from {ts.meta.get('warmup_s')} + "
+                 f"{begin} s on")
+    within = "warmup_s + duration_s" if not begin else "warmup_s + begin_s + duration_s"
     raise ConfigError(
         f"the {split} traces hold no vehicle: scenario.sumo.fleet_size is "
-        f"{sumo.fleet_size} and {source} put none on the roads in the "
-        f"{ts.meta.get('warmup_s')} + {ts.meta.get('duration_s')} s simulated. Set "
+        f"{sumo.fleet_size} and {source} put none on the roads in the {when}. Set "
         f"scenario.sumo.fleet_size >= 1 or give routes whose vehicles depart within "
-        f"traces.{split}.warmup_s + duration_s.")
+        f"traces.{split}.{within}.")
 
 
 def cache_dir(traces_cfg: TracesConfig) -> Path:
@@ -586,7 +623,7 @@ def cache_path(scenario: ScenarioConfig, traces_cfg: TracesConfig, split: str,
     The name must be a plain file name (``name_setting`` names it in the refusal) and
     the file lies inside the cache folder, whatever the name."""
     safe_component(scenario.name, name_setting)
-    key, _ = split_key(scenario, getattr(traces_cfg, split), split)
+    key, _ = split_key(scenario, resolved_split(scenario, traces_cfg, split), split)
     d = cache_dir(traces_cfg)
     return inside(d / f"{key}.pt", d, name_setting)
 
@@ -654,7 +691,8 @@ def get_traces(scenario: ScenarioConfig, traces_cfg: TracesConfig, split: str,
         raise ConfigError(f"split must be one of {SPLITS}, got {split!r}.")
     safe_component(scenario.name, name_setting)  # it names the cache file
     validate_scenario_traces(scenario, traces_cfg)
-    key, desc = split_key(scenario, getattr(traces_cfg, split), split)
+    split_cfg = resolved_split(scenario, traces_cfg, split)
+    key, desc = split_key(scenario, split_cfg, split)
     d = cache_dir(traces_cfg)
     path = inside(d / f"{key}.pt", d, name_setting)
     ts = _load_cached(path, key, desc)
@@ -666,7 +704,7 @@ def get_traces(scenario: ScenarioConfig, traces_cfg: TracesConfig, split: str,
     check_cache_dir(traces_cfg)
     try:
         with _sigterm_interrupts():
-            ts = build_split(scenario, getattr(traces_cfg, split), split, traces_cfg.workers)
+            ts = build_split(scenario, split_cfg, split, traces_cfg.workers)
             save_traceset(ts, path)
     except TracesInterrupted:
         raise
