@@ -252,3 +252,18 @@ def test_uabs_report_mpc_sits_beside_greedy_and_the_oracle(smoke_run, tmp_path):
     # without --mpc nothing of it
     plain = build_report(smoke_run, tmp_path / "plain")
     assert list(plain["baselines"]) == [f"{b} ({mode} masks)" for b in names[:3]]
+
+
+@pytest.mark.parametrize("module, args, says", [
+    ("evaluate", ["RUN", "--policy", "mpc", "--mpc-horizon", "0"], "--mpc-horizon must be >= 1"),
+    ("report", ["DIR", "--mpc", "0"], "--mpc H needs H >= 1"),
+    ("report", ["DIR", "--mpc", "5", "--no-baselines"], "--mpc H needs H >= 1")])
+def test_mpc_option_errors_are_one_line(module, args, says, capsys):
+    import importlib
+
+    main = importlib.import_module(f"uabs_rl.cli.{module}").main
+    with pytest.raises(SystemExit) as e:
+        main(args)
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and says in err[0]
