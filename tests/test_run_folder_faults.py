@@ -9,12 +9,14 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from tests.test_faults import QUIET, error_lines, uabs_train, wait_for
@@ -101,11 +103,12 @@ def test_before_tells_made_from_found(tmp_path):
 def test_a_refused_command_leaves_a_finished_runs_record_and_history(finished_run, tmp_path):
     run_dir, args = finished_run
     run_dir = copy_of(run_dir, tmp_path)
-    before = tree(run_dir, skip=(".lock",))
+    (run_dir / ".lock").write_text("the last holder's record\n")
+    before = tree(run_dir)
     err = one_error(uabs_train(tmp_path, *args, "train.episodes=4", "algo.lr=0.5",
                                f"hydra.run.dir={run_dir}"))
     assert "already holds a run" in err
-    assert tree(run_dir, skip=(".lock",)) == before  # .hydra/ included
+    assert tree(run_dir) == before  # .hydra/ and .lock included
     # so the run's own command, re-typed with resume= appended, still continues it
     p = uabs_train(tmp_path, *args, "train.episodes=6", f"resume={run_dir}")
     _, err = p.communicate(timeout=300)
@@ -367,3 +370,101 @@ def test_a_members_checkpoint_is_checked_against_its_population(trace_cache, tmp
     capsys.readouterr()
     assert report_main([str(pop), "--no-baselines", "--out", str(tmp_path / "r2")]) == 2
     assert "belongs to another run" in capsys.readouterr().err
+
+
+def test_hydra_settings_the_project_owns_are_refused(finished_run, tmp_path):
+    """hydra.output_subdir=.hydra would let Hydra rewrite a finished run's record before
+    the refusal; hydra.job.name=../x would put the log outside the run folder."""
+    run_dir, args = finished_run
+    run_dir = copy_of(run_dir, tmp_path)
+    before = tree(run_dir)
+    err = one_error(uabs_train(tmp_path, *args, "train.episodes=4", "algo.lr=0.5",
+                               "hydra.output_subdir=.hydra", f"hydra.run.dir={run_dir}"))
+    assert "hydra.output_subdir is set by uabs_rl itself" in err
+    assert tree(run_dir) == before
+    from uabs_rl.cli.hydra import check_command_line
+    from uabs_rl.config import ConfigError
+
+    for words, says in [(["hydra.job.name=../../ESC"], "hydra.job.name is set"),
+                        (["hydra/job_logging=none"], "is set by uabs_rl"),
+                        (["scenario=../algo/dqn3"], "scenario='../algo/dqn3' cannot name"),
+                        (["-m", "scenario=city,../x"], "scenario='../x' cannot name"),
+                        (["seed=["], "does not parse"),
+                        (["train={episodes:2}", "train.episodes=1"], "given twice"),
+                        (["scenario.area={width:360}", "scenario.area.width=400"],
+                         "given twice")]:
+        with pytest.raises(ConfigError, match=re.escape(says)):
+            check_command_line(words)
+    check_command_line(["scenario=city", "scenario.n_uabs=5", "masking=flat",
+                        "masking.flat_margin=10"])  # a group, then its settings
+
+
+def test_folders_a_run_must_not_take_are_refused_before_hydra(finished_run, tmp_path):
+    from uabs_rl.cli.train import _check_paths
+    from uabs_rl.config import ConfigError
+
+    run_dir, _ = finished_run
+    for argv, says in [(["hydra.run.dir="], "names no folder"),
+                       (["-m", "hydra.sweep.dir="], "names no folder"),
+                       ([f"hydra.run.dir={run_dir / 'eval'}"], "holds a run"),
+                       ([f"resume={run_dir}", f"hydra.run.dir={tmp_path}"], "drop hydra.run.dir")]:
+        with pytest.raises(ConfigError, match=says):
+            _check_paths(argv)
+    _check_paths([f"resume={run_dir}", f"hydra.run.dir={run_dir}"])  # the same: its own
+    refused = tmp_path / "sweep"  # a sweep refused before its first job left this only
+    refused.mkdir()
+    (refused / "multirun.yaml").write_text("a refused sweep\n")
+    _check_paths(["-m", f"hydra.sweep.dir={refused}"])
+
+
+def test_resume_refuses_a_run_whose_checkpoints_and_metrics_were_removed(finished_run,
+                                                                         tmp_path):
+    run_dir, args = finished_run
+    run_dir = copy_of(run_dir, tmp_path)
+    shutil.rmtree(run_dir / "checkpoints")
+    (run_dir / "metrics.jsonl").unlink()
+    before = tree(run_dir)
+    err = one_error(uabs_train(tmp_path, *args, "train.episodes=4", f"resume={run_dir}"))
+    assert "evaluation pictures in eval/" in err
+    assert tree(run_dir) == before
+
+
+def test_checkpoints_removed_while_the_run_writes_them_stop_the_run(trace_cache, tmp_path,
+                                                                    monkeypatch):
+    from uabs_rl.training.experiment import Experiment
+
+    evaluate, calls = Experiment.evaluate, []
+
+    def evaluate_then_remove(self):
+        out = evaluate(self)
+        calls.append(1)
+        if len(calls) == 1:
+            shutil.rmtree(self.run_dir / "checkpoints")
+        return out
+
+    monkeypatch.setattr(Experiment, "evaluate", evaluate_then_remove)
+    with pytest.raises(RunFolderError, match="best.pt was removed while the run wrote it"):
+        run(smoke(trace_cache, *QUIET, "train.episodes=6", "train.eval_every=2"),
+            tmp_path / "run")
+    assert not (tmp_path / "run" / "checkpoints").exists()  # not half made again
+
+
+def test_a_path_the_file_system_refuses_is_one_line_and_leaves_nothing(trace_cache, tmp_path):
+    run_dir = tmp_path / "run"
+    err = one_error(uabs_train(tmp_path, "experiment=smoke", f"traces.cache_dir={trace_cache}",
+                               f"hydra.run.dir={run_dir}",
+                               f"scenario.sumo.net_file={tmp_path / ('y' * 300) / 'x.net.xml'}"))
+    assert "File name too long" in err
+    assert not run_dir.exists()
+
+
+def test_one_window_gives_no_interval_and_names_are_bounded_in_bytes():
+    from uabs_rl.config import ConfigError
+    from uabs_rl.evaluation.stats import paired_difference
+    from uabs_rl.paths import safe_component
+
+    d = paired_difference([3.0], [1.0])
+    assert d["diff"] == 2.0 and np.isnan(d["ci_low"]) and np.isnan(d["ci_high"])
+    assert d["method"] == "no interval: 1 window"
+    with pytest.raises(ConfigError, match="280 bytes"):
+        safe_component("\U0001F600" * 70, "scenario.name")

@@ -47,8 +47,9 @@ def safe_component(value: object, setting: str) -> str:
         why = f"it is {text!r}, a folder"
     elif _CONTROL.search(text):
         why = "it holds a control character"
-    elif len(text) > MAX_COMPONENT:
-        why = f"it is {len(text)} characters long (at most {MAX_COMPONENT})"
+    elif len(text) > MAX_COMPONENT or len(text.encode()) > 2 * MAX_COMPONENT:
+        why = (f"it is {len(text)} characters ({len(text.encode())} bytes) long (at most "
+               f"{MAX_COMPONENT} characters, {2 * MAX_COMPONENT} bytes)")
     if why is None:
         return text
     shown = text if len(text) <= 60 else text[:57] + "..."
@@ -180,6 +181,9 @@ class OutputFolder:
             if p.exists() and not p.is_dir():
                 what = "is a file" if p == self.path else f"cannot be made: {p} is a file"
                 raise ConfigError(f"{self._what()} {what}, not a folder: {self.fix}.")
+            if self.path.is_dir() and os.path.ismount(self.path):
+                raise ConfigError(f"{self._what()} is a mount point, which cannot be "
+                                  f"replaced whole: {self.fix} (a folder inside it).")
             if self.path.is_dir():
                 foreign = self.foreign(self.path)
                 if foreign:
@@ -265,9 +269,14 @@ class OutputFolder:
         main = threading.current_thread() is threading.main_thread()
 
         def terminate(signum, frame) -> None:
-            raise _Terminated
+            stop = _Terminated()
+            stop.exit_code = 128 + signum  # 143 after SIGTERM, 129 after SIGHUP
+            raise stop
 
         previous = signal.signal(signal.SIGTERM, terminate) if main else None
+        hangup = signal.getsignal(signal.SIGHUP) if main else None
+        if main and hangup is not signal.SIG_IGN:  # under nohup a hang-up stops nothing
+            signal.signal(signal.SIGHUP, terminate)
         made = [d for d in self.path.parents if not d.exists()]  # removed again on failure
         try:
             try:
@@ -290,7 +299,7 @@ class OutputFolder:
             self._undo(made)
             if isinstance(e, OutputInterrupted):
                 raise
-            code = 143 if isinstance(e, _Terminated) else 130
+            code = getattr(e, "exit_code", 143) if isinstance(e, _Terminated) else 130
             raise OutputInterrupted(f"interrupted: nothing was written to {self.path} (its "
                                     f"previous contents are kept)", code) from None
         except BaseException:
@@ -300,6 +309,7 @@ class OutputFolder:
             if main:
                 signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None
                               else previous)
+                signal.signal(signal.SIGHUP, signal.SIG_DFL if hangup is None else hangup)
 
     def _undo(self, made: list[Path]) -> None:
         """Remove the unfinished new folder, and the parents made for it (when empty)."""
@@ -315,8 +325,8 @@ class OutputFolder:
         renames are done (the command has finished by then); a failed second rename
         puts the old folder back."""
         main = threading.current_thread() is threading.main_thread()
-        held = {s: signal.signal(s, lambda *_: None) for s in (signal.SIGINT, signal.SIGTERM)
-                } if main else {}
+        held = {s: signal.signal(s, lambda *_: None) for s in (
+            signal.SIGINT, signal.SIGTERM, signal.SIGHUP)} if main else {}
         try:
             had_old = self.path.exists()
             if had_old:

@@ -11,13 +11,17 @@ from typing import Any
 from omegaconf import OmegaConf
 
 from uabs_rl.config import (
+    _FLAGS_WITH_VALUE,
+    _INFO_TOPICS,
     CONF_DIR,
     ConfigError,
     check_duplicate_overrides,
     check_moved_overrides,
+    override_key,
     register_configs,
     to_container,
 )
+from uabs_rl.paths import safe_component
 from uabs_rl.training.checkpoint import CheckpointError, Interrupted
 from uabs_rl.training.runfolder import Before
 
@@ -32,6 +36,64 @@ def start_folders(argv: list[str]) -> list[Path]:
         if key in ("hydra.run.dir", "hydra.sweep.dir", "resume") and value.strip("'\""):
             out.append(Path(value.strip("'\"").replace("\\'", "'")))
     return out
+
+
+# Hydra settings the project owns: where a run's record and log go (a run writes its
+# own .hydra/ record once its checks pass, and its log is <job name>.log in its folder)
+OWNED = ("hydra.output_subdir", "hydra.job.name", "hydra.job.chdir", "hydra.job_logging",
+         "hydra/job_logging", "hydra.hydra_logging", "hydra/hydra_logging", "hydra.runtime")
+
+
+def _overrides(argv: list[str]) -> list[str]:
+    """The overrides of a command line (its words that are not flags or flag values)."""
+    out, skip = [], False
+    for i, word in enumerate(argv):
+        if skip:
+            skip = False
+            continue
+        if word in _FLAGS_WITH_VALUE or (word == "--info" and i + 1 < len(argv)
+                                         and argv[i + 1] in _INFO_TOPICS):
+            skip = True
+            continue
+        if not word.startswith("-"):
+            out.append(word)
+    return out
+
+
+def check_command_line(argv: list[str]) -> None:
+    """Refuse, before Hydra reads them, overrides Hydra would fail on in several lines
+    (its grammar), a Hydra setting the project owns (``OWNED``), a config group option
+    that is a path (``scenario=../elsewhere/x`` would load any YAML file: an option is
+    a file name of the group's folder, or of ``--config-dir``'s), and a setting given
+    twice through a mapping (``train={episodes: 2} train.episodes=1``)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
+
+    words = _overrides(argv)
+    try:
+        OverridesParser.create().parse_overrides(overrides=words)
+    except HydraException as e:
+        first = (str(e).strip().splitlines() or [type(e).__name__])[0]
+        raise ConfigError(f"the command line does not parse: {first} (quote a value "
+                          f"holding brackets, braces, commas or spaces).") from None
+    groups = {d.name for d in CONF_DIR.iterdir() if d.is_dir()}
+    keys = []
+    for word in words:
+        key = override_key(word)
+        if key is None:
+            continue
+        keys.append(key)
+        if key.startswith(OWNED) or key in OWNED:
+            raise ConfigError(f"{key} is set by uabs_rl itself (a run writes its own "
+                              f"record and log into its folder): leave it out.")
+        if key in groups:
+            for option in word.partition("=")[2].split(","):
+                safe_component(option.strip().strip("'\""), key)
+    for key in keys:
+        wider = next((k for k in keys if key.startswith(k + ".") and k not in groups), None)
+        if wider is not None:
+            raise ConfigError(f"{key} is given twice on the command line (once inside "
+                              f"{wider}={{...}}): give it once.")
 
 
 def path_safe(text: str) -> str:
@@ -65,6 +127,13 @@ def hydra_main(config_name: str, body: Callable[..., Any],
                               {".hydra", ".lock", "run.json", f"{hc.job.name}.log"})
             print(f"error: {e}", file=sys.stderr)
             sys.exit(2)
+        except OSError as e:  # a path the file system refuses (too long, read-only...)
+            before.undo_start(Path(hc.runtime.output_dir),
+                              {".hydra", ".lock", "run.json", f"{hc.job.name}.log"})
+            where = f" ({e.filename})" if getattr(e, "filename", None) else ""
+            print(f"error: {e.strerror or e}{where}: check the paths of the command line "
+                  f"and their file system.", file=sys.stderr)
+            sys.exit(2)
         except Interrupted as e:
             print(str(e), file=sys.stderr)
             sys.exit(getattr(e, "exit_code", 130))
@@ -75,6 +144,7 @@ def hydra_main(config_name: str, body: Callable[..., Any],
     try:  # before Hydra, whose own message would not say what to type instead
         check_moved_overrides(sys.argv[1:])
         check_duplicate_overrides(sys.argv[1:])
+        check_command_line(sys.argv[1:])
     except ConfigError as e:
         print(f"error: {e}", file=sys.stderr)
         sys.exit(2)

@@ -5,6 +5,7 @@ Hydra load (a few seconds) is one line and exit status 130, not a traceback."""
 from __future__ import annotations
 
 import importlib
+import os
 import sys
 
 
@@ -14,6 +15,11 @@ def _run(module: str, func: str) -> None:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         sys.exit(130)
+    except BrokenPipeError:  # `uabs-report ... | head`: the reader left; what was
+        # written to files is complete, and the rest of standard output goes nowhere
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        sys.exit(128 + 13)  # as a shell reports a process ended by SIGPIPE
 
 
 def train() -> None:

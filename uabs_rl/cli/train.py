@@ -20,6 +20,7 @@ overrides typed beside it may change only what does not change results
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import shlex
@@ -104,11 +105,16 @@ def check_history(run_dir: Path, members: list[Path]) -> None:
         metrics = folder / "metrics.jsonl"
         evals = 0
         if metrics.is_file():
-            evals = sum(1 for line in metrics.read_bytes().splitlines()
-                        if b'"kind": "eval"' in line)
+            for line in metrics.read_bytes().splitlines():
+                try:
+                    evals += json.loads(line).get("kind") == "eval"
+                except (ValueError, AttributeError):  # a damaged line: not an evaluation
+                    continue
         best = (folder / "checkpoints" / "best.pt").is_file()
-        if evals or best:
-            held = f"{evals} evaluations in metrics.jsonl" if evals else "checkpoints/best.pt"
+        pictures = list((folder / "eval").glob("*.png")) if (folder / "eval").is_dir() else []
+        if evals or best or pictures:
+            held = (f"{evals} evaluations in metrics.jsonl" if evals else
+                    "checkpoints/best.pt" if best else "evaluation pictures in eval/")
             raise CheckpointError(
                 f"{folder} holds a run's history ({held}) but no checkpoints/last.pt: "
                 f"its checkpoint was removed or moved, and starting again would replace "
@@ -241,6 +247,7 @@ def prepare(cfg: RunConfig, run_dir: Path, overrides: list[str] | None = None,
     try:
         exp = _prepare_locked(cfg, run_dir, overrides, record)
         exp.identity = dict(runfolder.identity(run_dir), folder=run_dir.name)
+        lk.record()  # who writes the folder, now that every check has passed
     except OSError as e:  # a full disk or a read-only folder at start-up: one line
         lk.release()
         raise runfolder.write_error(e, run_dir) from None
@@ -459,19 +466,58 @@ def _check_paths(argv: list[str]) -> None:
                 raise ConfigError(f"resume={path} with -m: pass the sweep's folder (the "
                                   f"one holding multirun.yaml) with the sweep's own "
                                   f"command, or drop -m to resume this one run.")
+        elif key in ("hydra.run.dir", "hydra.sweep.dir", "hydra.sweep.subdir") and not \
+                value.strip("'\""):  # an empty shell variable: the current folder
+            raise ConfigError(f"{key}= names no folder (the run would write into the "
+                              f"current folder): name one, or leave {key} out.")
         elif key in ("hydra.run.dir", "hydra.sweep.dir") and value:
             blocking = next((p for p in (path, *path.parents) if p.exists()), None)
             if blocking is not None and not blocking.is_dir():
                 raise ConfigError(f"{key}={value}: {blocking} is a file, not a folder: "
                                   f"name a folder for the run.")
-            resuming = any(b.startswith("resume=") and b[7:] for b in argv)
-            if (key == "hydra.sweep.dir" and multirun and not resuming
-                    and (path / "multirun.yaml").exists()):
+            _check_not_inside_a_run(key, path)
+            resumed = [b[7:].strip("'\"") for b in argv if b.startswith("resume=") and b[7:]]
+            if resumed and key == "hydra.run.dir" and not multirun and \
+                    Path(resumed[0]).resolve() != path.resolve():
+                raise ConfigError(f"resume={resumed[0]} writes into the run's own folder, "
+                                  f"not {key}={value}: drop {key}.")
+            if (key == "hydra.sweep.dir" and multirun and not resumed
+                    and (path / "multirun.yaml").exists() and _holds_jobs(path)):
                 raise ConfigError(f"hydra.sweep.dir={value} holds another sweep "
                                   f"(multirun.yaml): continue it by re-typing its command "
                                   f"with resume={value} appended, or choose another "
                                   f"hydra.sweep.dir. Nothing was changed.")
+    if not any(a.split("=", 1)[0] == "resume" for a in argv):
+        typed = [Path(a.partition("=")[2].strip("'\"")) for a in argv if a.split("=", 1)[0]
+                 in (("hydra.sweep.dir",) if multirun else ("hydra.run.dir",))]
+        _check_writable_place(typed[0] if typed else Path("outputs"))
     _check_auto_name(argv, multirun)
+
+
+def _holds_jobs(sweep: Path) -> bool:
+    """True when a sweep folder holds a job that started (a refused sweep leaves only
+    its multirun.yaml: a corrected command may take the folder)."""
+    return any(runfolder.holds_run(d) or (d / ".hydra").is_dir()
+               for d in sweep.iterdir() if d.is_dir())
+
+
+def _check_not_inside_a_run(key: str, path: Path) -> None:
+    """A run folder inside another run's (``hydra.run.dir=<run>/eval``) would mix the
+    two: its records would be reported as a seed of the outer run."""
+    for parent in path.absolute().parents:
+        if parent.is_dir() and runfolder.holds_run(parent):
+            raise ConfigError(f"{key}={path}: {parent} holds a run, so a run inside it "
+                              f"would be mixed with it: choose a folder outside it.")
+
+
+def _check_writable_place(path: Path) -> None:
+    """The nearest folder that exists at or above ``path`` takes new files (not a
+    read-only file system), else one line before Hydra's own mkdir fails."""
+    here = next((p for p in (path.absolute(), *path.absolute().parents) if p.exists()),
+                Path("/"))
+    if here.is_dir() and not os.access(here, os.W_OK | os.X_OK):
+        raise ConfigError(f"cannot write the run folder under {here} (read-only or not "
+                          f"yours): choose a writable place with hydra.run.dir=... .")
 
 
 def _name_max(path: Path) -> int:

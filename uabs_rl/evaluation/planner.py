@@ -24,6 +24,7 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
+from uabs_rl.config import ConfigError
 from uabs_rl.env.channel import assign_beams
 from uabs_rl.env.service import move_scores
 from uabs_rl.env.uabs_env import BEAM_PRIORITY, MASK, POSITION, UABSEnv
@@ -96,6 +97,10 @@ class PlannerScore(TensorDictModuleBase):
         super().__init__()
         if horizon < 1:
             raise ValueError(f"horizon must be >= 1, got {horizon}")
+        if horizon > env.params.episode_steps:  # a longer look cannot change a move
+            raise ConfigError(f"the planning horizon {horizon} is longer than an episode "
+                              f"({env.params.episode_steps} steps): choose at most "
+                              f"{env.params.episode_steps}.")
         self.env, self.horizon, self.generator = env, horizon, generator
         self.beam, self.rounds = beam, rounds
         self.predictor = predictor if predictor is not None else TrueFuture()

@@ -133,8 +133,11 @@ def paired_difference(a: Sequence[float], b: Sequence[float], level: float = LEV
     kept = ~(np.isnan(a) | np.isnan(b))
     a, b = a[kept], b[kept]
     mean, lo, hi = t_interval(a - b, level)
+    if a.size < 2:  # one pair gives no interval (not one of width zero)
+        lo = hi = float("nan")
     return {"diff": mean, "ci_low": lo, "ci_high": hi, "n": int(a.size),
-            "method": across_seeds_name(int(a.size), unit)}
+            "method": across_seeds_name(int(a.size), unit) or f"no interval: {a.size} "
+            f"{unit[:-1] if a.size == 1 and unit.endswith('s') else unit}"}
 
 
 def paired_over_seeds(learned: Sequence[Sequence[float]], baseline: Sequence[Sequence[float]],

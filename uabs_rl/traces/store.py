@@ -673,13 +673,19 @@ def _sigterm_interrupts() -> Iterator[None]:
         return
 
     def interrupt(signum, frame) -> None:
-        raise _Terminated
+        stop = _Terminated()
+        stop.exit_code = 128 + signum  # 143 after SIGTERM, 129 after SIGHUP
+        raise stop
 
     previous = signal.signal(signal.SIGTERM, interrupt)
+    hangup = signal.getsignal(signal.SIGHUP)
+    if hangup is not signal.SIG_IGN:  # a closed terminal stops a build as SIGTERM does
+        signal.signal(signal.SIGHUP, interrupt)
     try:
         yield
     finally:
         signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
+        signal.signal(signal.SIGHUP, signal.SIG_DFL if hangup is None else hangup)
 
 
 def get_traces(scenario: ScenarioConfig, traces_cfg: TracesConfig, split: str,
@@ -711,7 +717,8 @@ def get_traces(scenario: ScenarioConfig, traces_cfg: TracesConfig, split: str,
     except KeyboardInterrupt as e:
         raise TracesInterrupted(f"interrupted while building the {split} traces: nothing "
                                 f"was cached; run the command again to build them",
-                                143 if isinstance(e, _Terminated) else 130) from None
+                                getattr(e, "exit_code", 143) if isinstance(e, _Terminated)
+                                else 130) from None
     if verbose:
         log.info("traces %s built in %.2f s -> %s\n  %s", split, ts.meta["build_seconds"], path,
                  ts.summary())

@@ -50,7 +50,7 @@ from uabs_rl.training.checkpoint import (
     load_checkpoint,
     save_checkpoint,
 )
-from uabs_rl.training.runfolder import check_identity, write_error
+from uabs_rl.training.runfolder import RunFolderError, check_identity, write_error
 from uabs_rl.training.runlog import RunLog
 
 if TYPE_CHECKING:
@@ -112,6 +112,19 @@ class Checkpoints:
 
     def __init__(self, exp: Experiment):
         self.exp = exp
+        self.written: set[Path] = set()  # the checkpoints this session wrote
+
+    def check_written(self) -> None:
+        """Every checkpoint this session wrote is still there: one removed by another
+        process (``rm -rf <run>/checkpoints``) stops the run in one line instead of
+        being half made again (a removed ``best.pt`` would come back only at a new
+        best)."""
+        gone = sorted(p for p in self.written if not p.is_file())
+        if gone:
+            raise RunFolderError(
+                f"{gone[0]} was removed while the run wrote it: the run stopped so that "
+                f"its checkpoints stay its own. Put it back and continue with "
+                f"resume={self.exp.run_dir}, or start the run again.")
 
     def generators(self, i: int) -> tuple[torch.Generator, torch.Generator]:
         """Member ``i``'s selector and env generators."""
@@ -139,10 +152,13 @@ class Checkpoints:
 
     def save(self, i: int, name: str) -> Path:
         path = self.exp.members[i].run_dir / "checkpoints" / f"{name}.pt"
+        self.check_written()
         try:
             save_checkpoint(self.state(i), path)
         except (OSError, RuntimeError) as e:
             raise write_error(e, self.exp.run_dir) from None
+        if not name.endswith(".staged"):
+            self.written.add(path)
         return path
 
     def save_all(self, name: str) -> Path:
@@ -162,6 +178,7 @@ class Checkpoints:
         tmp.write_text(json.dumps([os.path.relpath(p, run_dir) for p in staged]))
         os.replace(tmp, record)
         complete_save(run_dir, name)
+        self.written |= {m.run_dir / "checkpoints" / f"{name}.pt" for m in self.exp.members}
         return run_dir
 
     def resume(self, states: list[dict], sources: list[Path]) -> None:

@@ -70,13 +70,19 @@ class RunLock:
         return None
 
     def acquire(self, record: bool = True) -> bool:
-        """Take the lock; with ``record``, write who holds it into ``.lock``."""
+        """Take the lock; with ``record``, write who holds it into ``.lock`` (else
+        :meth:`record` does, once the holder's start-up checks have passed: a refused
+        command leaves ``.lock`` as it was)."""
         fd = self._locked_fd()
         if fd is None:
             return False
         self._fd = fd  # held open for the lifetime of the run
-        if not record:
-            return True
+        if record:
+            self.record()
+        return True
+
+    def record(self) -> None:
+        """Write who holds the lock into ``.lock``, for a second writer's refusal."""
         info = json.dumps({"pid": os.getpid(), "host": socket.gethostname(),
                            "since": time.strftime("%Y-%m-%d %H:%M:%S")}) + "\n"
         tmp = self.path.with_name(f"{LOCK_NAME}.{os.getpid()}.tmp")
@@ -85,7 +91,6 @@ class RunLock:
             os.replace(tmp, self.path)
         except OSError:
             tmp.unlink(missing_ok=True)
-        return True
 
     def holder(self) -> str:
         """Who holds the lock, as a phrase: "pid 123 on host since ..."."""
@@ -120,10 +125,11 @@ def _check_writable(run_dir: Path) -> None:
 
 
 def lock(run_dir: Path) -> RunLock:
-    """Hold ``run_dir``'s lock, or refuse naming the process that holds it."""
+    """Hold ``run_dir``'s lock (:meth:`RunLock.record` names the holder once the
+    start-up checks pass), or refuse naming the process that holds it."""
     _check_writable(run_dir)
     lk = RunLock(run_dir)
-    if not lk.acquire():
+    if not lk.acquire(record=False):
         raise RunFolderError(f"{run_dir} is being written by another uabs-train process "
                              f"({lk.holder()}): wait for it to end, or stop it and then "
                              f"resume={run_dir}.")
@@ -146,7 +152,7 @@ def claim(run_dir: Path, auto_named: bool, sweep_dir: Path | None = None,
     named is never swapped: a second writer is refused."""
     _check_writable(run_dir)
     lk = RunLock(run_dir)
-    if lk.acquire():
+    if lk.acquire(record=False):
         if not (auto_named and holds_run(run_dir)):
             return run_dir, lk
         lk.release()
