@@ -422,12 +422,10 @@ def override_key(word: str) -> str | None:
     return key.strip() if (eq or word.startswith("~")) and key.strip() else None
 
 
-def check_duplicate_overrides(argv: list[str]) -> None:
-    """Refuse a setting given twice on the command line (``masking=flat
-    masking=penalty``, ``seed=1 seed=2``; with ``-m`` too): Hydra would keep the last
-    one silently, and the run folder would be named after both."""
-    seen: dict[str, list[str]] = {}
-    skip = False
+def command_line_overrides(argv: list[str]) -> list[str]:
+    """The overrides of a command line: its words that are neither flags nor a flag's
+    value."""
+    out, skip = [], False
     for i, word in enumerate(argv):
         if skip:
             skip = False
@@ -436,6 +434,17 @@ def check_duplicate_overrides(argv: list[str]) -> None:
                                          and argv[i + 1] in _INFO_TOPICS):
             skip = True
             continue
+        if not word.startswith("-"):
+            out.append(word)
+    return out
+
+
+def check_duplicate_overrides(argv: list[str]) -> None:
+    """Refuse a setting given twice on the command line (``masking=flat
+    masking=penalty``, ``seed=1 seed=2``; with ``-m`` too): Hydra would keep the last
+    one silently, and the run folder would be named after both."""
+    seen: dict[str, list[str]] = {}
+    for word in command_line_overrides(argv):
         key = override_key(word)
         if key is not None:
             seen.setdefault(key, []).append(word)

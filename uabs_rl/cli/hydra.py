@@ -11,12 +11,11 @@ from typing import Any
 from omegaconf import OmegaConf
 
 from uabs_rl.config import (
-    _FLAGS_WITH_VALUE,
-    _INFO_TOPICS,
     CONF_DIR,
     ConfigError,
     check_duplicate_overrides,
     check_moved_overrides,
+    command_line_overrides,
     override_key,
     register_configs,
     to_container,
@@ -44,22 +43,6 @@ OWNED = ("hydra.output_subdir", "hydra.job.name", "hydra.job.chdir", "hydra.job_
          "hydra/job_logging", "hydra.hydra_logging", "hydra/hydra_logging", "hydra.runtime")
 
 
-def _overrides(argv: list[str]) -> list[str]:
-    """The overrides of a command line (its words that are not flags or flag values)."""
-    out, skip = [], False
-    for i, word in enumerate(argv):
-        if skip:
-            skip = False
-            continue
-        if word in _FLAGS_WITH_VALUE or (word == "--info" and i + 1 < len(argv)
-                                         and argv[i + 1] in _INFO_TOPICS):
-            skip = True
-            continue
-        if not word.startswith("-"):
-            out.append(word)
-    return out
-
-
 def check_command_line(argv: list[str]) -> None:
     """Refuse, before Hydra reads them, overrides Hydra would fail on in several lines
     (its grammar), a Hydra setting the project owns (``OWNED``), a config group option
@@ -69,7 +52,7 @@ def check_command_line(argv: list[str]) -> None:
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.errors import HydraException
 
-    words = _overrides(argv)
+    words = command_line_overrides(argv)
     try:
         OverridesParser.create().parse_overrides(overrides=words)
     except HydraException as e:
