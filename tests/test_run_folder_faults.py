@@ -466,5 +466,5 @@ def test_one_window_gives_no_interval_and_names_are_bounded_in_bytes():
     d = paired_difference([3.0], [1.0])
     assert d["diff"] == 2.0 and np.isnan(d["ci_low"]) and np.isnan(d["ci_high"])
     assert d["method"] == "no interval: 1 window"
-    with pytest.raises(ConfigError, match="280 bytes"):
+    with pytest.raises(ConfigError, match="280 bytes long"):
         safe_component("\U0001F600" * 70, "scenario.name")

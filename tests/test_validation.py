@@ -159,7 +159,7 @@ def test_every_default_and_preset_validates():
     names = lambda group: [p.stem for p in (CONF_DIR / group).glob("*.yaml")]  # noqa: E731
     experiments = [[]] + [[f"experiment={e}"] for e in names("experiment")]
     combos = list(itertools.product(experiments, names("scenario"), names("masking")))
-    assert len(combos) == 5 * 5 * 3
+    assert len(combos) == 5 * 6 * 3  # experiments (and none) x scenarios x masks
     config.register_configs()
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         validate_run(config.to_container(hydra_compose("config")))

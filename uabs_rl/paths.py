@@ -47,9 +47,11 @@ def safe_component(value: object, setting: str) -> str:
         why = f"it is {text!r}, a folder"
     elif _CONTROL.search(text):
         why = "it holds a control character"
-    elif len(text) > MAX_COMPONENT or len(text.encode()) > 2 * MAX_COMPONENT:
-        why = (f"it is {len(text)} characters ({len(text.encode())} bytes) long (at most "
-               f"{MAX_COMPONENT} characters, {2 * MAX_COMPONENT} bytes)")
+    elif len(text) > MAX_COMPONENT:
+        why = f"it is {len(text)} characters long (at most {MAX_COMPONENT})"
+    elif len(text.encode()) > 2 * MAX_COMPONENT:  # letters of several bytes each
+        why = (f"it is {len(text.encode())} bytes long (at most {2 * MAX_COMPONENT} "
+               f"bytes)")
     if why is None:
         return text
     shown = text if len(text) <= 60 else text[:57] + "..."

@@ -6,12 +6,25 @@ from __future__ import annotations
 
 import importlib
 import os
+import signal
 import sys
 
 
 def _run(module: str, func: str) -> None:
+    # Ctrl-C while torch, numpy and Hydra load is held until they have loaded (a
+    # KeyboardInterrupt inside a library's import can leave it half made, and some
+    # import paths catch it), then ends the command with one line and status 130
+    held: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: held.append(signum))
     try:
-        getattr(importlib.import_module(module), func)()
+        command = getattr(importlib.import_module(module), func)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if held:
+        print("interrupted", file=sys.stderr)
+        sys.exit(130)
+    try:
+        command()
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         sys.exit(130)
