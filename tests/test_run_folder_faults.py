@@ -318,8 +318,6 @@ def test_a_full_disk_under_tensorboard_is_one_line_without_a_thread_trace(
 
     from tensorboard.compat.tensorflow_stub.io import gfile
 
-    from uabs_rl.cli.train import run
-
     def full(self, filename, file_content, binary_mode=False):
         raise OSError(errno.ENOSPC, "No space left on device", filename)
 

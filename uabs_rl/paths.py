@@ -59,19 +59,30 @@ def safe_component(value: object, setting: str) -> str:
                       f"plain name such as 'mycity' (letters, digits, - _ .).")
 
 
+def name_max(path: Path) -> int:
+    """The longest file name, in bytes, that the file system of ``path`` (its nearest
+    existing folder) takes; 255 where it cannot be asked."""
+    try:
+        here = next((p for p in Path(path).absolute().parents if p.is_dir()), Path("/"))
+        return os.pathconf(here, "PC_NAME_MAX")
+    except (OSError, ValueError):
+        return 255
+
+
 def check_path(path: Path, setting: str) -> Path:
     """``path`` (a folder or file the user named) when the file system can take it: no
-    component longer than 255 bytes, no NUL; a :class:`ConfigError` naming
-    ``setting`` otherwise."""
+    component longer than its file system takes (:func:`name_max`), no NUL; a
+    :class:`ConfigError` naming ``setting`` otherwise."""
     text = str(path)
     if "\x00" in text:
         raise ConfigError(f"{setting}: the path holds a NUL character. Set {setting} to "
                           f"a path without one.")
-    long = next((c for c in Path(text).parts if len(c.encode()) > 255), None)
+    limit = name_max(Path(text))
+    long = next((c for c in Path(text).parts if len(os.fsencode(c)) > limit), None)
     if long is not None:
         raise ConfigError(f"{setting}: the path {text[:60]}... has a component "
-                          f"{len(long.encode())} bytes long (at most 255). Set {setting} "
-                          f"to a shorter path.")
+                          f"{len(os.fsencode(long))} bytes long (at most {limit}). Set "
+                          f"{setting} to a shorter path.")
     return path
 
 

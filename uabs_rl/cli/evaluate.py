@@ -81,6 +81,7 @@ from uabs_rl.safety.make import make_selector, resolve_device
 from uabs_rl.training.checkpoint import (
     CheckpointError,
     check_finite,
+    check_own,
     config_from_checkpoint,
     load_checkpoint,
     load_into,
@@ -248,8 +249,6 @@ def check_belongs(state: dict, ckpt: Path) -> None:
     refused, naming the file and the fix, instead of being evaluated as this run's."""
     if ckpt.parent.name != "checkpoints":
         return
-    from uabs_rl.cli.train import check_own  # here: it imports the training stack
-
     check_own(state, ckpt.parent.parent, ckpt)
 
 

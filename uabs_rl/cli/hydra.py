@@ -104,18 +104,15 @@ def hydra_main(config_name: str, body: Callable[..., Any],
         extra = (list(hc.overrides.task),) if pass_overrides else ()
         try:
             body(to_container(dcfg), Path(hc.runtime.output_dir), *extra)
-        except (ConfigError, CheckpointError) as e:
+        except (ConfigError, CheckpointError, OSError) as e:
             # only what this invocation made: never a folder or file that was there
             before.undo_start(Path(hc.runtime.output_dir),
                               {".hydra", ".lock", "run.json", f"{hc.job.name}.log"})
+            if isinstance(e, OSError):  # a path the file system refuses (too long, ...)
+                where = f" ({e.filename})" if getattr(e, "filename", None) else ""
+                e = f"{e.strerror or e}{where}: check the paths of the command line and " \
+                    f"their file system."
             print(f"error: {e}", file=sys.stderr)
-            sys.exit(2)
-        except OSError as e:  # a path the file system refuses (too long, read-only...)
-            before.undo_start(Path(hc.runtime.output_dir),
-                              {".hydra", ".lock", "run.json", f"{hc.job.name}.log"})
-            where = f" ({e.filename})" if getattr(e, "filename", None) else ""
-            print(f"error: {e.strerror or e}{where}: check the paths of the command line "
-                  f"and their file system.", file=sys.stderr)
             sys.exit(2)
         except Interrupted as e:
             print(str(e), file=sys.stderr)

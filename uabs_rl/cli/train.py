@@ -41,9 +41,10 @@ from uabs_rl.config import (
     to_container,
     validate_run,
 )
+from uabs_rl.paths import check_path, name_max
 from uabs_rl.traces.store import check_names
 from uabs_rl.training import runfolder
-from uabs_rl.training.checkpoint import (  # noqa: F401  (check_own: for callers)
+from uabs_rl.training.checkpoint import (
     CheckpointError,
     check_own,
     config_dict,
@@ -52,12 +53,10 @@ from uabs_rl.training.checkpoint import (  # noqa: F401  (check_own: for callers
     flatten,
     load_checkpoint,
     load_hydra_config,
-    upgrade_config,
 )
 from uabs_rl.training.experiment import Experiment
 from uabs_rl.training.members import complete_save, member_dir, member_seeds
-from uabs_rl.training.runlog import check_history as check_metrics_history
-from uabs_rl.training.runlog import read_metrics
+from uabs_rl.training.runlog import check_history, read_metrics
 
 log = logging.getLogger(__name__)
 
@@ -96,7 +95,7 @@ def check_checkpoints_folder(run_dir: Path) -> None:
                               f"run the command again.")
 
 
-def check_history(run_dir: Path, members: list[Path]) -> None:
+def check_lost_checkpoint(members: list[Path]) -> None:
     """A run (or population) with no ``last.pt`` may start again in place only when it
     stopped before its first evaluation (the first checkpoint is written with it): a
     member folder that logged an evaluation or holds ``best.pt`` lost its checkpoint,
@@ -278,9 +277,9 @@ def _prepare_locked(cfg: RunConfig, run_dir: Path, overrides: list[str] | None,
     if cfg.train.population > 1:
         return _resume_population(cfg, run_dir)
     if state is None:
-        check_history(run_dir, [run_dir])
+        check_lost_checkpoint([run_dir])
     else:  # before anything is built, logged or truncated
-        check_metrics_history(run_dir / "metrics.jsonl", int(state["counters"]["episode"]))
+        check_history(run_dir / "metrics.jsonl", int(state["counters"]["episode"]))
     exp = Experiment(cfg, run_dir)
     if state is None:  # stopped before its first checkpoint: start it again, in place
         log.info("%s has no checkpoint yet: starting it again from episode 0", run_dir)
@@ -301,7 +300,7 @@ def _resume_population(cfg: RunConfig, run_dir: Path) -> Experiment:
     for folder in folders:
         check_checkpoints_folder(folder)
     if not any((f / "checkpoints" / "last.pt").is_file() for f in folders):
-        check_history(run_dir, folders)
+        check_lost_checkpoint(folders)
     pop = Experiment(cfg, run_dir)
     have = [(m.run_dir / "checkpoints" / "last.pt").is_file() for m in pop.members]
     if all(have):
@@ -449,7 +448,7 @@ def _check_paths(argv: list[str]) -> None:
         key, _, value = a.partition("=")
         path = Path(value.strip("'\""))
         if key in ("resume", "hydra.run.dir", "hydra.sweep.dir") and value:
-            _check_name_lengths(key, path)  # before a stat that would fail on it
+            check_path(path, key)  # before a stat that would fail on it
         if key == "resume" and not value.strip("'\""):  # an empty shell variable
             raise ConfigError("resume= names no folder: pass the folder of a uabs-train "
                               "run (resume=outputs/runs/<run dir>), or drop resume= to "
@@ -520,27 +519,6 @@ def _check_writable_place(path: Path) -> None:
                           f"yours): choose a writable place with hydra.run.dir=... .")
 
 
-def _name_max(path: Path) -> int:
-    """The longest file name the file system of ``path`` (or its nearest existing
-    folder) takes, in bytes."""
-    try:
-        here = next((p for p in path.absolute().parents if p.is_dir()), Path("/"))
-        return os.pathconf(here, "PC_NAME_MAX")
-    except (OSError, ValueError):
-        return 255
-
-
-def _check_name_lengths(key: str, path: Path) -> None:
-    """Refuse a folder name the file system cannot hold (one line, not Hydra's
-    traceback from mkdir)."""
-    limit = _name_max(path)
-    for part in path.parts:
-        if len(os.fsencode(part)) > limit:
-            raise ConfigError(f"{key}: the folder name {part[:40]}... is "
-                              f"{len(os.fsencode(part))} bytes long, more than the "
-                              f"{limit} the file system takes: choose a shorter name.")
-
-
 def _check_auto_name(argv: list[str], multirun: bool) -> None:
     """A run folder named after its overrides (the default) whose name the file system
     cannot hold: refused before Hydra makes it, saying how to name the folder."""
@@ -560,7 +538,7 @@ def _check_auto_name(argv: list[str], multirun: bool) -> None:
         value = max(value.split(","), key=len) if multirun else value
         parts.append(path_safe(f"{key}={value}"))
     name = "2000-01-01_00-00-00_" + ",".join(sorted(parts))
-    limit = _name_max(Path("outputs"))
+    limit = name_max(Path("outputs"))
     if len(os.fsencode(name)) > limit:
         raise ConfigError(f"the run folder would be named after the overrides, "
                           f"{len(os.fsencode(name))} bytes, more than the {limit} the file "
