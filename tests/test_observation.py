@@ -130,3 +130,29 @@ def test_the_parts_are_time_beams_map_neighbours_and_edges():
     near_edge = run_scene(1, torch.tensor([[25.0, 85.0]]), torch.zeros(0, 1), tr,
                           AreaConfig())[0][0]
     assert near_edge[72].item() == pytest.approx(25.0 / 80.0)
+
+
+@pytest.mark.parametrize("block", [1, 37, 1000])
+def test_scores_in_blocks_equal_the_scores_in_one_block(monkeypatch, block):
+    """The local map is scored in blocks of candidates to bound memory; every block size
+    gives the same numbers as one block, and each equals its footprint count by hand."""
+    from uabs_rl.env import service
+    from uabs_rl.env.channel import assign_beams
+
+    g = torch.Generator().manual_seed(3)
+    e, m, v = 3, 5, 120
+    cand = ((torch.rand(e, m, 1, 2, generator=g) * 300).round()
+            + map_offsets(2, 20.0, torch.device("cpu")))
+    veh = torch.rand(e, 2, v, generator=g) * 300
+    present = torch.rand(e, v, generator=g) < 0.8
+    priority = torch.randint(0, 40, (e, v), generator=g).float()
+    monkeypatch.setattr(service, "SCORE_BLOCK", 1 << 30)
+    whole = service.move_scores(cand, veh, present, priority, 25.0, 9)
+    monkeypatch.setattr(service, "SCORE_BLOCK", block)
+    assert torch.equal(service.move_scores(cand, veh, present, priority, 25.0, 9), whole)
+    i, j, k = 1, 3, 12
+    inside, _ = assign_beams(veh[i, 0] - cand[i, j, k, 0], veh[i, 1] - cand[i, j, k, 1], 25.0)
+    by_hand = sum(max(1.0, float(priority[i, n])) for n in range(v)
+                  if inside[n] and present[i, n])
+    assert whole[i, j, k].item() == by_hand
+    assert whole.sum() > 0

@@ -143,6 +143,16 @@ def assign_beams(dx: torch.Tensor, dy: torch.Tensor, r_b: float, n_beams: int = 
     return beam_cells(dx * inv_pitch + half, half - dy * inv_pitch, k, index_offset)
 
 
+def footprint_inside(dx: torch.Tensor, dy: torch.Tensor, r_b: float,
+                     n_beams: int = 9) -> torch.Tensor:
+    """``inside`` of :func:`assign_beams` alone (the same values, without the beam
+    index's work and memory)."""
+    k = beam_grid_side(n_beams)
+    half = (k - 1) / 2.0
+    inv_pitch = 1.0 / (2.0 * r_b)
+    return _cells(dx * inv_pitch + half, half - dy * inv_pitch, k)[0]
+
+
 def beam_cells(gx: torch.Tensor, gy: torch.Tensor, k: int,
                index_offset: torch.Tensor | float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`assign_beams` in beam-grid coordinates: ``gx`` (column, grows east) and
@@ -150,11 +160,17 @@ def beam_cells(gx: torch.Tensor, gy: torch.Tensor, k: int,
     ((k−1)/2, (k−1)/2). Centres form a square lattice, so the nearest one is a per-axis
     rounding; a point is inside when within half a pitch (= r_b) of it. Consumes
     ``gx`` and ``gy`` (modified in place)."""
+    inside, col, row = _cells(gx, gy, k)
+    return inside, (col.add_(index_offset).add_(row, alpha=k)).long()
+
+
+def _cells(gx: torch.Tensor, gy: torch.Tensor,
+           k: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(inside, column, row) of :func:`beam_cells`; consumes ``gx`` and ``gy``."""
     col = gx.round().clamp_(0, k - 1)
     row = gy.round().clamp_(0, k - 1)
     fx, fy = gx.sub_(col), gy.sub_(row)
-    inside = torch.addcmul(fx * fx, fy, fy) <= 0.25  # (r_b / pitch)^2
-    return inside, (col.add_(index_offset).add_(row, alpha=k)).long()
+    return torch.addcmul(fx * fx, fy, fy) <= 0.25, col, row  # (r_b / pitch)^2
 
 
 def coverage_fraction(pos: torch.Tensor, r_b: float, n_beams: int, width: float,
