@@ -116,7 +116,18 @@ def test_a_killed_study_continues_with_resume_and_never_reads_a_test_trace(
     names = opened(tmp_path)
     assert any("-eval-" in n for n in names)  # the hook saw the validation traces ...
     assert not [n for n in names if "-test-" in n]  # ... and never a test trace
-    assert (tmp_path / "study" / "study.yaml").is_file()
+    # the study's report: the best trials, the importances, the history
+    from uabs_rl.cli.report import main as report
+
+    assert report([str(tmp_path / "study")]) == 0
+    text = (tmp_path / "study" / "report" / "study.md").read_text()
+    assert "4 trials (4 complete)" in text and "parameter importances" in text
+    best = max(trials, key=lambda t: t.value)
+    lines = text.splitlines()
+    first = lines[next(i for i, ln in enumerate(lines) if ln.startswith("|---")) + 1]
+    assert first.startswith(f"| {best.number} | complete | {best.value:.1f} |")
+    for name in ("history.png", "importances.png", "trials.csv"):
+        assert (tmp_path / "study" / "report" / name).is_file()
 
 
 def test_a_pruned_trial_stops_saving_its_checkpoint_and_a_population_scores_its_mean(
