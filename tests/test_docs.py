@@ -19,7 +19,7 @@ from uabs_rl.config import CONF_DIR, PROJECT_ROOT, RunConfig
 # kept elsewhere)
 PAGES = [PROJECT_ROOT / "README.md", *(PROJECT_ROOT / "docs" / f"{n}.md" for n in (
     "model", "configuration", "running", "evaluation", "safety", "performance", "scaling",
-    "code", "interop"))]
+    "code", "interop", "tuning"))]
 GROUPS = ("scenario", "channel", "masking", "algo", "traces", "experiment")
 SECTIONS = ("scenario", "channel", "masking", "algo", "traces", "train")
 HELP_FILE = CONF_DIR / "hydra" / "help" / "uabs_train.yaml"

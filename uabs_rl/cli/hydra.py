@@ -87,7 +87,8 @@ def path_safe(text: str) -> str:
 
 def hydra_main(config_name: str, body: Callable[..., Any],
                pass_overrides: bool = False) -> None:
-    """Run ``body(cfg, output_dir[, overrides])`` under ``@hydra.main`` with
+    """Run ``body(cfg, output_dir[, overrides])`` under ``@hydra.main`` (a sweep's job
+    returns what ``body`` returns) with
     ``conf/<config_name>``: the config arrives as checked dataclasses; a config or
     checkpoint error is one line on stderr and exit status 2, Ctrl-C one line and
     status 130 (143 after SIGTERM), never a traceback."""
@@ -96,14 +97,14 @@ def hydra_main(config_name: str, body: Callable[..., Any],
     import hydra
     from hydra.core.hydra_config import HydraConfig
 
-    def app(dcfg) -> None:
+    def app(dcfg) -> Any:
         hc = HydraConfig.get()
         # a log file that cannot be written (a full disk) loses lines, not the run
         # (the run says what failed, in one line); no "--- Logging error ---" traces
         logging.raiseExceptions = False
         extra = (list(hc.overrides.task),) if pass_overrides else ()
         try:
-            body(to_container(dcfg), Path(hc.runtime.output_dir), *extra)
+            return body(to_container(dcfg), Path(hc.runtime.output_dir), *extra)
         except (ConfigError, CheckpointError, OSError) as e:
             # only what this invocation made: never a folder or file that was there
             before.undo_start(Path(hc.runtime.output_dir),

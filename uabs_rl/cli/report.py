@@ -5,6 +5,7 @@ for runs of any settings side by side.
     uabs-report outputs/multirun/<date_time>            # writes <dir>/report/
     uabs-report outputs/multirun/<date_time> --no-baselines --out docs/results
     uabs-report RUN_A RUN_B --curves                    # training curves overlaid, only
+    uabs-report outputs/multirun/<study>                # a tuning study (docs/tuning.md)
 
 Finds every run under the folders given (following symbolic links), and groups them by
 every setting that changes results (what ``uabs-train`` was told: masking mode,
@@ -777,7 +778,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--curves", action="store_true",
                     help="only overlay the runs' training and validation curves "
                          "(curves.png/.pdf), in seconds")
+    ap.add_argument("--storage", metavar="URL",
+                    help="a tuning study's storage, in place of the one its folder's "
+                         "study.yaml names (which keeps no password)")
     args = ap.parse_args(argv)
+    from uabs_rl.tuning.report import is_study
+
+    if len(args.roots) == 1 and is_study(args.roots[0]) and not args.curves:
+        return study_main(args.roots[0], args.out, args.storage)
     if args.planner is not None and (args.planner < 1 or not args.baselines):
         ap.error("--planner H needs H >= 1 and the test-trace evaluation (no --no-baselines)")
     if args.mpc is not None and (args.mpc < 1 or not args.baselines):
@@ -820,6 +828,34 @@ def main(argv: list[str] | None = None) -> int:
     if warning:
         print(warning, file=sys.stderr)
     print(f"wrote {out} (figures as PNG and PDF)")
+    return 0
+
+
+def study_main(root: Path, given: Path | None, storage: str | None) -> int:
+    """``uabs-report <study folder>`` (uabs-train -m hydra/sweeper=optuna): the best
+    trials, the parameter importances and the optimisation history (docs/tuning.md)."""
+    from uabs_rl.tuning.report import FILES, study_report
+
+    out = OutputFolder(given or root / "report", "uabs-report", FILES,
+                       "--out" if given else "the report folder")
+    try:
+        check_path(root, "FOLDER")
+        out.check()
+        with out.writing() as folder:
+            text = study_report(root, folder, storage)
+    except ImportError as e:
+        print(f"error: the study report needs optuna ({e}): pip install -e \".[tune]\"",
+              file=sys.stderr)
+        return 2
+    except (ReportError, ConfigError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    except OutputInterrupted as e:
+        print(str(e), file=sys.stderr)
+        return e.exit_code
+    print(text)
+    print(f"wrote {out.path} (study.md, trials.csv, history and importances as PNG and "
+          f"PDF); each trial's run folder is a run for uabs-report and uabs-eval")
     return 0
 
 

@@ -57,6 +57,7 @@ from uabs_rl.training.checkpoint import (
 from uabs_rl.training.experiment import Experiment
 from uabs_rl.training.members import complete_save, member_dir, member_seeds
 from uabs_rl.training.runlog import check_history, read_metrics
+from uabs_rl.tuning.trial import evaluation_hook
 
 log = logging.getLogger(__name__)
 
@@ -577,7 +578,7 @@ def _copy_sweep_record(sweep_dir: Path, folder: Path) -> None:
         os.replace(tmp, dst)
 
 
-def _run_and_report(cfg: RunConfig, run_dir: Path, overrides: list[str]) -> None:
+def _run_and_report(cfg: RunConfig, run_dir: Path, overrides: list[str]) -> dict[str, Any]:
     from hydra.core.hydra_config import HydraConfig
     from hydra.types import RunMode
 
@@ -595,8 +596,11 @@ def _run_and_report(cfg: RunConfig, run_dir: Path, overrides: list[str]) -> None
                   if multirun else None,
                   record=lambda folder: _write_hydra_files(cfg, folder))
     print(f"{'resuming' if cfg.resume else 'run folder:'} {exp.run_dir}", file=sys.stderr)
+    exp.on_eval = evaluation_hook()  # a tuning study's trial reports to its pruner
+    summary = exp.fit()
     text = summary_text if exp.solo else population_summary_text
-    print(text(exp.cfg, exp.fit(), exp.run_dir))
+    print(text(exp.cfg, summary, exp.run_dir))
+    return summary  # a study's trial is scored on it (uabs_rl.tuning.trial.score)
 
 
 # set (for the jobs of a sweep too) when the command line names the run folder: a name

@@ -11,6 +11,7 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -204,6 +205,10 @@ class Experiment:
         self.saved_episode: int | None = None  # the episode of the last ``last`` saved
         self.identity: dict | None = None  # the run folder's (set by train.prepare)
         self.run_lock = None  # the run folder's lock, released when fit ends
+        # called after each evaluation with the episode and the members' validation
+        # returns; True stops training there, the checkpoint saved (a tuning study's
+        # pruner, uabs_rl.tuning)
+        self.on_eval: Callable[[int, list[float]], bool] | None = None
 
     # ------------------------------------------------------------------ steps
     def collect(self) -> list[list[dict[str, Any]]]:
@@ -311,7 +316,10 @@ class Experiment:
                     "epsilon": recs[0]["epsilon"],
                     "collisions": sum(r["collisions"] for r in recs)})
             if self.episode % tr.eval_every == 0 or self.episode >= tr.episodes:
-                self.progress.last_eval = sum(self.evaluate()) / self.n
+                returns = self.evaluate()
+                self.progress.last_eval = sum(returns) / self.n
+                if self.on_eval is not None and self.on_eval(self.episode, returns):
+                    break  # stopped early: fit saves last.pt
             if self.interrupt.requested:
                 self.check_weights()
                 path = self.checkpoints.save_all("last")

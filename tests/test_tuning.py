@@ -1,0 +1,209 @@
+"""The tuning sweeper (uabs-train -m hydra/sweeper=optuna, uabs_rl/tuning): studies of
+experiment=smoke in a subprocess, with every open of a trace file recorded by an audit
+hook, so that a study that read a test trace fails."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import pytest
+
+optuna = pytest.importorskip("optuna")
+
+from tests.test_faults import QUIET, uabs_train  # noqa: E402
+from uabs_rl.training.checkpoint import load_checkpoint  # noqa: E402
+
+# every file a process opens whose name is a cached trace set (<scenario>-<split>-<hash>.pt)
+AUDIT = '''import os, sys
+_log = os.environ["UABS_RL_TEST_OPENS"]
+def _hook(event, args):
+    if event == "open" and args and isinstance(args[0], (str, bytes, os.PathLike)):
+        name = os.path.basename(os.fsdecode(args[0]))
+        if name.endswith(".pt") and any(f"-{s}-" in name for s in ("train", "eval", "test")):
+            with open(_log, "a") as f:
+                f.write(name + "\\n")
+sys.addaudithook(_hook)
+'''
+
+
+@pytest.fixture
+def audited(tmp_path) -> dict[str, str]:
+    """The environment of a subprocess whose trace-file opens go to tmp_path/opens.txt."""
+    hook = tmp_path / "audit"
+    hook.mkdir()
+    (hook / "sitecustomize.py").write_text(AUDIT)
+    path = os.pathsep.join([str(hook), os.environ.get("PYTHONPATH", ""), os.getcwd()])
+    return {"PYTHONPATH": path, "UABS_RL_TEST_OPENS": str(tmp_path / "opens.txt")}
+
+
+def opened(tmp_path: Path) -> list[str]:
+    log = tmp_path / "opens.txt"
+    return log.read_text().split() if log.is_file() else []
+
+
+def study_args(trace_cache: Path, n: int, *extra: str) -> list[str]:
+    # batch sizes within experiment=smoke's learning_starts (64)
+    return ["-m", "hydra/sweeper=optuna", "experiment=smoke", f"traces.cache_dir={trace_cache}",
+            *QUIET, f"hydra.sweeper.n_trials={n}", "algo.batch_size=choice(16,32)",
+            "hydra.sweep.dir=study", *extra]
+
+
+def load(tmp_path: Path, name: str = "study"):
+    db = tmp_path / "study" / "study.db"
+    return optuna.load_study(study_name=name, storage=f"sqlite:///{db}")
+
+
+def eval_returns(run_dir: Path) -> list[float]:
+    lines = (run_dir / "metrics.jsonl").read_text().splitlines()
+    return [r["return"] for r in map(json.loads, lines) if r["kind"] == "eval"]
+
+
+def episodes(run_dir: Path) -> list[int]:
+    lines = (run_dir / "metrics.jsonl").read_text().splitlines()
+    return [r["episode"] for r in map(json.loads, lines) if r["kind"] == "train"]
+
+
+def finish(p: subprocess.Popen, timeout: float = 600) -> str:
+    """The standard error and output of a study that succeeded."""
+    out, err = p.communicate(timeout=timeout)
+    assert p.returncode == 0, err[-3000:]
+    return err + out
+
+
+def test_a_killed_study_continues_with_resume_and_never_reads_a_test_trace(
+        trace_cache, tmp_path, audited):
+    args = study_args(trace_cache, 4)
+    p = uabs_train(tmp_path, *args, env=audited)
+    deadline = time.monotonic() + 600
+    made = tmp_path / "study" / "study.yaml"
+    while True:  # kill -9 once trial 2 is done
+        assert p.poll() is None, p.communicate()[1][-3000:]
+        assert time.monotonic() < deadline, "the study never finished 2 trials"
+        # study.yaml: written once the study is in the database
+        done = [t for t in load(tmp_path).get_trials(deepcopy=False)
+                if t.state.is_finished()] if made.is_file() else []
+        if len(done) >= 2:
+            break
+        time.sleep(0.2)
+    p.send_signal(signal.SIGKILL)
+    p.communicate()
+    before = {t.number: t for t in load(tmp_path).get_trials()}
+    first_ids = {n: load_checkpoint(tmp_path / "study" / f"trial={n}" / "checkpoints" /
+                                    "last.pt")["run"]["id"]
+                 for n, t in before.items() if t.state.is_finished()}
+    assert len(first_ids) == 2
+    err = finish(uabs_train(tmp_path, *args, f"resume={tmp_path / 'study'}", env=audited))
+    trials = load(tmp_path).get_trials()
+    assert [t.number for t in trials] == [0, 1, 2, 3]
+    assert all(t.state == optuna.trial.TrialState.COMPLETE for t in trials), trials
+    for n, t in before.items():  # finished trials kept; a running one kept its values
+        assert trials[n].params == t.params
+    for n, run_id in first_ids.items():  # never run again
+        ckpt = load_checkpoint(tmp_path / "study" / f"trial={n}" / "checkpoints" / "last.pt")
+        assert ckpt["run"]["id"] == run_id
+        assert f"/trial={n}" not in err  # not launched again
+    for t in trials:  # each ran its 6 episodes once; the objective is the best validation R
+        run_dir = tmp_path / "study" / f"trial={t.number}"
+        assert episodes(run_dir) == [1, 2, 3, 4, 5, 6]
+        assert t.value == max(eval_returns(run_dir))
+        assert t.value == load_checkpoint(run_dir / "checkpoints" / "best.pt")[
+            "counters"]["best_eval"]
+    names = opened(tmp_path)
+    assert any("-eval-" in n for n in names)  # the hook saw the validation traces ...
+    assert not [n for n in names if "-test-" in n]  # ... and never a test trace
+    # the study's report: the best trials, the importances, the history
+    from uabs_rl.cli.report import main as report
+
+    assert report([str(tmp_path / "study")]) == 0
+    text = (tmp_path / "study" / "report" / "study.md").read_text()
+    assert "4 trials (4 complete)" in text and "parameter importances" in text
+    best = max(trials, key=lambda t: t.value)
+    lines = text.splitlines()
+    first = lines[next(i for i, ln in enumerate(lines) if ln.startswith("|---")) + 1]
+    assert first.startswith(f"| {best.number} | complete | {best.value:.1f} |")
+    for name in ("history.png", "importances.png", "trials.csv"):
+        assert (tmp_path / "study" / "report" / name).is_file()
+
+
+def test_a_pruned_trial_stops_saving_its_checkpoint_and_a_population_scores_its_mean(
+        trace_cache, tmp_path, audited):
+    # a threshold no return reaches: each trial stops at its first evaluation (episode 3)
+    args = study_args(trace_cache, 1, "hydra.sweeper.pruner.name=threshold",
+                      "hydra.sweeper.pruner.lower=1e9", "train.population=2")
+    out = finish(uabs_train(tmp_path, *args, env=audited))
+    assert "trial 0 pruned at episode 3" in out and "0 complete, 1 pruned" in out
+    (trial,) = load(tmp_path).get_trials()
+    assert trial.state == optuna.trial.TrialState.PRUNED
+    folder = tmp_path / "study" / "trial=0"
+    bests = []
+    for seed in (0, 1):
+        member = folder / f"seed={seed}"
+        assert episodes(member) == [1, 2, 3]
+        assert load_checkpoint(member / "checkpoints" / "last.pt")["counters"]["episode"] == 3
+        bests.append(max(eval_returns(member)))
+    # the value of a pruned trial is its last report: the members' mean at episode 3
+    assert trial.intermediate_values == {3: sum(bests) / 2}
+    assert not [n for n in opened(tmp_path) if "-test-" in n]
+
+
+def run_refused(tmp_path: Path, *args: str) -> str:
+    p = uabs_train(tmp_path, *args)
+    _, err = p.communicate(timeout=300)
+    assert p.returncode == 2, err[-3000:]
+    lines = [ln for ln in err.splitlines() if ln.startswith("error:")]
+    assert len(lines) == 1, err[-3000:]
+    return lines[0]
+
+
+def test_bad_study_inputs_are_one_line_naming_the_fix(trace_cache, tmp_path):
+    line = run_refused(tmp_path, *study_args(trace_cache, 1, "algo.lrate=interval(0.1,1)"))
+    assert "algo.lrate is not a setting" in line and "did you mean algo.lr" in line
+    line = run_refused(tmp_path, *study_args(trace_cache, 1, "hydra.sweeper.storage=nosuch://x"))
+    assert "hydra.sweeper.storage=nosuch://x cannot be opened" in line
+    shared = f"sqlite:///{tmp_path / 'shared.db'}"
+    optuna.create_study(study_name="mine", storage=shared)
+    line = run_refused(tmp_path, *study_args(trace_cache, 1, f"hydra.sweeper.storage={shared}",
+                                             "hydra.sweeper.study_name=mine"))
+    assert "a study named 'mine' is already in" in line and "resume=" in line
+    assert not (tmp_path / "study" / "trial=0").exists()
+
+
+def test_search_space_overrides_as_distributions():
+    from optuna.distributions import CategoricalDistribution, FloatDistribution, IntDistribution
+
+    from uabs_rl.config import ConfigError
+    from uabs_rl.tuning.space import search_space, trial_overrides
+
+    known = {"algo.lr", "algo.hidden", "algo.n_step", "algo.batch_size", "masking", "seed"}
+    space, fixed = search_space(
+        {"algo.lr": "tag(log, interval(1e-5, 1e-2))", "algo.hidden": "choice([64, 64], [128])",
+         "algo.n_step": "range(1, 6, 2)"},
+        ["masking=flat,rank", "seed=3", "algo.n_step=1"], known)
+    assert space == {"algo.lr": FloatDistribution(1e-5, 1e-2, log=True),
+                     "algo.hidden": CategoricalDistribution(["[64, 64]", "[128]"]),
+                     "masking": CategoricalDistribution(["flat", "rank"])}
+    assert fixed == ["seed=3", "algo.n_step=1"]  # a value typed pins the setting
+    space, _ = search_space({"algo.n_step": "range(1, 6, 2)"}, [], known)
+    assert space["algo.n_step"] == IntDistribution(1, 5, step=2)
+    assert trial_overrides({"algo.lr": 1e-4, "algo.hidden": "[64, 64]"}) == [
+        "algo.hidden=[64, 64]", "algo.lr=0.0001"]
+    with pytest.raises(ConfigError, match="needs low < high and low > 0"):
+        search_space({"algo.lr": "tag(log, interval(0, 1))"}, [], known)
+
+
+@pytest.mark.slow
+def test_parallel_trials_share_the_storage(trace_cache, tmp_path):
+    pytest.importorskip("hydra_plugins.hydra_joblib_launcher")
+    finish(uabs_train(tmp_path, *study_args(trace_cache, 2, "hydra.sweeper.n_jobs=2",
+                                            "hydra/launcher=local_parallel",
+                                            "hydra.launcher.n_jobs=2")))
+    trials = load(tmp_path).get_trials()
+    assert [t.state for t in trials] == [optuna.trial.TrialState.COMPLETE] * 2
+    for t in trials:
+        assert t.value == max(eval_returns(tmp_path / "study" / f"trial={t.number}"))
+        assert t.intermediate_values  # reported from the worker processes

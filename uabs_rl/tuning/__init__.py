@@ -1,0 +1,1 @@
+"""Hyper-parameter tuning: ``uabs-train -m hydra/sweeper=optuna`` (docs/tuning.md)."""

@@ -1,0 +1,255 @@
+"""The study of ``uabs-train -m hydra/sweeper=optuna`` (docs/tuning.md): Optuna asks for
+trials, each trial is one ``uabs-train`` job launched by Hydra's launcher (in this
+process, or in parallel processes with ``hydra/launcher=local_parallel``, or on SLURM),
+and the job's best validation return is told back.
+
+The study lives in Optuna's RDB storage (``sqlite:///<sweep folder>/study.db`` unless
+``hydra.sweeper.storage`` names another SQLAlchemy URL), which the jobs open too (they
+report their periodic validation returns to the pruner). A study stopped in any way
+continues when its command is re-typed with ``resume=<sweep folder>``: trials that
+finished (complete, pruned or failed) are kept; a trial that was running when the study
+stopped keeps its number and its values and its job continues its run folder from the
+last checkpoint (the job's own ``resume``); only then are new trials asked for, up to
+``n_trials`` in all. No trial is lost or run twice."""
+
+from __future__ import annotations
+
+import logging
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+from omegaconf import OmegaConf
+
+from uabs_rl.config import ConfigError
+from uabs_rl.tuning.space import known_keys, search_space, trial_overrides
+from uabs_rl.tuning.trial import TRIAL_ENV, TrialTask
+
+log = logging.getLogger(__name__)
+
+SAMPLERS = ("tpe", "random", "cmaes", "qmc")
+PRUNERS = ("median", "percentile", "hyperband", "threshold", "none")
+STUDY_FILE = "study.yaml"  # in the sweep folder: where its study is (for uabs-report)
+
+
+def make_pruner(spec: dict[str, Any]):
+    """The pruner ``hydra.sweeper.pruner`` names (``name`` and its settings)."""
+    import optuna
+
+    name = str(spec.get("name", "median"))
+    startup, warmup = int(spec.get("n_startup_trials", 5)), int(spec.get("n_warmup_steps", 0))
+    if name == "median":
+        return optuna.pruners.MedianPruner(n_startup_trials=startup, n_warmup_steps=warmup)
+    if name == "percentile":
+        return optuna.pruners.PercentilePruner(float(spec.get("percentile", 25.0)),
+                                               n_startup_trials=startup,
+                                               n_warmup_steps=warmup)
+    if name == "threshold":
+        lower, upper = spec.get("lower"), spec.get("upper")
+        if lower is None and upper is None:
+            raise ConfigError("hydra.sweeper.pruner.name=threshold needs pruner.lower or "
+                              "pruner.upper: the validation return below (above) which a "
+                              "trial stops.")
+        return optuna.pruners.ThresholdPruner(
+            lower=None if lower is None else float(lower),
+            upper=None if upper is None else float(upper), n_warmup_steps=warmup)
+    if name == "hyperband":
+        return optuna.pruners.HyperbandPruner()
+    if name == "none":
+        return optuna.pruners.NopPruner()
+    raise ConfigError(f"hydra.sweeper.pruner.name={name} is not a pruner: one of "
+                      f"{', '.join(PRUNERS)}.")
+
+
+def make_sampler(spec: dict[str, Any], done: int):
+    """The sampler ``hydra.sweeper.sampler`` names; its seed moves on by the trials the
+    study already holds, so a resumed study draws new values, not the first session's."""
+    import optuna
+
+    name = str(spec.get("name", "tpe"))
+    seed = spec.get("seed")
+    seed = None if seed is None else int(seed) + done
+    startup = int(spec.get("n_startup_trials", 10))
+    if name == "tpe":
+        return optuna.samplers.TPESampler(seed=seed, n_startup_trials=startup,
+                                          constant_liar=True)
+    if name == "random":
+        return optuna.samplers.RandomSampler(seed=seed)
+    if name == "cmaes":
+        return optuna.samplers.CmaEsSampler(seed=seed, n_startup_trials=startup)
+    if name == "qmc":
+        return optuna.samplers.QMCSampler(seed=seed)
+    raise ConfigError(f"hydra.sweeper.sampler.name={name} is not a sampler: one of "
+                      f"{', '.join(SAMPLERS)}.")
+
+
+def open_storage(url: str):
+    """Optuna's RDB storage at ``url``; a URL that names no database it can open is one
+    line naming the setting."""
+    import optuna
+
+    try:
+        return optuna.storages.RDBStorage(url)
+    except Exception as e:  # sqlalchemy's and optuna's own errors, of many kinds
+        first = (str(e).strip().splitlines() or [type(e).__name__])[0]
+        raise ConfigError(f"hydra.sweeper.storage={hidden(url)} cannot be opened ({first}): "
+                          f"give a SQLAlchemy URL such as sqlite:////abs/path/study.db or "
+                          f"postgresql://user@host/db, or leave it null (study.db in the "
+                          f"sweep folder).") from None
+
+
+def hidden(url: str) -> str:
+    """``url`` with its password, if any, replaced by ``***``."""
+    try:
+        from sqlalchemy.engine import make_url
+
+        return make_url(url).render_as_string(hide_password=True)
+    except Exception:
+        return url
+
+
+def _flat(node: Any, prefix: str = "") -> dict[str, Any]:
+    if isinstance(node, dict):
+        out: dict[str, Any] = {}
+        for k, v in node.items():
+            out.update(_flat(v, f"{prefix}{k}."))
+        return out or {prefix[:-1]: node}
+    return {prefix[:-1]: node}
+
+
+def run_study(sweeper, arguments: list[str]) -> list[dict[str, Any]]:
+    """Run (or continue) the study of a ``-m hydra/sweeper=optuna`` command line; a bad
+    input is one line on stderr and exit status 2."""
+    try:
+        return _run_study(sweeper, arguments)
+    except ConfigError as e:
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(2)
+
+
+def _run_study(sweeper, arguments: list[str]) -> list[dict[str, Any]]:
+    import optuna
+    from hydra.core.plugins import Plugins
+    from optuna.trial import TrialState
+
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    s = OmegaConf.to_container(OmegaConf.create(sweeper.settings), resolve=True)
+    config = sweeper.config
+    task_cfg = OmegaConf.to_container(config, resolve=False)
+    task_cfg.pop("hydra", None)
+    space, fixed = search_space(s.get("params") or {}, arguments,
+                                known_keys(_flat(task_cfg)))
+    if not space:
+        raise ConfigError("the search space is empty: give hydra.sweeper.params or a "
+                          "sweep on the command line ('algo.lr=tag(log,interval(1e-5,1e-3))').")
+    n_trials, n_jobs = int(s.get("n_trials", 30)), int(s.get("n_jobs", 1))
+    if n_trials < 1 or n_jobs < 1:
+        raise ConfigError(f"hydra.sweeper.n_trials={n_trials} and n_jobs={n_jobs} must be "
+                          f"at least 1.")
+    direction = str(s.get("direction", "maximize"))
+    if direction not in ("maximize", "minimize"):
+        raise ConfigError(f"hydra.sweeper.direction={direction}: maximize or minimize.")
+    pruner = dict(s.get("pruner") or {})
+    make_pruner(pruner)  # a bad name, before anything is made
+    sweep_dir = Path(str(config.hydra.sweep.dir)).absolute()
+    resumed = any(w.split("=", 1)[0] == "resume" for w in fixed)
+    url = s.get("storage") or f"sqlite:///{sweep_dir / 'study.db'}"
+    name = str(s.get("study_name") or sweep_dir.name)
+    if not s.get("storage"):  # study.db in the sweep folder
+        sweep_dir.mkdir(parents=True, exist_ok=True)
+    storage = open_storage(url)
+    names = {st.study_name: st for st in optuna.get_all_study_summaries(storage)}
+    if name in names and not resumed:
+        raise ConfigError(f"a study named {name!r} is already in {hidden(url)}: continue "
+                          f"it by re-typing its command with resume=<its sweep folder>, or "
+                          f"name a new one with hydra.sweeper.study_name=<name>. Nothing "
+                          f"was changed.")
+    if name in names and names[name].direction.name.lower() != direction:
+        raise ConfigError(f"the study {name!r} in {hidden(url)} was made to "
+                          f"{names[name].direction.name.lower()}, not {direction}: re-type "
+                          f"its own command.")
+    trials = (optuna.load_study(study_name=name, storage=storage).get_trials(deepcopy=False)
+              if name in names else [])
+    finished = [t for t in trials if t.state.is_finished()]
+    study = optuna.create_study(storage=storage, study_name=name, direction=direction,
+                                sampler=make_sampler(dict(s.get("sampler") or {}),
+                                                     len(trials)),
+                                pruner=make_pruner(pruner), load_if_exists=True)
+    sweep_dir.mkdir(parents=True, exist_ok=True)
+    OmegaConf.save(config, sweep_dir / "multirun.yaml")
+    OmegaConf.save(OmegaConf.create({"storage": hidden(url), "study_name": name,
+                                     "direction": direction}), sweep_dir / STUDY_FILE)
+    # trials that were running when the study stopped: same number, same values, and
+    # their jobs continue their run folders (resume=)
+    queue = [(t.number, t.params) for t in trials if t.state == TrialState.RUNNING]
+    todo = n_trials - len(finished)
+    log.info("study %s in %s: %d trials done, %d to continue, %d to run", name,
+             hidden(url), len(finished), len(queue), max(todo - len(queue), 0))
+    launcher = Plugins.instance().instantiate_launcher(
+        hydra_context=sweeper.hydra_context,
+        task_function=TrialTask(sweeper.task_function, url, name, pruner), config=config)
+    results: list[dict[str, Any]] = []
+    job = 0
+    while todo > 0:
+        batch = []
+        while len(batch) < min(n_jobs, todo):
+            if queue:
+                batch.append(queue.pop(0))
+            else:
+                trial = study.ask(space)
+                batch.append((trial.number, trial.params))
+        overrides = [[*fixed, *trial_overrides(params),
+                      f"+hydra.job.env_set.{TRIAL_ENV}={number}",
+                      f"hydra.sweep.subdir='trial={number}'"] for number, params in batch]
+        returns = launcher.launch(overrides, initial_job_idx=job)
+        job += len(batch)
+        todo -= len(batch)
+        for (number, _), ret in zip(batch, returns, strict=True):
+            results.append(_tell(study, number, ret))
+    _print_end(study, sweep_dir, url)
+    return results
+
+
+def _tell(study, number: int, ret) -> dict[str, Any]:
+    """Tell the study how trial ``number``'s job ended."""
+    from hydra.core.utils import JobStatus
+    from optuna.trial import TrialState
+
+    if ret.status != JobStatus.COMPLETED:  # an exception the job did not turn into a line
+        err = ret._return_value
+        print(f"trial {number} failed: {type(err).__name__}: {err}", file=sys.stderr)
+        study.tell(number, state=TrialState.FAIL)
+        return {"number": number, "value": None, "pruned_at": None, "failed": str(err)}
+    res = ret.return_value
+    if res["failed"]:
+        print(f"trial {number} failed: {res['failed']}", file=sys.stderr)
+        study.tell(number, state=TrialState.FAIL)
+    elif res["pruned_at"] is not None:
+        study.tell(number, state=TrialState.PRUNED)
+    else:
+        study.tell(number, res["value"])
+    return res
+
+
+def _print_end(study, sweep_dir: Path, url: str) -> None:
+    import shlex
+
+    from optuna.trial import TrialState
+
+    done = study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
+    counts = {s.name.lower(): len(study.get_trials(deepcopy=False, states=(s,)))
+              for s in (TrialState.COMPLETE, TrialState.PRUNED, TrialState.FAIL)}
+    lines = [f"\nstudy {study.study_name}: " + ", ".join(f"{n} {k}" for k, n in counts.items())]
+    if done:
+        best = study.best_trial
+        value = f"{best.value:.1f}" if math.isfinite(best.value) else str(best.value)
+        lines += [f"  best: trial {best.number}, validation return {value}",
+                  "  " + " ".join(trial_overrides(best.params)),
+                  f"  run folder: {sweep_dir / f'trial={best.number}'}"]
+    q = shlex.quote(str(sweep_dir))
+    lines += ["next:",
+              f"  uabs-report {q}   # best trials, parameter importances, history",
+              f"  optuna-dashboard {shlex.quote(hidden(url))}   # the study in a browser "
+              f"(pip install optuna-dashboard)"]
+    print("\n".join(lines))
