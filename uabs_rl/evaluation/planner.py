@@ -1,7 +1,7 @@
 """A planning reference and two classic heuristics, acting through the masked selector.
 
 Like :mod:`uabs_rl.evaluation.baselines`, each writes scores into ``("agents", "action_value")``
-and the masking mode's :class:`~uabs_rl.safety.masking.MaskedActionSelector` (ε = 0) picks the
+and the masking mode's :class:`~uabs_rl.safety.rules.MaskedActionSelector` (ε = 0) picks the
 best legal action, so every one of them obeys the masks the learned policy obeys.
 
 * :class:`PlannerScore` (``uabs-eval --policy planner --horizon H``): a centralised
@@ -29,7 +29,7 @@ from uabs_rl.env.channel import assign_beams
 from uabs_rl.env.service import move_scores
 from uabs_rl.env.uabs_env import BEAM_PRIORITY, MASK, POSITION, UABSEnv
 from uabs_rl.evaluation.predict import Predictor, TrueFuture
-from uabs_rl.safety.masking import ACTION_VALUE, rank_order
+from uabs_rl.safety.rules import ACTION_VALUE, rank_order
 
 JITTER = 1e-3  # the baselines' seeded tie-break, scaled as in baselines.CoverageScore
 

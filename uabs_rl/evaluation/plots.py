@@ -19,7 +19,7 @@ from matplotlib.patches import Circle  # noqa: E402
 
 from uabs_rl.config import AreaConfig, ScenarioConfig  # noqa: E402
 from uabs_rl.env.channel import beam_centres  # noqa: E402
-from uabs_rl.safety.masking import masks_collisions  # noqa: E402
+from uabs_rl.safety.rules import masks_collisions  # noqa: E402
 
 COLORS = plt.rcParams["axes.prop_cycle"].by_key()["color"]
 # a paper's single column and full text width (inches, IEEE two-column)
