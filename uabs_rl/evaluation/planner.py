@@ -1,7 +1,7 @@
 """A planning reference and two classic heuristics, acting through the masked selector.
 
 Like :mod:`uabs_rl.evaluation.baselines`, each writes scores into ``("agents", "action_value")``
-and the masking mode's :class:`~uabs_rl.safety.rules.MaskedActionSelector` (ε = 0) picks the
+and the masking mode's :class:`~uabs_rl.safety.modules.MaskedActionSelector` (ε = 0) picks the
 best legal action, so every one of them obeys the masks the learned policy obeys.
 
 * :class:`PlannerScore` (``uabs-eval --policy planner --horizon H``): a centralised

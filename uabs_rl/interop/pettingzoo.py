@@ -70,13 +70,8 @@ from uabs_rl.env.uabs_env import (
     REWARD,
 )
 from uabs_rl.safety.make import make_env
-from uabs_rl.safety.rules import (
-    COLLIDERS,
-    RANK_ORDER,
-    SAFETY_TOLERANCE,
-    DirectEnv,
-    MaskingRule,
-)
+from uabs_rl.safety.modules import DirectEnv
+from uabs_rl.safety.rules import COLLIDERS, RANK_ORDER, SAFETY_TOLERANCE, MaskingRule
 from uabs_rl.traces.store import TraceSet
 
 N_ACTIONS = 4
@@ -242,7 +237,7 @@ class UABSParallelEnv(ParallelEnv):
 
 
 class _Entries(dict):
-    """The ``get`` that :class:`~uabs_rl.safety.rules.DirectEnv.step` reads."""
+    """The ``get`` that :class:`~uabs_rl.safety.modules.DirectEnv.step` reads."""
 
     def get(self, key, default=None):
         return super().get(key, default)
