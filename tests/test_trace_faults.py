@@ -20,8 +20,8 @@ import torch
 
 from tests.conftest import SMALL_TRACES, compose_cfg
 from uabs_rl.config import PROJECT_ROOT, ConfigError
-from uabs_rl.traces import store as traces_mod
-from uabs_rl.traces.store import (
+from uabs_rl.traces import build as traces_mod
+from uabs_rl.traces.build import (
     TracesInterrupted,
     build_split,
     cache_path,
@@ -68,7 +68,7 @@ def test_a_cache_file_of_another_split_is_rebuilt(trace_cache, tmp_path, train, 
     eval_path = cache_path(cfg.scenario, cfg.traces, "eval")
     train_path = cache_path(cfg.scenario, cfg.traces, "train")
     shutil.copy(eval_path, train_path)  # the validation file under the training name
-    with caplog.at_level(logging.WARNING, logger="uabs_rl.traces.store"):
+    with caplog.at_level(logging.WARNING, logger="uabs_rl.traces.build"):
         ts = get_traces(cfg.scenario, cfg.traces, "train")
     assert ts.source == "built" and ts.meta["split"] == "train"
     assert ts.meta["cache_key"] == train_path.stem
@@ -102,7 +102,7 @@ def test_a_cache_file_saved_without_its_key_is_checked_on_its_parameters(
         kept = get_traces(cfg.scenario, cfg.traces, "train")
     assert kept.source == "cache" and "cache_key" not in kept.meta
     without_key(eval_path, train_path)
-    with caplog.at_level(logging.WARNING, logger="uabs_rl.traces.store"):
+    with caplog.at_level(logging.WARNING, logger="uabs_rl.traces.build"):
         rebuilt = get_traces(cfg.scenario, cfg.traces, "train")
     assert rebuilt.source == "built" and torch.equal(rebuilt.positions, train.positions)
     [warning] = warnings_of(caplog)
@@ -117,7 +117,7 @@ def test_a_damaged_cache_warning_gives_no_unsafe_advice(trace_cache, tmp_path, t
     cfg = private_copy(trace_cache, tmp_path)
     path = cache_path(cfg.scenario, cfg.traces, "train")
     torch.save({"positions": Evil()}, path, pickle_module=pickle)
-    with caplog.at_level(logging.WARNING, logger="uabs_rl.traces.store"):
+    with caplog.at_level(logging.WARNING, logger="uabs_rl.traces.build"):
         ts = get_traces(cfg.scenario, cfg.traces, "train")
     assert ts.source == "built" and torch.equal(ts.positions, train.positions)
     [warning] = warnings_of(caplog)

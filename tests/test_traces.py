@@ -13,8 +13,8 @@ from omegaconf.errors import ConfigKeyError, ValidationError
 
 from tests.conftest import SMALL_TRACES, compose_cfg
 from uabs_rl.config import ConfigError, resolve_path
-from uabs_rl.traces import store as traces_mod
-from uabs_rl.traces.store import build_split, cache_path, get_traces
+from uabs_rl.traces import build as traces_mod
+from uabs_rl.traces.build import build_split, cache_path, get_traces
 
 
 def test_shapes_and_dtypes(train, held_out):
@@ -109,7 +109,7 @@ def test_corrupt_cache_is_detected_and_rebuilt(small_traces_cfg, held_out, damag
         blob = torch.load(path, weights_only=True)
         blob["positions"][0, 5, 3, 0] += 1.0
         torch.save(blob, path)
-    with caplog.at_level(logging.WARNING, logger="uabs_rl.traces.store"):
+    with caplog.at_level(logging.WARNING, logger="uabs_rl.traces.build"):
         rebuilt = get_traces(small_traces_cfg.scenario, small_traces_cfg.traces, "eval")
     assert rebuilt.source == "built"
     assert "damaged" in caplog.text and str(path) in caplog.text
@@ -192,7 +192,7 @@ def tiny_netgcfg(tmp_path, monkeypatch) -> None:
 def test_net_file_is_built_from_its_netgcfg(tmp_path, monkeypatch):
     """A network kept in the repository as its netgenerate config (sumo/city) is built
     on first use, next to the config, and then found as any network."""
-    from uabs_rl.traces.store import net_file
+    from uabs_rl.traces.build import net_file
 
     tiny_netgcfg(tmp_path, monkeypatch)
     built = net_file("g/tiny.net.xml")
@@ -211,7 +211,7 @@ def test_net_file_is_built_from_its_netgcfg(tmp_path, monkeypatch):
 def test_two_builds_of_a_network_are_byte_identical(tmp_path, monkeypatch):
     """netgenerate writes its start time and the temporary output name into the header:
     both are normalised, so a fresh checkout's build keys the same cached traces."""
-    from uabs_rl.traces.store import net_file
+    from uabs_rl.traces.build import net_file
 
     tiny_netgcfg(tmp_path, monkeypatch)
     first = net_file("g/tiny.net.xml").read_bytes()

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from uabs_rl.cli.hydra import hydra_main
 from uabs_rl.config import ConfigError, TracesAppConfig, family_scenarios
-from uabs_rl.traces.store import (
+from uabs_rl.traces.build import (
     SPLITS,
     TracesInterrupted,
     cache_path,

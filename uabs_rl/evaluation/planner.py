@@ -337,7 +337,7 @@ def junctions(scenario, geometry) -> torch.Tensor:
     """[S, 2] the street network's junctions inside the area, area-relative and moved to
     the nearest lattice point (where a UABS can be); every lattice point for a scenario
     given as a .sumocfg (no network file to read)."""
-    from uabs_rl.traces.store import read_net, scenario_inputs
+    from uabs_rl.traces.build import read_net, scenario_inputs
 
     lo, n, step = geometry.lattice_lo, geometry.lattice_n, geometry.p.step_m
     net = scenario_inputs(scenario)["net_file"]
@@ -358,7 +358,7 @@ def junction_sites(cfg, env: UABSEnv) -> torch.Tensor:
     the validation traces (``traces.eval``, never the evaluated ones), at least
     d_th + v·δt apart (so that, hovering a step off, they keep d_th) where M such
     sites exist."""
-    from uabs_rl.traces.store import get_traces
+    from uabs_rl.traces.build import get_traces
 
     p = env.params
     geo = env.math.geometry
