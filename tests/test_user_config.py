@@ -15,7 +15,7 @@ import yaml
 from tests.test_train import smoke
 from uabs_rl.cli.evaluate import main as eval_main
 from uabs_rl.cli.train import run
-from uabs_rl.traces.build import netgenerate_path
+from uabs_rl.traces.inputs import netgenerate_path
 
 
 def _netgenerate() -> str:

@@ -28,7 +28,7 @@ from uabs_rl.env._compile import compiled_or_eager
 from uabs_rl.env.geometry import Geometry
 from uabs_rl.env.links import LinkModel
 from uabs_rl.env.params import EnvParams
-from uabs_rl.traces.build import TraceSet
+from uabs_rl.traces.cache import TraceSet
 
 # Nested keys, in one place.
 AGENTS = "agents"

@@ -337,7 +337,7 @@ def junctions(scenario, geometry) -> torch.Tensor:
     """[S, 2] the street network's junctions inside the area, area-relative and moved to
     the nearest lattice point (where a UABS can be); every lattice point for a scenario
     given as a .sumocfg (no network file to read)."""
-    from uabs_rl.traces.build import read_net, scenario_inputs
+    from uabs_rl.traces.inputs import read_net, scenario_inputs
 
     lo, n, step = geometry.lattice_lo, geometry.lattice_n, geometry.p.step_m
     net = scenario_inputs(scenario)["net_file"]

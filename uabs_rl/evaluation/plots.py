@@ -63,7 +63,7 @@ def save_paper_figure(draw, path: Path | str) -> list[Path]:
 @lru_cache(maxsize=8)
 def lane_segments(net_file: str, x0: float, y0: float) -> np.ndarray:
     """[K, 2, 2] line segments of every lane (internal ones included), area-relative."""
-    from uabs_rl.traces.build import read_net
+    from uabs_rl.traces.inputs import read_net
 
     net = read_net(net_file)
     segs = []
@@ -76,7 +76,7 @@ def lane_segments(net_file: str, x0: float, y0: float) -> np.ndarray:
 
 def scenario_lanes(scenario: ScenarioConfig) -> np.ndarray | None:
     """Lane segments of the scenario's network (None for a .sumocfg scenario)."""
-    from uabs_rl.traces.build import scenario_inputs
+    from uabs_rl.traces.inputs import scenario_inputs
 
     net = scenario_inputs(scenario)["net_file"]
     a = scenario.area

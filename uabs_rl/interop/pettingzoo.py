@@ -72,7 +72,7 @@ from uabs_rl.env.uabs_env import (
 from uabs_rl.safety.make import make_env
 from uabs_rl.safety.modules import DirectEnv
 from uabs_rl.safety.rules import COLLIDERS, RANK_ORDER, SAFETY_TOLERANCE, MaskingRule
-from uabs_rl.traces.build import TraceSet
+from uabs_rl.traces.cache import TraceSet
 
 N_ACTIONS = 4
 TOTALS = ("steps", "repaired", "collisions", "proximity", "fallbacks")

@@ -20,7 +20,8 @@ from uabs_rl.config import (
 from uabs_rl.env.uabs_env import ACTION, MASK, UABSEnv
 from uabs_rl.safety.modules import MaskedActionSelector, SafetyTransform, env_rule
 from uabs_rl.safety.rules import make_rule
-from uabs_rl.traces.build import TraceSet, get_traces
+from uabs_rl.traces.build import get_traces
+from uabs_rl.traces.cache import TraceSet
 
 log = logging.getLogger(__name__)
 
