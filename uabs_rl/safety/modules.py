@@ -3,10 +3,9 @@
 A rank mask needs the higher-ranked agents' *chosen* actions, so it cannot be computed
 before the policy acts: the rule is applied in two places,
 
-* :class:`SafetyTransform`, the env side: the rule's :meth:`~uabs_rl.safety.rules.MaskingRule.write`
-  after every reset and step;
-* :class:`MaskedActionSelector`, the policy's last module: the rule's
-  :meth:`~uabs_rl.safety.rules.MaskingRule.choose`;
+* :class:`SafetyTransform`, the env side: the rule's ``write`` after every reset and
+  step;
+* :class:`MaskedActionSelector`, the policy's last module: the rule's ``choose``;
 
 and :class:`DirectEnv` steps the same env without TensorDicts for the training loop.
 Nothing here tells masking modes apart.
