@@ -22,8 +22,8 @@ import torch
 from uabs_rl.config import ChannelConfig, MaskingConfig, ScenarioConfig, TracesConfig
 from uabs_rl.env.uabs_env import ACTION, UABSEnv
 from uabs_rl.safety.make import make_env, make_selector
-from uabs_rl.safety.masking import ACTION_VALUE
-from uabs_rl.traces.store import get_traces
+from uabs_rl.safety.rules import ACTION_VALUE
+from uabs_rl.traces.build import get_traces
 
 
 def _time(fn, steps: int, episodes: int) -> float:

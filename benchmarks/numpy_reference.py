@@ -31,7 +31,7 @@ from uabs_rl.config import ChannelConfig, ScenarioConfig, TracesConfig
 from uabs_rl.env.links import LinkModel
 from uabs_rl.env.params import EnvParams
 from uabs_rl.env.uabs_env import ACTION, DIAG, OBS, UABSEnv
-from uabs_rl.traces.store import get_traces
+from uabs_rl.traces.build import get_traces
 
 MOVES = np.array([[0.0, 1.0], [1.0, 0.0], [0.0, -1.0], [-1.0, 0.0]], dtype=np.float32)
 

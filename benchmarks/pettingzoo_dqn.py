@@ -28,8 +28,8 @@ from torchrl.objectives import DQNLoss, SoftUpdate
 from uabs_rl.config import compose
 from uabs_rl.env.uabs_env import BACKUP, MASK, POSITION
 from uabs_rl.interop.pettingzoo import UABSParallelEnv, make_parallel_env
-from uabs_rl.safety.masking import flat_recoverable_mask
-from uabs_rl.traces.store import get_traces
+from uabs_rl.safety.rules import flat_recoverable_mask
+from uabs_rl.traces.build import get_traces
 
 GROUP = "uabs"  # PettingZooWrapper groups the agents uabs_0 ... uabs_{M-1} as "uabs"
 

@@ -16,7 +16,7 @@ import torch
 
 from uabs_rl.config import ConfigError, compose
 from uabs_rl.safety.make import make_env, make_selector
-from uabs_rl.traces.store import get_traces
+from uabs_rl.traces.build import get_traces
 
 
 def run(m: int, mode: str, recoverable: bool, envs: int, steps: int,

@@ -25,7 +25,8 @@ from env_bench import bench  # noqa: E402
 
 from uabs_rl.config import ChannelConfig, ScenarioConfig, TracesConfig, compose  # noqa: E402
 from uabs_rl.env.uabs_env import UABSEnv  # noqa: E402
-from uabs_rl.traces.store import TraceSet, get_traces  # noqa: E402
+from uabs_rl.traces.build import get_traces  # noqa: E402
+from uabs_rl.traces.cache import TraceSet  # noqa: E402
 
 
 def synthetic_traces(n_vehicles: int, steps: int, width: float, height: float) -> TraceSet:

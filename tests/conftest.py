@@ -5,7 +5,7 @@ from pathlib import Path
 import pytest
 
 from uabs_rl.config import compose
-from uabs_rl.traces.store import get_traces
+from uabs_rl.traces.build import get_traces
 
 # A small but real SUMO case: 20 vehicles, 60 s recorded after 10 s of warm-up.
 SMALL_TRACES = [

@@ -24,7 +24,7 @@ from uabs_rl.training.checkpoint import CheckpointError, load_checkpoint
 def test_malformed_network_file_names_the_key(tmp_path, trace_cache):
     bad = tmp_path / "bad.net.xml"
     bad.write_text('<net version="1.20"><location netOffset="0,0"/><edge id="e"/></net>')
-    from uabs_rl.traces.store import get_traces
+    from uabs_rl.traces.build import get_traces
 
     cfg = compose_cfg("build_traces", SMALL_TRACES + [f"traces.cache_dir={trace_cache}",
                                                       f"scenario.sumo.net_file={bad}"])

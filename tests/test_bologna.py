@@ -28,7 +28,8 @@ from uabs_rl.config import (
 )
 from uabs_rl.env.uabs_env import OBS
 from uabs_rl.safety.make import make_env, make_selector
-from uabs_rl.traces.store import cache_path, get_traces, split_key
+from uabs_rl.traces.build import get_traces
+from uabs_rl.traces.cache import cache_path, split_key
 
 FOLDER = PROJECT_ROOT / "sumo" / "bologna_acosta"
 SPLITS = ("train", "eval", "test")

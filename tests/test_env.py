@@ -281,7 +281,7 @@ def test_sampled_los_draws_only_where_they_matter(small_traces_cfg):
 def test_lookahead_observation_scores_each_candidate_move(small_traces_cfg):
     """obs.lookahead: one vehicle 40 m east of the UABS is under its footprints
     after a move right (20 m off) and after two (0 m), and nowhere else."""
-    from uabs_rl.traces.store import TraceSet
+    from uabs_rl.traces.cache import TraceSet
 
     steps = 30
     pos = torch.zeros(1, steps, 1, 2)
@@ -307,7 +307,7 @@ def test_motion_observation_scores_moves_at_extrapolated_positions(small_traces_
     where it will be if it keeps moving (40 m east of the UABS: only the move right
     reaches it), while the plain lookahead scores it where it is (under the UABS: every
     move reaches it). At the window's first step there is no last move."""
-    from uabs_rl.traces.store import TraceSet
+    from uabs_rl.traces.cache import TraceSet
 
     steps = 30
     pos = torch.zeros(1, steps, 1, 2)

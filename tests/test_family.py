@@ -16,7 +16,8 @@ from uabs_rl.config import (
     family_scenarios,
 )
 from uabs_rl.env.uabs_env import UABSEnv
-from uabs_rl.traces.store import TraceSet, stack_cities
+from uabs_rl.traces.build import stack_cities
+from uabs_rl.traces.cache import TraceSet
 
 
 def parked(n_sims: int, v: int, w: float, h: float, steps: int = 40, seed: int = 0) -> TraceSet:

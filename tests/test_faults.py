@@ -346,11 +346,20 @@ def test_a_sweep_retyped_with_resume_continues_every_job(trace_cache, tmp_path):
     assert (jobs[1] / ".hydra" / "config.yaml").is_file()
 
 
+@pytest.fixture(scope="module")
+def three_episodes(trace_cache, tmp_path_factory) -> Path:
+    """A finished 3-episode smoke run, trained once for the tests that damage a copy."""
+    run_dir = tmp_path_factory.mktemp("three_episodes") / "run"
+    run(smoke(trace_cache, *QUIET, "train.episodes=3"), run_dir)
+    return run_dir
+
+
 @pytest.mark.parametrize("damage", [b'{"kind": "train", "epis', b"17", b"\xff\xfe{}",
                                     b'{"kind": "train", "episode": "3", "env_steps": 60}'])
-def test_a_damaged_line_before_the_last_is_refused_on_resume(trace_cache, tmp_path, damage):
+def test_a_damaged_line_before_the_last_is_refused_on_resume(three_episodes, trace_cache,
+                                                              tmp_path, damage):
     run_dir = tmp_path / "run"
-    run(smoke(trace_cache, *QUIET, "train.episodes=3"), run_dir)
+    shutil.copytree(three_episodes, run_dir, ignore=shutil.ignore_patterns(".lock"))
     original = (run_dir / "metrics.jsonl").read_bytes().splitlines()
     lines = [*original[:1], damage, *original[2:]]
     (run_dir / "metrics.jsonl").write_bytes(b"\n".join(lines) + b"\n")

@@ -15,13 +15,13 @@ from uabs_rl.config import ChannelConfig, ConfigError, MaskingConfig, MaskingMod
 from uabs_rl.env.params import EnvParams
 from uabs_rl.env.uabs_env import ACTION, BEAM_PRIORITY, DIAG, FALLBACK, MASK, POSITION, StepMath
 from uabs_rl.safety.make import make_env, make_selector
-from uabs_rl.safety.masking import (
+from uabs_rl.safety.modules import DirectEnv
+from uabs_rl.safety.rules import (
     ACTION_VALUE,
     COLLIDERS,
     RANK_ORDER,
     RULES,
     SAFETY_TOLERANCE,
-    DirectEnv,
     apply_fallback,
     epsilon_greedy,
     flat_unsafe,

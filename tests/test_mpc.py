@@ -32,7 +32,7 @@ from uabs_rl.evaluation.predict import (
     schedule,
 )
 from uabs_rl.safety.make import make_env, make_selector
-from uabs_rl.traces.store import TraceSet
+from uabs_rl.traces.cache import TraceSet
 
 
 def eval_env(trace_cache, *overrides: str, windows: int = 2):

@@ -11,7 +11,7 @@ from uabs_rl.config import AreaConfig, ChannelConfig, ObsConfig, ScenarioConfig
 from uabs_rl.env.observe import map_offsets, nearest_neighbours
 from uabs_rl.env.params import EnvParams
 from uabs_rl.env.uabs_env import UABSEnv
-from uabs_rl.traces.store import TraceSet
+from uabs_rl.traces.cache import TraceSet
 
 EGO = ObsConfig(name="egocentric", frame="egocentric", motion=True)
 STEP = 20.0  # the lattice pitch v·δt of the defaults

@@ -154,7 +154,7 @@ class Payload:
 
 def test_a_cache_file_holding_a_pickle_payload_never_runs_it(tmp_path):
     from tests.conftest import compose_cfg
-    from uabs_rl.traces.store import cache_path
+    from uabs_rl.traces.cache import cache_path
 
     cache = tmp_path / "cache"
     cfg = compose_cfg("build_traces", SMALL_TRACES + [f"traces.cache_dir={cache}"])

@@ -23,7 +23,7 @@ from uabs_rl.config import ChannelConfig, MaskingConfig  # noqa: E402
 from uabs_rl.env.geometry import UNIT_MOVES, path_distance  # noqa: E402
 from uabs_rl.env.uabs_env import MASK  # noqa: E402
 from uabs_rl.interop.pettingzoo import make_parallel_env, parallel_rank_mask  # noqa: E402
-from uabs_rl.safety.masking import (  # noqa: E402
+from uabs_rl.safety.rules import (  # noqa: E402
     SAFETY_TOLERANCE,
     flat_recoverable_mask,
     potential_colliders,

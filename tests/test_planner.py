@@ -30,7 +30,7 @@ from uabs_rl.evaluation.planner import (
     weighted_kmeans,
 )
 from uabs_rl.safety.make import make_env, make_selector
-from uabs_rl.traces.store import TraceSet
+from uabs_rl.traces.cache import TraceSet
 
 
 def eval_env(trace_cache, *overrides: str, windows: int = 4):

@@ -10,7 +10,7 @@ from tests.test_train import smoke
 from uabs_rl.cli.train import run
 from uabs_rl.config import ConfigError, validate_run
 from uabs_rl.evaluation.stats import iqm, paired_difference, t_interval
-from uabs_rl.traces import store as traces_mod
+from uabs_rl.traces import build as traces_mod
 
 
 @pytest.mark.parametrize("override,split", [
@@ -34,7 +34,7 @@ def test_training_and_checkpoint_selection_never_read_test_traces(trace_cache, t
         asked.append(split)
         return real(scenario, traces_cfg, split, verbose)
 
-    for mod in ("uabs_rl.traces.store", "uabs_rl.safety.make", "uabs_rl.evaluation.evaluator"):
+    for mod in ("uabs_rl.traces.build", "uabs_rl.safety.make", "uabs_rl.evaluation.evaluator"):
         monkeypatch.setattr(f"{mod}.get_traces", spy)
     run(smoke(trace_cache, "train.logger=none", "train.trajectory_images=false"),
         tmp_path / "run")

@@ -4,6 +4,7 @@ cache files, SUMO refusing an input, empty traces, interrupted and killed builds
 from __future__ import annotations
 
 import errno
+import json
 import logging
 import os
 import pickle
@@ -20,16 +21,9 @@ import torch
 
 from tests.conftest import SMALL_TRACES, compose_cfg
 from uabs_rl.config import PROJECT_ROOT, ConfigError
-from uabs_rl.traces import store as traces_mod
-from uabs_rl.traces.store import (
-    TracesInterrupted,
-    build_split,
-    cache_path,
-    get_traces,
-    load_traceset,
-    save_traceset,
-    split_key,
-)
+from uabs_rl.traces import build as traces_mod
+from uabs_rl.traces.build import TracesInterrupted, build_split, get_traces
+from uabs_rl.traces.cache import cache_path, load_traceset, save_traceset, split_key
 
 MANHATTAN = PROJECT_ROOT / "sumo" / "manhattan" / "manhattan.net.xml"
 INTERRUPTED = ("interrupted while building the train traces: nothing was cached; run the "
@@ -68,7 +62,7 @@ def test_a_cache_file_of_another_split_is_rebuilt(trace_cache, tmp_path, train, 
     eval_path = cache_path(cfg.scenario, cfg.traces, "eval")
     train_path = cache_path(cfg.scenario, cfg.traces, "train")
     shutil.copy(eval_path, train_path)  # the validation file under the training name
-    with caplog.at_level(logging.WARNING, logger="uabs_rl.traces.store"):
+    with caplog.at_level(logging.WARNING, logger="uabs_rl.traces.cache"):
         ts = get_traces(cfg.scenario, cfg.traces, "train")
     assert ts.source == "built" and ts.meta["split"] == "train"
     assert ts.meta["cache_key"] == train_path.stem
@@ -83,9 +77,9 @@ def test_a_cache_file_of_another_split_is_rebuilt(trace_cache, tmp_path, train, 
 def without_key(src: Path, dst: Path) -> None:
     """``src`` as the previous format wrote it: no cache key in its metadata."""
     blob = torch.load(src, weights_only=True)
-    meta = traces_mod.json.loads(blob["meta_json"])
+    meta = json.loads(blob["meta_json"])
     del meta["cache_key"]
-    blob["meta_json"] = traces_mod.json.dumps(meta)
+    blob["meta_json"] = json.dumps(meta)
     torch.save(blob, dst)
 
 
@@ -102,7 +96,7 @@ def test_a_cache_file_saved_without_its_key_is_checked_on_its_parameters(
         kept = get_traces(cfg.scenario, cfg.traces, "train")
     assert kept.source == "cache" and "cache_key" not in kept.meta
     without_key(eval_path, train_path)
-    with caplog.at_level(logging.WARNING, logger="uabs_rl.traces.store"):
+    with caplog.at_level(logging.WARNING, logger="uabs_rl.traces.cache"):
         rebuilt = get_traces(cfg.scenario, cfg.traces, "train")
     assert rebuilt.source == "built" and torch.equal(rebuilt.positions, train.positions)
     [warning] = warnings_of(caplog)
@@ -117,7 +111,7 @@ def test_a_damaged_cache_warning_gives_no_unsafe_advice(trace_cache, tmp_path, t
     cfg = private_copy(trace_cache, tmp_path)
     path = cache_path(cfg.scenario, cfg.traces, "train")
     torch.save({"positions": Evil()}, path, pickle_module=pickle)
-    with caplog.at_level(logging.WARNING, logger="uabs_rl.traces.store"):
+    with caplog.at_level(logging.WARNING, logger="uabs_rl.traces.cache"):
         ts = get_traces(cfg.scenario, cfg.traces, "train")
     assert ts.source == "built" and torch.equal(ts.positions, train.positions)
     [warning] = warnings_of(caplog)

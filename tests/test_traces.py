@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import copy
 import logging
+import subprocess
+import sys
 
 import pytest
 import sumolib
@@ -13,8 +15,9 @@ from omegaconf.errors import ConfigKeyError, ValidationError
 
 from tests.conftest import SMALL_TRACES, compose_cfg
 from uabs_rl.config import ConfigError, resolve_path
-from uabs_rl.traces import store as traces_mod
-from uabs_rl.traces.store import build_split, cache_path, get_traces
+from uabs_rl.traces import build as traces_mod
+from uabs_rl.traces.build import build_split, get_traces
+from uabs_rl.traces.cache import cache_path, load_traceset
 
 
 def test_shapes_and_dtypes(train, held_out):
@@ -109,12 +112,12 @@ def test_corrupt_cache_is_detected_and_rebuilt(small_traces_cfg, held_out, damag
         blob = torch.load(path, weights_only=True)
         blob["positions"][0, 5, 3, 0] += 1.0
         torch.save(blob, path)
-    with caplog.at_level(logging.WARNING, logger="uabs_rl.traces.store"):
+    with caplog.at_level(logging.WARNING, logger="uabs_rl.traces.cache"):
         rebuilt = get_traces(small_traces_cfg.scenario, small_traces_cfg.traces, "eval")
     assert rebuilt.source == "built"
     assert "damaged" in caplog.text and str(path) in caplog.text
     assert torch.equal(rebuilt.positions, held_out.positions)
-    assert traces_mod.load_traceset(path).source == "cache"  # the rebuilt file is sound
+    assert load_traceset(path).source == "cache"  # the rebuilt file is sound
 
 
 def test_missing_network_file_names_the_key(trace_cache):
@@ -192,7 +195,7 @@ def tiny_netgcfg(tmp_path, monkeypatch) -> None:
 def test_net_file_is_built_from_its_netgcfg(tmp_path, monkeypatch):
     """A network kept in the repository as its netgenerate config (sumo/city) is built
     on first use, next to the config, and then found as any network."""
-    from uabs_rl.traces.store import net_file
+    from uabs_rl.traces.inputs import net_file
 
     tiny_netgcfg(tmp_path, monkeypatch)
     built = net_file("g/tiny.net.xml")
@@ -211,7 +214,7 @@ def test_net_file_is_built_from_its_netgcfg(tmp_path, monkeypatch):
 def test_two_builds_of_a_network_are_byte_identical(tmp_path, monkeypatch):
     """netgenerate writes its start time and the temporary output name into the header:
     both are normalised, so a fresh checkout's build keys the same cached traces."""
-    from uabs_rl.traces.store import net_file
+    from uabs_rl.traces.inputs import net_file
 
     tiny_netgcfg(tmp_path, monkeypatch)
     first = net_file("g/tiny.net.xml").read_bytes()
@@ -238,3 +241,19 @@ def test_city_scenario_holds_its_fleet():
     assert window_count(ev.n_sims, steps, sc.episode_steps) >= cfg.train.eval_windows
     p = EnvParams.from_config(sc, cfg.channel)
     assert lattice_packing(p, p.d_th + 2 * sc.speed * sc.dt).shape[0] >= 30
+
+
+def test_the_package_serves_every_public_name_and_a_worker_starts_without_torch():
+    """``uabs_rl.traces`` exports each room's public names (loaded on first use), so a
+    SUMO worker, which imports the package, still starts without torch."""
+    import uabs_rl.traces as traces
+    from uabs_rl.traces import build, cache, inputs
+
+    for name in traces.__all__:
+        home = next(m for m in (inputs, cache, build) if hasattr(m, name))
+        assert getattr(traces, name) is getattr(home, name), name
+    probe = ("import sys, uabs_rl.traces, uabs_rl.traces.sumo_sim; "
+             "print('torch' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                         check=True)
+    assert out.stdout.strip() == "False"

@@ -20,7 +20,7 @@ from uabs_rl.cli.evaluate import load_evaluation
 from uabs_rl.cli.train import prepare, run
 from uabs_rl.config import ConfigError, validate_run
 from uabs_rl.safety.make import make_selector
-from uabs_rl.traces.store import TraceSet
+from uabs_rl.traces.cache import TraceSet
 from uabs_rl.training.checkpoint import (
     CheckpointError,
     Interrupted,

@@ -15,7 +15,7 @@ import yaml
 from tests.test_train import smoke
 from uabs_rl.cli.evaluate import main as eval_main
 from uabs_rl.cli.train import run
-from uabs_rl.traces.store import netgenerate_path
+from uabs_rl.traces.inputs import netgenerate_path
 
 
 def _netgenerate() -> str:
@@ -170,7 +170,7 @@ def test_training_over_a_family_of_cities(trace_cache, user_dir, tmp_path, caplo
              f"sumo:{{net_file:'{user_dir / 'grid4.net.xml'}',fleet_size:30}}}}")
     cfg = smoke(trace_cache, "obs=egocentric", f"family=[{{}},{grid4}]",
                 "train.logger=none", "train.trajectory_images=false")
-    with caplog.at_level(logging.INFO, logger="uabs_rl.traces.store"):
+    with caplog.at_level(logging.INFO, logger="uabs_rl.traces.build"):
         run(cfg, tmp_path)
     assert "family city grid4" in caplog.text and "family city manhattan" in caplog.text
     recs = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]

@@ -208,7 +208,7 @@ runpy.run_module("uabs_rl.cli.train", run_name="__main__")
 @pytest.fixture(scope="module")
 def smoke_cache(trace_cache) -> Path:
     """``trace_cache`` holding the smoke preset's traces (their build prints progress)."""
-    from uabs_rl.traces.store import get_traces
+    from uabs_rl.traces.build import get_traces
 
     cfg = smoke(trace_cache)
     for split in ("train", "eval"):

@@ -9,13 +9,8 @@ from pathlib import Path
 
 from uabs_rl.cli.hydra import hydra_main
 from uabs_rl.config import ConfigError, TracesAppConfig, family_scenarios
-from uabs_rl.traces.store import (
-    SPLITS,
-    TracesInterrupted,
-    cache_path,
-    check_names,
-    get_traces,
-)
+from uabs_rl.traces.build import SPLITS, TracesInterrupted, check_names, get_traces
+from uabs_rl.traces.cache import cache_path
 
 
 def build(cfg: TracesAppConfig, _output_dir: Path | None = None) -> None:

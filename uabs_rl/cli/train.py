@@ -42,7 +42,7 @@ from uabs_rl.config import (
     validate_run,
 )
 from uabs_rl.paths import check_path, name_max
-from uabs_rl.traces.store import check_names
+from uabs_rl.traces.build import check_names
 from uabs_rl.training import runfolder
 from uabs_rl.training.checkpoint import (
     CheckpointError,

@@ -28,7 +28,7 @@ from uabs_rl.env._compile import compiled_or_eager
 from uabs_rl.env.geometry import Geometry
 from uabs_rl.env.links import LinkModel
 from uabs_rl.env.params import EnvParams
-from uabs_rl.traces.store import TraceSet
+from uabs_rl.traces.cache import TraceSet
 
 # Nested keys, in one place.
 AGENTS = "agents"
@@ -373,7 +373,7 @@ class UABSEnv(EnvBase):
             if mode == "eval" else None)
         # one generator, or one per population member (a list of seeds; see uabs_rl.rng)
         self.rng = rng.make_generator(seed, device)
-        # a family of cities (traces.store.stack_cities): each sim's city and their areas
+        # a family of cities (traces.build.stack_cities): each sim's city and their areas
         family = traces.meta.get("city_of_sim")
         self.register_buffer("city_of_sim", None if family is None else
                              torch.tensor(family, dtype=torch.long, device=device))

@@ -1,7 +1,7 @@
 """Baselines beyond the paper (SPEC §9), acting through the same masked selector.
 
 Each heuristic writes Q-like scores into ``("agents", "action_value")``; the masking
-mode's :class:`~uabs_rl.safety.masking.MaskedActionSelector` (ε = 0) then picks the best legal
+mode's :class:`~uabs_rl.safety.modules.MaskedActionSelector` (ε = 0) then picks the best legal
 action, so baselines obey exactly the masks the learned policy obeys.
 
 * ``random``: a uniformly random legal action (the selector with ε = 1).
@@ -27,7 +27,8 @@ from torchrl.envs import TransformedEnv
 
 from uabs_rl.env.service import move_scores
 from uabs_rl.env.uabs_env import POSITION, UABSEnv
-from uabs_rl.safety.masking import ACTION_VALUE, MaskedActionSelector
+from uabs_rl.safety.modules import MaskedActionSelector
+from uabs_rl.safety.rules import ACTION_VALUE
 
 BASELINES = ("random", "greedy", "oracle")
 HEURISTICS = ("kmeans", "junctions")  # classic heuristics (uabs_rl.evaluation.planner)

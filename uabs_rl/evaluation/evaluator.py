@@ -18,8 +18,9 @@ from uabs_rl.env.channel import coverage_fraction
 from uabs_rl.env.uabs_env import DIAG, OBS, POSITION, window_count
 from uabs_rl.rng import make_generator
 from uabs_rl.safety.make import make_env, make_selector
-from uabs_rl.safety.masking import ACTION_VALUE
-from uabs_rl.traces.store import TraceSet, get_traces
+from uabs_rl.safety.rules import ACTION_VALUE
+from uabs_rl.traces.build import get_traces
+from uabs_rl.traces.cache import TraceSet
 
 log = logging.getLogger(__name__)
 

@@ -1,7 +1,7 @@
 """A planning reference and two classic heuristics, acting through the masked selector.
 
 Like :mod:`uabs_rl.evaluation.baselines`, each writes scores into ``("agents", "action_value")``
-and the masking mode's :class:`~uabs_rl.safety.masking.MaskedActionSelector` (ε = 0) picks the
+and the masking mode's :class:`~uabs_rl.safety.modules.MaskedActionSelector` (ε = 0) picks the
 best legal action, so every one of them obeys the masks the learned policy obeys.
 
 * :class:`PlannerScore` (``uabs-eval --policy planner --horizon H``): a centralised
@@ -29,7 +29,7 @@ from uabs_rl.env.channel import assign_beams
 from uabs_rl.env.service import move_scores
 from uabs_rl.env.uabs_env import BEAM_PRIORITY, MASK, POSITION, UABSEnv
 from uabs_rl.evaluation.predict import Predictor, TrueFuture
-from uabs_rl.safety.masking import ACTION_VALUE, rank_order
+from uabs_rl.safety.rules import ACTION_VALUE, rank_order
 
 JITTER = 1e-3  # the baselines' seeded tie-break, scaled as in baselines.CoverageScore
 
@@ -337,7 +337,7 @@ def junctions(scenario, geometry) -> torch.Tensor:
     """[S, 2] the street network's junctions inside the area, area-relative and moved to
     the nearest lattice point (where a UABS can be); every lattice point for a scenario
     given as a .sumocfg (no network file to read)."""
-    from uabs_rl.traces.store import read_net, scenario_inputs
+    from uabs_rl.traces.inputs import read_net, scenario_inputs
 
     lo, n, step = geometry.lattice_lo, geometry.lattice_n, geometry.p.step_m
     net = scenario_inputs(scenario)["net_file"]
@@ -358,7 +358,7 @@ def junction_sites(cfg, env: UABSEnv) -> torch.Tensor:
     the validation traces (``traces.eval``, never the evaluated ones), at least
     d_th + v·δt apart (so that, hovering a step off, they keep d_th) where M such
     sites exist."""
-    from uabs_rl.traces.store import get_traces
+    from uabs_rl.traces.build import get_traces
 
     p = env.params
     geo = env.math.geometry

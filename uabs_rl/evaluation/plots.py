@@ -19,7 +19,7 @@ from matplotlib.patches import Circle  # noqa: E402
 
 from uabs_rl.config import AreaConfig, ScenarioConfig  # noqa: E402
 from uabs_rl.env.channel import beam_centres  # noqa: E402
-from uabs_rl.safety.masking import masks_collisions  # noqa: E402
+from uabs_rl.safety.rules import masks_collisions  # noqa: E402
 
 COLORS = plt.rcParams["axes.prop_cycle"].by_key()["color"]
 # a paper's single column and full text width (inches, IEEE two-column)
@@ -63,7 +63,7 @@ def save_paper_figure(draw, path: Path | str) -> list[Path]:
 @lru_cache(maxsize=8)
 def lane_segments(net_file: str, x0: float, y0: float) -> np.ndarray:
     """[K, 2, 2] line segments of every lane (internal ones included), area-relative."""
-    from uabs_rl.traces.store import read_net
+    from uabs_rl.traces.inputs import read_net
 
     net = read_net(net_file)
     segs = []
@@ -76,7 +76,7 @@ def lane_segments(net_file: str, x0: float, y0: float) -> np.ndarray:
 
 def scenario_lanes(scenario: ScenarioConfig) -> np.ndarray | None:
     """Lane segments of the scenario's network (None for a .sumocfg scenario)."""
-    from uabs_rl.traces.store import scenario_inputs
+    from uabs_rl.traces.inputs import scenario_inputs
 
     net = scenario_inputs(scenario)["net_file"]
     a = scenario.area

@@ -27,7 +27,7 @@ action at once, from masks computed before any agent chooses):
   bound of every agent's legal set) and the repair below applies the rank rule.
 
 Repair: the actions received are applied through the rule's own choice
-(:meth:`~uabs_rl.safety.masking.MaskingRule.choose`, in rank order for rank) with each
+(:meth:`~uabs_rl.safety.rules.MaskingRule.choose`, in rank order for rank) with each
 agent's action preferred, then its backup: an action inside the mask given is executed
 as is (for rank: whatever the higher-ranked agents did); one outside it (a learner that
 ignores the mask) is executed if the rule allows it (rank: given the higher-ranked
@@ -70,14 +70,9 @@ from uabs_rl.env.uabs_env import (
     REWARD,
 )
 from uabs_rl.safety.make import make_env
-from uabs_rl.safety.masking import (
-    COLLIDERS,
-    RANK_ORDER,
-    SAFETY_TOLERANCE,
-    DirectEnv,
-    MaskingRule,
-)
-from uabs_rl.traces.store import TraceSet
+from uabs_rl.safety.modules import DirectEnv
+from uabs_rl.safety.rules import COLLIDERS, RANK_ORDER, SAFETY_TOLERANCE, MaskingRule
+from uabs_rl.traces.cache import TraceSet
 
 N_ACTIONS = 4
 TOTALS = ("steps", "repaired", "collisions", "proximity", "fallbacks")
@@ -242,7 +237,7 @@ class UABSParallelEnv(ParallelEnv):
 
 
 class _Entries(dict):
-    """The ``get`` that :class:`~uabs_rl.safety.masking.DirectEnv.step` reads."""
+    """The ``get`` that :class:`~uabs_rl.safety.modules.DirectEnv.step` reads."""
 
     def get(self, key, default=None):
         return super().get(key, default)

@@ -18,8 +18,10 @@ from uabs_rl.config import (
     TracesConfig,
 )
 from uabs_rl.env.uabs_env import ACTION, MASK, UABSEnv
-from uabs_rl.safety.masking import MaskedActionSelector, SafetyTransform, env_rule, make_rule
-from uabs_rl.traces.store import TraceSet, get_traces
+from uabs_rl.safety.modules import MaskedActionSelector, SafetyTransform, env_rule
+from uabs_rl.safety.rules import make_rule
+from uabs_rl.traces.build import get_traces
+from uabs_rl.traces.cache import TraceSet
 
 log = logging.getLogger(__name__)
 

@@ -16,7 +16,8 @@ from uabs_rl.algorithms import Algorithm
 from uabs_rl.algorithms.replay import TransitionReplay
 from uabs_rl.config import AlgoConfig
 from uabs_rl.env.uabs_env import ACTION, DIAG, DIAG_ENTRIES, MASK, OBS, REWARD
-from uabs_rl.safety.masking import ACTION_VALUE, DirectEnv, MaskedActionSelector
+from uabs_rl.safety.modules import DirectEnv, MaskedActionSelector
+from uabs_rl.safety.rules import ACTION_VALUE
 
 
 def epsilon(algo: AlgoConfig, env_steps: int, total_steps: int) -> float:

@@ -9,10 +9,14 @@ Every mode is a :class:`MaskingRule`, registered under its :class:`MaskingMode` 
   (:meth:`MaskingRule.choose`, a pure tensor function, compilable),
 * which mask the double-DQN target maximises over at s' (:meth:`MaskingRule.target_mask`).
 
-Two thin TorchRL wrappers apply a rule, because a rank mask needs the higher-ranked
-agents' *chosen* actions and so cannot be computed before the policy acts:
-:class:`SafetyTransform` (the env side: :meth:`~MaskingRule.write`) and
-:class:`MaskedActionSelector` (the policy's last module: :meth:`~MaskingRule.choose`).
+Rules are plain tensor math on ``nn.Module``s (for ``.to()``); the TorchRL modules
+that apply one live in :mod:`uabs_rl.safety.modules`: ``SafetyTransform`` (the env
+side: :meth:`~MaskingRule.write`) and ``MaskedActionSelector`` (the policy's last
+module: :meth:`~MaskingRule.choose`), because a rank mask needs the higher-ranked
+agents' *chosen* actions and so cannot be computed before the policy acts. How reports
+name and rank the modes (:data:`PAPER_ORDER`, :func:`mode_phrase`) sits beside the
+registry. A new mode is a rule class here and a member of ``MaskingMode`` (with its
+``conf/masking/<mode>.yaml``).
 
 * ``penalty``: only the env's boundary mask; safety is left to the penalties.
 * ``flat``: ``("agents", "action_mask")`` = boundary AND the pairwise flat rule, with the
@@ -72,18 +76,14 @@ from typing import ClassVar
 
 import torch
 from tensordict import TensorDictBase
-from tensordict.nn import TensorDictModuleBase
 from torch import nn
 from torchrl.data import Binary, Categorical, TensorSpec
-from torchrl.envs import TransformedEnv
-from torchrl.envs.transforms import Transform
 
 from uabs_rl import rng
 from uabs_rl.config import MaskingConfig, MaskingMode, RankNextMask, enum_value, validate_masking
-from uabs_rl.env._compile import compiled_or_eager
 from uabs_rl.env.geometry import UNIT_MOVES, path_distance
 from uabs_rl.env.params import EnvParams
-from uabs_rl.env.uabs_env import ACTION, BACKUP, BEAM_PRIORITY, FALLBACK, MASK, POSITION, Outputs
+from uabs_rl.env.uabs_env import BACKUP, BEAM_PRIORITY, FALLBACK, MASK, POSITION, Outputs
 
 ACTION_VALUE = ("agents", "action_value")
 # recoverable masks keep pairs at least d_th − this apart (metres): float round-off of
@@ -402,112 +402,3 @@ def make_rule(masking: MaskingConfig, params: EnvParams) -> MaskingRule:
     validate_masking(masking)
     cls = RULES[MaskingMode(masking.mode)]
     return cls(masking, params.d_th, params.step_m, UNIT_MOVES * params.step_m)
-
-
-# ----------------------------------------------------------------------------- TorchRL modules
-class SafetyTransform(Transform):
-    """Applies a rule's :meth:`~MaskingRule.write` to every reset and step output."""
-
-    def __init__(self, rule: MaskingRule):
-        super().__init__(in_keys=[], out_keys=[])
-        self.rule = rule
-
-    def _call(self, td: TensorDictBase) -> TensorDictBase:
-        self.rule.write(td)
-        return td
-
-    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase):
-        return self._call(tensordict_reset)
-
-    def transform_observation_spec(self, observation_spec):
-        agents = observation_spec["agents"]
-        e, m = agents.shape
-        for name, spec in self.rule.specs(e, m, observation_spec.device).items():
-            agents[name] = spec
-        return observation_spec
-
-
-def env_rule(env: TransformedEnv) -> MaskingRule:
-    """The masking rule of an env built by :func:`uabs_rl.safety.make.make_env`: the rule of its
-    :class:`SafetyTransform`, which the selector and the learner's target mask share."""
-    transforms = getattr(env.transform, "transforms", [env.transform])
-    for t in transforms:
-        if isinstance(t, SafetyTransform):
-            return t.rule
-    raise TypeError(f"no SafetyTransform in {env.transform!r}: build the env with "
-                    f"uabs_rl.safety.make.make_env, which adds the masking rule's transform")
-
-
-class DirectEnv:
-    """The training env without TensorDicts: ``reset()`` and ``step(td)`` of the
-    ``TransformedEnv(UABSEnv, SafetyTransform)`` that :func:`uabs_rl.safety.make.make_env`
-    builds, returning :class:`~uabs_rl.env.uabs_env.Outputs` (a flat dict keyed as the
-    TensorDict), entry for entry equal to ``env.reset()`` and ``env.step(td)["next"]``
-    (``tests/test_masking.py``). It runs the env's step math and the rule's :meth:`write`
-    and skips what TorchRL does on every call (building nested TensorDicts, shape and
-    done checks, the ``"next"`` entry). The training loop steps through it; evaluation
-    and everything a user calls keep the TorchRL env.
-
-    Why a second path: measured on the 2-core development CPU
-    (``benchmarks/env_bench.py --n-envs 1``, the paper's env), ``env.step`` takes
-    0.51 ms where the step math alone takes 0.36 ms; the 0.14 ms more, at every env
-    step, would be 8 % of the main job's training step (1.7 ms,
-    ``benchmarks/train_bench.py``), above the 5 % that keeping two paths needs."""
-
-    def __init__(self, env: TransformedEnv):
-        if not isinstance(env.transform, SafetyTransform):
-            raise TypeError(f"DirectEnv needs the env of make_env(..., spec_mask=False): a "
-                            f"UABSEnv with one SafetyTransform, got {env.transform!r}")
-        self.base, self.rule = env.base_env, env.transform.rule
-
-    def reset(self) -> Outputs:
-        out = self.base.reset_direct()
-        self.rule.write(out)
-        return out
-
-    def step(self, td: Outputs | TensorDictBase) -> Outputs:
-        """The outputs after the action ``td`` holds (with the selector's fallback
-        flags)."""
-        out = self.base.step_direct(td.get(ACTION), td.get(FALLBACK, None))
-        self.rule.write(out)
-        return out
-
-
-class MaskedActionSelector(TensorDictModuleBase):
-    """ε-greedy action choice under a rule's masks: the policy's last module.
-
-    Reads ``("agents", "action_value")`` when present (absent: a uniformly random legal
-    policy), the mask and the rule's :attr:`~MaskingRule.choice_keys`. Writes the
-    action, the mask that applied and the fallback flags. ``eps`` is a buffer the
-    trainer anneals; ``generator`` makes exploration reproducible."""
-
-    def __init__(self, rule: MaskingRule, eps: float = 0.0,
-                 generator: torch.Generator | None = None, compile: bool = False):
-        super().__init__()
-        self.rule, self.generator = rule, generator
-        self.in_keys = [ACTION_VALUE, MASK, *rule.choice_keys]
-        self.out_keys = [("agents", "action"), MASK, FALLBACK]
-        self.register_buffer("eps", torch.tensor(float(eps)))
-        self._choose = compiled_or_eager(rule.choose, "the action selection",
-                                          rule.moves.device) if compile \
-            else rule.choose
-
-    def forward(self, td: TensorDictBase | Outputs) -> TensorDictBase | Outputs:
-        mask = td.get(MASK)
-        u = uniforms(mask.shape[:-1], self.generator, mask.device)
-        action, mask, fallback = self._choose(
-            td.get(ACTION_VALUE, None), mask, *(td.get(k) for k in self.rule.choice_keys),
-            eps=self.eps, u=u)
-        if fallback is None:
-            fallback = td.get(FALLBACK, None)
-            if fallback is None:
-                fallback = torch.zeros(mask.shape[:-1], dtype=torch.bool, device=mask.device)
-        td.set(("agents", "action"), action)
-        td.set(MASK, mask)
-        td.set(FALLBACK, fallback)
-        return td
-
-    def target_mask(self, td: TensorDictBase | Outputs) -> torch.Tensor:
-        """The rule's double-DQN target mask at ``td`` (s' with its Q-values), computed
-        with this selector's (possibly compiled) choice."""
-        return self.rule.target_mask(td, self._choose)
