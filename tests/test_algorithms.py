@@ -15,7 +15,14 @@ from uabs_rl.algorithms import ALGORITHMS, Dims, make_algorithm
 from uabs_rl.algorithms import dqn3 as dqn3_module
 from uabs_rl.algorithms.model import DuelingQNet
 from uabs_rl.algorithms.replay import TransitionReplay, upgrade_flat_replay
-from uabs_rl.config import AlgoConfig, ConfigError
+from uabs_rl.config import AlgoConfig, ConfigError, QmixConfig, algo_schema
+
+
+def learner_config(name: str, **kw) -> AlgoConfig:
+    """The settings of the learner ``name`` in its own schema (QMIX's mixer 8 wide)."""
+    if name == "qmix":
+        kw.setdefault("mixing_embed_dim", 8)
+    return algo_schema(name)(name=name, **kw)
 
 
 def dqn3(algo: AlgoConfig | None = None, obs_dim: int = 18, seeds=(0,), agents: int = 3):
@@ -54,7 +61,7 @@ def test_registry_dispatches_algo_name_and_refuses_an_unknown_one():
     assert type(dqn3()).__name__ == "DQN3" and "dqn3" in ALGORITHMS
     with pytest.raises(ConfigError, match=r"algo.name='vdm' is not a registered.*dqn3"):
         make_algorithm(AlgoConfig(name="vdm"), Dims(18, 4, 3), [0], torch.device("cpu"))
-    from uabs_rl.config import validate_algo_name
+    from uabs_rl.training.startup import validate_algo_name
     with pytest.raises(ConfigError, match=r"algo.loss=torchrl .* algo=vdn has its own"):
         validate_algo_name(AlgoConfig(name="vdn", loss="torchrl"))
 
@@ -323,7 +330,7 @@ def test_n_step_transitions_sum_the_next_rewards(trace_cache, tmp_path, mode):
 
 # ----------------------------------------------------------------------------- QMIX
 def qmix(seeds=(0,), **kw):
-    return make_algorithm(AlgoConfig(name="qmix", hidden=[16], mixing_embed_dim=8, **kw),
+    return make_algorithm(QmixConfig(hidden=[16], mixing_embed_dim=8, **kw),
                           Dims(5, 4, 3), list(seeds), torch.device("cpu"))
 
 
@@ -393,8 +400,8 @@ def test_the_target_never_maximises_over_a_masked_action(name, seed, members, le
     mask* (a masked action is never the target's argmax, even when it has the highest
     online value), for random states and masks, single runs and populations."""
     m = 3
-    lrn = make_algorithm(AlgoConfig(name=name, hidden=[16], mixing_embed_dim=8),
-                         Dims(5, 4, m), list(range(members)), torch.device("cpu"))
+    lrn = make_algorithm(learner_config(name, hidden=[16]), Dims(5, 4, m),
+                         list(range(members)), torch.device("cpu"))
     with torch.no_grad():
         for p in lrn.loss_module.target_network.parameters():
             p.add_(0.1)
@@ -481,7 +488,7 @@ def test_a_prioritized_update_weights_the_loss_and_sets_the_td_errors_as_priorit
 
 
 def test_prioritized_replay_refuses_the_reference_loss():
-    from uabs_rl.config import validate_algo_name
+    from uabs_rl.training.startup import validate_algo_name
     with pytest.raises(ConfigError, match=r"algo.replay=prioritized needs the fused loss"):
         validate_algo_name(AlgoConfig(loss="torchrl", replay="prioritized"))
 
@@ -524,3 +531,29 @@ def test_qmix_clips_each_members_network_and_mixer_by_their_joint_norm(members):
                torch.stack([g.pow(2).sum() for g in lrn.policy.member_tensors(grads, p).values()]))
         mixer = torch.stack([q.grad.pow(2).sum() for q in lrn.mixers[p].parameters()])
         assert (net.sum() + mixer.sum()).sqrt().item() == pytest.approx(1e-3, rel=1e-4)
+
+
+def test_qmix_settings_are_its_own():
+    """``algo.mixing_embed_dim`` is QMIX's own setting (QmixConfig, selected with
+    algo=qmix): another learner has no such key, ``algo.name`` alone cannot pair one
+    learner with another's settings, and a run stored before the split (every learner's
+    algo held the key) loads with it only for QMIX."""
+    from hydra.errors import ConfigCompositionException
+
+    from uabs_rl.config import compose
+    from uabs_rl.training.checkpoint import config_dict, config_from_checkpoint
+    from uabs_rl.training.startup import validate_algo_name
+
+    cfg = compose("config", ["algo=qmix", "algo.mixing_embed_dim=8", "experiment=smoke"])
+    assert type(cfg.algo) is QmixConfig and cfg.algo.mixing_embed_dim == 8
+    assert cfg.algo.hidden == [32, 32]  # the preset still sizes the network
+    with pytest.raises(ConfigCompositionException):
+        compose("config", ["algo.mixing_embed_dim=8"])
+    for wrong in (AlgoConfig(name="qmix"), QmixConfig(name="dqn3")):
+        with pytest.raises(ConfigError, match=r"select the learner with algo="):
+            validate_algo_name(wrong)
+    stored = config_dict(compose("config"))
+    stored["algo"]["mixing_embed_dim"] = 32
+    assert type(config_from_checkpoint({"config": stored}).algo) is AlgoConfig
+    stored["algo"].update(name="qmix", mixing_embed_dim=16)
+    assert config_from_checkpoint({"config": stored}).algo == QmixConfig(mixing_embed_dim=16)

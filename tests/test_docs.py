@@ -8,12 +8,11 @@ from __future__ import annotations
 import re
 import subprocess
 import sys
-from dataclasses import fields, is_dataclass
 from pathlib import Path
 
 import pytest
 
-from uabs_rl.config import CONF_DIR, PROJECT_ROOT, RunConfig
+from uabs_rl.config import CONF_DIR, PROJECT_ROOT, setting_roles
 
 # the pages these checks own (docs/results/ and docs/bad_inputs.md are generated or
 # kept elsewhere)
@@ -49,13 +48,9 @@ def code_text(page: Path) -> str:
 
 
 def setting_exists(key: str) -> bool:
-    """True if the dotted ``key`` is a field of RunConfig (or of its nested sections)."""
-    node: object = RunConfig()
-    for part in key.split("."):
-        if not (is_dataclass(node) and part in {f.name for f in fields(node)}):
-            return False
-        node = getattr(node, part)
-    return True
+    """True if the dotted ``key`` is a setting of RunConfig or a section of them (a
+    learner's own settings included)."""
+    return any(k == key or k.startswith(key + ".") for k in setting_roles())
 
 
 def settings_named(text: str) -> set[str]:

@@ -375,15 +375,15 @@ def test_every_learners_policy_acts_only_within_the_mask(small_traces_cfg, train
     that applied to it, and the collision masks keep every pair apart."""
     from tensordict.nn import TensorDictModule, TensorDictSequential
 
+    from tests.test_algorithms import learner_config
     from uabs_rl.algorithms import Dims, make_algorithm
-    from uabs_rl.config import AlgoConfig
     from uabs_rl.env.uabs_env import N_ACTIONS, OBS
 
     mk = MaskingConfig(mode=mode)
     env = make_env(scenario(small_traces_cfg), ChannelConfig(), mk, train, n_envs=8,
                    seed=seed % 1000)
     p = env.base_env.params
-    lrn = make_algorithm(AlgoConfig(name=name, hidden=[32], mixing_embed_dim=8),
+    lrn = make_algorithm(learner_config(name, hidden=[32]),
                          Dims(p.obs_dim, N_ACTIONS, p.n_uabs), [seed % 1000],
                          torch.device("cpu"))
     policy = TensorDictSequential(

@@ -18,7 +18,7 @@ from tests.conftest import compose_cfg
 from uabs_rl.algorithms import Dims, make_algorithm
 from uabs_rl.cli.evaluate import load_evaluation
 from uabs_rl.cli.train import prepare, run
-from uabs_rl.config import ConfigError, validate_run
+from uabs_rl.config import ConfigError
 from uabs_rl.safety.make import make_selector
 from uabs_rl.traces.cache import TraceSet
 from uabs_rl.training.checkpoint import (
@@ -28,6 +28,7 @@ from uabs_rl.training.checkpoint import (
     load_checkpoint,
 )
 from uabs_rl.training.experiment import Experiment
+from uabs_rl.training.startup import validate_run
 
 
 def smoke(trace_cache, *extra: str):

@@ -16,9 +16,11 @@ import torch
 
 from tests.test_train import smoke
 from uabs_rl import config
-from uabs_rl.algorithms.replay import storage
+from uabs_rl.algorithms import Dims, algorithm_class
+from uabs_rl.algorithms.replay import transition_bytes
 from uabs_rl.config import (
     CONF_DIR,
+    AlgoConfig,
     ChannelConfig,
     ConfigError,
     MaskingConfig,
@@ -27,16 +29,15 @@ from uabs_rl.config import (
     SplitConfig,
     TracesConfig,
     compose,
-    env_bytes,
-    observation_size,
-    transition_bytes,
+    memory,
     validate_env,
     validate_masking,
-    validate_run,
     validate_scenario_traces,
 )
 from uabs_rl.env.params import EnvParams
-from uabs_rl.env.uabs_env import N_ACTIONS, empty_state
+from uabs_rl.env.state import state_bytes
+from uabs_rl.env.uabs_env import N_ACTIONS
+from uabs_rl.training.startup import validate_run
 
 BAD = [  # (override on the smoke preset, the setting its message must name)
     ("algo.lr=inf", "algo.lr"),
@@ -178,27 +179,34 @@ def test_every_default_and_preset_validates():
                                  ObsConfig(frame="egocentric", motion=True),
                                  ObsConfig(frame="egocentric", map_radius=1, neighbours=2)])
 @pytest.mark.parametrize("n_uabs,n_beams", [(3, 9), (25, 16)])
-def test_memory_sizes_equal_the_allocated_tensors(obs, n_uabs, n_beams):
-    """The byte counts of the memory check are those of the replay storage and the env
-    state as allocated (on the meta device: shapes and dtypes, no memory)."""
+def test_memory_sizes_are_the_owners_tensors(obs, n_uabs, n_beams):
+    """The byte counts of the memory check, each given by its owner (the replay's
+    storage, the env's state, the learner's network), are what those allocate, counted
+    by hand: a transition is obs and next_obs (float32), the action (int64), both masks
+    (a bool per move), the reward (float32) and a flag; an env's state is per vehicle
+    18 + 4·(N + 1) bytes, per UABS 16 + 4·B + 4·(its priority scores) bytes, 48 bytes of
+    counters and one step's link coordinates, 8 bytes per UABS-vehicle pair."""
     sc = ScenarioConfig(n_uabs=n_uabs)
     ch = ChannelConfig(n_beams=n_beams)
     p = EnvParams.from_config(sc, ch, obs)
-    assert observation_size(sc, ch, obs) == p.obs_dim
-    nbytes = lambda ts: sum(t.numel() * t.element_size() for t in ts.values())  # noqa: E731
-    meta = torch.device("meta")
-    assert transition_bytes(p.obs_dim) * 7 == nbytes(storage((), 7, p.obs_dim, N_ACTIONS,
-                                                              meta))
-    assert transition_bytes(18) == 165  # the paper's observation: 3 + 2·3 + 9 features
-    v = sc.sumo.fleet_size
-    links = 2 * 4 * n_uabs * v  # one step's beam-grid x and y, float32 [M, V]
-    assert env_bytes(sc, ch, obs) * 5 == nbytes(empty_state(p, 5, v, meta)) + 5 * links
+    assert transition_bytes(p.obs_dim, N_ACTIONS) == 2 * 4 * p.obs_dim + 8 + 2 * 4 + 4 + 1
+    assert transition_bytes(18, N_ACTIONS) == 165  # the paper's observation: 3 + 2·3 + 9
+    v, n = sc.sumo.fleet_size, sc.window_steps
+    assert state_bytes(p, v) == (v * (18 + 4 * (n + 1)) + n_uabs * (16 + 4 * n_beams
+                                                                     + 4 * p.n_lookahead)
+                                 + 48 + 8 * n_uabs * v)
+    widths = [p.obs_dim, 256, 256]
+    weights = p.obs_dim * 256 + 256 * 256 + 256 * (1 + N_ACTIONS)
+    size = algorithm_class("dqn3").network_size(AlgoConfig(), Dims(p.obs_dim, N_ACTIONS,
+                                                                     n_uabs))
+    assert size.multiply_adds == weights
+    assert size.parameter_bytes == 4 * (weights + sum(widths[1:]) + 1 + N_ACTIONS)
 
 
 @pytest.fixture
 def one_mib(monkeypatch):
     """A machine with 1 MiB available; the smoke preset needs about 0.4 MiB."""
-    monkeypatch.setattr(config, "available_memory", lambda device: (2 ** 20,
+    monkeypatch.setattr(memory, "available_memory", lambda device: (2 ** 20,
                                                                     "this machine has"))
 
 
@@ -240,22 +248,22 @@ def test_available_memory_reads_meminfo_then_sysconf(monkeypatch):
     if Path("/proc/meminfo").is_file():  # Linux
         meminfo = Path("/proc/meminfo").read_text()
         kib = int(re.search(r"^MemAvailable:\s+(\d+) kB", meminfo, re.M).group(1))
-        have, where = config.available_memory("cpu")
+        have, where = memory.available_memory("cpu")
         assert abs(have - kib * 1024) < 2 ** 30 and where == "this machine has"
 
     def no_file(*args, **kwargs):
         raise OSError("no /proc here")
 
-    monkeypatch.setattr(config, "open", no_file, raising=False)
-    monkeypatch.setattr(config.os, "sysconf", lambda name: {"SC_AVPHYS_PAGES": 3,
+    monkeypatch.setattr(memory, "open", no_file, raising=False)
+    monkeypatch.setattr(memory.os, "sysconf", lambda name: {"SC_AVPHYS_PAGES": 3,
                                                             "SC_PAGE_SIZE": 4096}[name])
-    assert config.available_memory("cpu") == (3 * 4096, "this machine has")
+    assert memory.available_memory("cpu") == (3 * 4096, "this machine has")
 
     def unknown(name):
         raise ValueError(name)
 
-    monkeypatch.setattr(config.os, "sysconf", unknown)
-    assert config.available_memory("cpu") is None
+    monkeypatch.setattr(memory.os, "sysconf", unknown)
+    assert memory.available_memory("cpu") is None
     cfg = replace(compose("config"), algo=replace(compose("config").algo,
                                                   buffer_size=10 ** 12))
     validate_run(cfg)  # nothing to compare with: nothing refused
@@ -264,15 +272,15 @@ def test_available_memory_reads_meminfo_then_sysconf(monkeypatch):
 def test_a_cuda_device_is_checked_against_its_free_memory(monkeypatch):
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     monkeypatch.setattr(torch.cuda, "mem_get_info", lambda dev: (5 * 2 ** 30, 8 * 2 ** 30))
-    assert config.available_memory("cuda:0") == (5 * 2 ** 30, "cuda:0 has")
-    assert config.available_memory("auto") == (5 * 2 ** 30, "cuda has")
+    assert memory.available_memory("cuda:0") == (5 * 2 ** 30, "cuda:0 has")
+    assert memory.available_memory("auto") == (5 * 2 ** 30, "cuda has")
     cfg = compose("config", ["device=cuda", "algo.buffer_size=50000000"])
     with pytest.raises(ConfigError, match=r"^algo\.buffer_size: .* 7\.683 GiB, but cuda has "
                                           r"5 GiB available"):
         validate_run(cfg)
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
-    assert config.available_memory("cuda") is None  # refused by make.resolve_device
-    assert config.available_memory("auto")[1] == "this machine has"
+    assert memory.available_memory("cuda") is None  # refused by make.resolve_device
+    assert memory.available_memory("auto")[1] == "this machine has"
 
 
 # ----------------------------------------------------------------------------- commands

@@ -24,8 +24,8 @@ from uabs_rl.config import (
     ConfigError,
     RunConfig,
     check_duplicate_overrides,
-    validate_run,
 )
+from uabs_rl.training.startup import validate_run
 
 NUMBER = (int, float)
 

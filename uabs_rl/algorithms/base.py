@@ -33,7 +33,7 @@ import torch
 from torch import nn
 from torchrl.objectives import HardUpdate
 
-from uabs_rl.config import AlgoConfig, ConfigError
+from uabs_rl.config import AlgoConfig, ConfigError, check_algo_schema
 
 
 @dataclass(frozen=True)
@@ -43,6 +43,15 @@ class Dims:
     obs_dim: int
     n_actions: int
     n_agents: int
+
+
+@dataclass(frozen=True)
+class NetworkSize:
+    """The acting network's size: its parameters' bytes, and the multiply-adds of its
+    forward pass for one row (one agent's observation)."""
+
+    parameter_bytes: int
+    multiply_adds: int
 
 
 class PeriodicHardUpdate(HardUpdate):
@@ -125,6 +134,22 @@ class Algorithm(ABC):
         state's ``acting_key`` entry into it and flies it."""
 
     @classmethod
+    def network_size(cls, algo: AlgoConfig, dims: Dims) -> NetworkSize:
+        """:meth:`acting_network`'s size, built on the meta device (shapes only): its
+        affine layers' weights are the multiply-adds of one row."""
+        with torch.device("meta"):
+            net = cls.acting_network(algo, dims)
+        return NetworkSize(
+            sum(p.numel() * p.element_size() for p in net.parameters()),
+            sum(m.weight.numel() for m in net.modules() if isinstance(m, nn.Linear)))
+
+    @classmethod
+    def network_bytes(cls, algo: AlgoConfig, dims: Dims) -> int:
+        """One member's acting network in training: its parameters, the target copy,
+        the gradients and Adam's two moments."""
+        return 5 * cls.network_size(algo, dims).parameter_bytes
+
+    @classmethod
     def check_config(cls, algo: AlgoConfig) -> None:
         """Refuse, with a :class:`ConfigError` naming the key, ``algo`` settings this
         algorithm cannot honour (checked at start-up, before anything is built). The
@@ -156,5 +181,8 @@ def algorithm_class(name: str) -> type[Algorithm]:
 
 def make_algorithm(algo: AlgoConfig, dims: Dims, seeds: list[int],
                    device: torch.device) -> Algorithm:
-    """The algorithm ``algo.name`` for members of seeds ``seeds``."""
-    return algorithm_class(algo.name)(algo, dims, seeds, device)
+    """The algorithm ``algo.name`` for members of seeds ``seeds`` (``algo`` of its own
+    schema: :func:`uabs_rl.config.algo_schema`)."""
+    cls = algorithm_class(algo.name)
+    check_algo_schema(algo)
+    return cls(algo, dims, seeds, device)

@@ -14,10 +14,11 @@ The global state s is the fleet's joint observation, the M agents' observations
 concatenated (M · obs_dim numbers): every UABS's position, every UABS's per-beam
 priorities and, with the lookahead features, what each sees ahead. It needs no entry
 in the replay beyond the observations the agents already store, and it is exactly
-what the paper's observation knows of the scene. ``algo.mixing_embed_dim`` is the
-mixing network's width. Each member of a population has its own mixer (and its own
-Adam for it), built right after its network from the same seeded draws, so member p
-starts as the single run of its seed starts.
+what the paper's observation knows of the scene. ``algo.mixing_embed_dim`` (its own
+setting: :class:`~uabs_rl.config.QmixConfig`) is the mixing network's width. Each
+member of a population has its own mixer (and its own Adam for it), built right after
+its network from the same seeded draws, so member p starts as the single run of its
+seed starts.
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ from torchrl.objectives import LossModule
 from uabs_rl.algorithms.base import Dims, register
 from uabs_rl.algorithms.dqn3 import TARGET_WARNING, DQN3Loss
 from uabs_rl.algorithms.vdn import VDN
-from uabs_rl.config import AlgoConfig
+from uabs_rl.config import QmixConfig
 
 
 def mix(mixers: nn.ModuleList, q: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
@@ -80,6 +81,7 @@ class QMIX(VDN):
     mixer per member trained with :class:`QMIXLoss`."""
 
     name = "qmix"
+    algo: QmixConfig  # its own settings beside the shared ones
 
     def member_extra(self) -> nn.Module:
         d = self.dims
@@ -94,7 +96,7 @@ class QMIX(VDN):
                              for m in self.mixers]
         return QMIXLoss(self.policy, gamma, self.mixers)
 
-    def __init__(self, algo: AlgoConfig, dims: Dims, seeds: list[int], device: torch.device):
+    def __init__(self, algo: QmixConfig, dims: Dims, seeds: list[int], device: torch.device):
         super().__init__(algo, dims, seeds, device)
         self.optims += self.mixer_optims  # an update steps the mixers with the network
 

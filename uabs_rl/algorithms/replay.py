@@ -60,6 +60,13 @@ def storage(lead: tuple[int, ...], capacity: int, obs_dim: int, n_actions: int,
             for k in FIELDS}
 
 
+def transition_bytes(obs_dim: int, n_actions: int) -> int:
+    """Bytes of one stored transition: every field of :func:`storage` (sized on the meta
+    device)."""
+    one = storage((), 1, obs_dim, n_actions, torch.device("meta"))
+    return sum(t.numel() * t.element_size() for t in one.values())
+
+
 class Priorities:
     """Proportional prioritized sampling over ``capacity`` items (Schaul et al., 2016),
     as TorchRL's ``PrioritizedSampler`` does it: item i is drawn with probability

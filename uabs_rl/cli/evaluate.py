@@ -64,12 +64,13 @@ from uabs_rl.algorithms import Dims, algorithm_class
 from uabs_rl.config import (
     CONF_DIR,
     ConfigError,
+    Role,
     RunConfig,
     check_moved_overrides,
+    sections_with_role,
     to_container,
-    validate_world,
 )
-from uabs_rl.env.params import EnvParams
+from uabs_rl.env.params import EnvParams, validate_world
 from uabs_rl.env.uabs_env import N_ACTIONS
 from uabs_rl.evaluation.baselines import BASELINES, HEURISTICS, MPC, PLANNER, baseline_policy
 from uabs_rl.evaluation.evaluator import Evaluator, greedy_policy, make_eval_env
@@ -103,8 +104,9 @@ class Evaluation:
     env_steps: int
 
 
-# what uabs-eval may change: the world the policy is put in, not the policy
-EVAL_GROUPS = ("scenario", "channel", "masking", "traces")
+# what uabs-eval may change: the world the policy is put in, not the policy (the
+# sections that hold its settings, uabs_rl.config.roles)
+EVAL_GROUPS = sections_with_role(Role.world)
 # the settings uabs-eval may change that can change the network's input size
 # (EnvParams.obs_dim; the obs group itself belongs to the trained policy)
 OBS_KEYS = ("scenario.n_uabs", "channel.n_beams")
@@ -177,7 +179,7 @@ def with_overrides(cfg: RunConfig, overrides: list[str],
         conf = OmegaConf.merge(conf, OmegaConf.from_dotlist(dotted))
     except OmegaConfBaseException as e:
         raise ConfigError(f"override: {str(e).splitlines()[0]} (check the key's spelling "
-                          f"and type in uabs_rl/config.py)") from None
+                          f"and type in uabs_rl/config/schema.py)") from None
     new = to_container(conf)
     validate_world(new)
     return new

@@ -38,8 +38,8 @@ from uabs_rl.config import (
     LoggerKind,
     RunConfig,
     compose,
+    structured_run,
     to_container,
-    validate_run,
 )
 from uabs_rl.paths import check_path, name_max
 from uabs_rl.traces.build import check_names
@@ -57,6 +57,7 @@ from uabs_rl.training.checkpoint import (
 from uabs_rl.training.experiment import Experiment
 from uabs_rl.training.members import complete_save, member_dir, member_seeds
 from uabs_rl.training.runlog import check_history, read_metrics
+from uabs_rl.training.startup import validate_run
 from uabs_rl.tuning.trial import evaluation_hook
 
 log = logging.getLogger(__name__)
@@ -83,7 +84,7 @@ def saved_config(run_dir: Path) -> tuple[RunConfig, dict | None]:
         raise CheckpointError(f"resume={run_dir}: no checkpoints/last.pt and no "
                               f".hydra/config.yaml there: pass the folder of a uabs-train "
                               f"run (the one printed when it started).")
-    return to_container(OmegaConf.merge(OmegaConf.structured(RunConfig), hydra_cfg)), None
+    return to_container(OmegaConf.merge(structured_run(hydra_cfg), hydra_cfg)), None
 
 
 def check_checkpoints_folder(run_dir: Path) -> None:

@@ -82,6 +82,12 @@ def _radius(ok, hi: float = 1e6, iters: int = 80) -> float:
     return lo
 
 
+def link_bytes(n_uabs: int, n_vehicles: int) -> int:
+    """One step's beam-grid coordinates of every link of one env (``gx`` and ``gy`` of
+    :meth:`LinkModel.links`, float32 ``[M, V]`` each)."""
+    return 2 * 4 * n_uabs * n_vehicles
+
+
 class LinkModel:
     """Which vehicles each UABS's beams cover and which are served (docs/model.md §3), batched
     over ``[E, M, V]`` links.

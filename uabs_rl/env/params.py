@@ -10,11 +10,25 @@ from uabs_rl.config import (
     LosMode,
     ObsConfig,
     ObsFrame,
+    RunConfig,
     ScenarioConfig,
     validate_env,
+    validate_masking,
     validate_obs,
+    validate_scenario_traces,
 )
 from uabs_rl.env import channel as ch
+
+
+def validate_world(cfg: RunConfig) -> None:
+    """The start-up checks of the world a policy acts in (scenario, traces, channel,
+    masking; and the observation), each naming the key: what ``uabs-eval`` checks, and
+    part of :func:`uabs_rl.training.startup.validate_run`. (:class:`EnvParams` checks the
+    env settings again, so an env built from the library is guarded too.)"""
+    validate_scenario_traces(cfg.scenario, cfg.traces)
+    validate_env(cfg.scenario, cfg.channel, ch.CHANNELS)
+    validate_obs(cfg.obs)
+    validate_masking(cfg.masking)
 
 
 @dataclass(frozen=True)
@@ -68,7 +82,7 @@ class EnvParams:
                     obs: ObsConfig | None = None) -> EnvParams:
         """``obs`` None: the paper's observation."""
         obs = ObsConfig() if obs is None else obs
-        validate_env(scenario, channel)
+        validate_env(scenario, channel, ch.CHANNELS)
         validate_obs(obs)
         d_th = scenario.safety_distance
         if d_th is None:

@@ -28,6 +28,7 @@ from uabs_rl.env._compile import compiled_or_eager
 from uabs_rl.env.geometry import Geometry
 from uabs_rl.env.links import LinkModel
 from uabs_rl.env.params import EnvParams
+from uabs_rl.env.state import empty_state
 from uabs_rl.traces.cache import TraceSet
 
 # Nested keys, in one place.
@@ -236,25 +237,6 @@ def fixed_windows(n_sims: int, steps: int, episode_steps: int, n: int | None,
             f"or raise traces.eval.n_sims / traces.eval.duration_s.")
     k = torch.arange(n, device=device)
     return torch.stack([k % n_sims, (k // n_sims) * (episode_steps + 1)], dim=-1)
-
-
-def empty_state(p: EnvParams, e: int, v: int, dev: torch.device,
-                family: bool = False) -> dict[str, torch.Tensor]:
-    """The episode state of ``e`` envs over ``v`` vehicle slots, all zeros (with
-    ``family``, each env's area ``bounds [E, 2]`` too)."""
-    m, n = p.n_uabs, p.window_steps
-    z = lambda *s, dt=torch.float32: torch.zeros(*s, dtype=dt, device=dev)  # noqa: E731
-    return {
-        **({"bounds": z(e, 2)} if family else {}),
-        "pos": z(e, m, 2), "backup": z(e, m, dt=torch.long), "t": z(e, dt=torch.long),
-        "sim": z(e, dt=torch.long),
-        "start": z(e, dt=torch.long), "cursor": torch.arange(e, device=dev),
-        "priority": z(e, v), "served_count": z(e, v, dt=torch.long),
-        "window_full": z(e, v, dt=torch.bool), "prev_present": z(e, v, dt=torch.bool),
-        "n_windows": z(e, v), "ns_hist": z(e, v, n + 1), "b": z(e, m, p.n_beams),
-        "look": z(e, m, p.n_lookahead),
-        **{f"ep_{k}": z(e) for k in ("return", "collisions", "proximity", "fallbacks")},
-    }
 
 
 def env_specs(p: EnvParams, e: int, dev: torch.device) -> dict[str, Composite]:

@@ -23,19 +23,28 @@ import torch
 from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from uabs_rl.config import MOVED, ConfigError, RunConfig, to_container
+from uabs_rl.config import (
+    MOVED,
+    ConfigError,
+    RunConfig,
+    default_settings,
+    flatten,
+    keys_with_role,
+    own_learner_settings,
+    structured_run,
+    to_container,
+)
+from uabs_rl.config.roles import RESUME_ROLES
 from uabs_rl.env.params import EnvParams
 from uabs_rl.training.runfolder import IDENTITY_NAME, check_identity
 
 # 2: the replay keeps the agent dimension (step slots of M agents); format 1's flat
 # ring of per-agent transitions is converted on load (upgrade_state)
 CKPT_FORMAT = 2
-# config sections a checkpoint must agree with to be resumed or evaluated
-COMPAT_KEYS = ("scenario", "family", "obs", "channel", "masking", "algo", "traces", "seed",
-               "train.n_envs", "train.population")
-# never compared: names, not settings (obs.name), and how traces are built, not what
-# they hold (traces.workers: SUMO worker processes; sweep.NEUTRAL groups runs alike)
-LABELS = ("obs.name", "traces.workers")
+# the settings a checkpoint must agree with to be resumed or evaluated: those a resumed
+# run keeps (their roles: uabs_rl.config.roles), not names (obs.name), runtime settings
+# (traces.workers, traces.cache_dir), the test traces or the training protocol
+COMPAT_KEYS = frozenset(keys_with_role(*RESUME_ROLES))
 # what members.Checkpoints.state writes, entry by entry: a nested layout, or the kind of value
 TENSORS, BYTES, NUMBER, INT, DICT = ("a dict of tensors", "a uint8 tensor (an RNG state)",
                                      "a number", "an integer", "a dict")
@@ -263,7 +272,8 @@ def upgrade_config(d: Any) -> Any:
     ``train.tensorboard: true|false`` became ``train.logger: tensorboard|none``; the
     observation settings moved from ``scenario`` to the ``obs`` group (``MOVED``; a run
     written before has the paper's observation frame, and ``obs.name`` says which of
-    ``conf/obs`` it matches)."""
+    ``conf/obs`` it matches); a learner's own settings (``mixing_embed_dim``, once in
+    every run's ``algo``) stay only in the runs of that learner."""
     if not hasattr(d, "get"):
         return d
     train = d.get("train")
@@ -280,7 +290,8 @@ def upgrade_config(d: Any) -> Any:
         obs.setdefault("name", "lookahead_motion" if obs.get("motion") else
                        "lookahead" if obs.get("lookahead") else "paper")
         d = {**d, "scenario": scenario, "obs": obs}
-    return d
+    algo = own_learner_settings(d.get("algo"))  # algo.mixing_embed_dim: QMIX's alone
+    return d if algo is d.get("algo") else {**d, "algo": algo}
 
 
 def config_from_checkpoint(state: Mapping, path: Path | None = None) -> RunConfig:
@@ -289,7 +300,7 @@ def config_from_checkpoint(state: Mapping, path: Path | None = None) -> RunConfi
     key."""
     d = checkpoint_config(state, path)
     try:
-        merged = OmegaConf.merge(OmegaConf.structured(RunConfig), d)
+        merged = OmegaConf.merge(structured_run(d), d)
         return OmegaConf.to_object(merged)
     except (OmegaConfBaseException, ValueError, TypeError, KeyError) as e:
         key = getattr(e, "full_key", None)
@@ -396,25 +407,13 @@ def check_finite(tensors: Mapping[str, torch.Tensor], path: Path, what: str) -> 
                 f"again (a lower algo.lr, or algo.grad_clip).")
 
 
-def flatten(d: Any, prefix: str = "") -> dict[str, Any]:
-    if isinstance(d, dict):
-        out: dict[str, Any] = {}
-        for k, v in d.items():
-            out.update(flatten(v, f"{prefix}{k}."))
-        return out
-    return {prefix[:-1]: d}
-
-
 def config_differences(saved: dict, current: dict) -> list[str]:
     """Settings of ``COMPAT_KEYS`` that differ between a checkpoint and a config. A
     setting the saved config lacks (it was added since the run was written) counts as
     its default, the value the run had in effect."""
     a, b = flatten(saved), flatten(current)
-    defaults = flatten(config_dict(RunConfig()))
-    keys = sorted(k for k in set(a) | set(b) if any(
-        k == c or k.startswith(c + ".") for c in COMPAT_KEYS) and not k.endswith("cache_dir")
-        and not k.startswith("traces.test.")  # test traces never touch a training run
-        and k not in LABELS)
+    defaults = default_settings()
+    keys = sorted(k for k in set(a) | set(b) if k in COMPAT_KEYS)
     old = {k: a.get(k, defaults.get(k, "<absent>")) for k in keys}
     return [f"{k}: {old[k]!r} in the checkpoint, {b.get(k, '<absent>')!r} now"
             for k in keys if old[k] != b.get(k)]
@@ -438,7 +437,8 @@ def load_hydra_config(run_dir: Path) -> dict | None:
         stored = OmegaConf.to_container(OmegaConf.load(path))
         if not isinstance(stored, dict) or not stored:  # cut by a full disk, or emptied
             raise ValueError("empty, or not a mapping of settings")
-        merged = OmegaConf.merge(OmegaConf.structured(RunConfig), upgrade_config(stored))
+        stored = upgrade_config(stored)
+        merged = OmegaConf.merge(structured_run(stored), stored)
     except Exception as e:  # yaml, type and key errors all mean: not this run's config
         first = (str(e).strip().splitlines() or [type(e).__name__])[0][:160]
         raise CheckpointError(f"{path} is damaged ({first}): restore it from a copy, or "

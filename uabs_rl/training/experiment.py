@@ -19,7 +19,7 @@ import torch
 from tqdm.auto import tqdm
 
 from uabs_rl.algorithms import Dims, make_algorithm
-from uabs_rl.config import RunConfig, TrainConfig, validate_run
+from uabs_rl.config import RunConfig, TrainConfig
 from uabs_rl.env.uabs_env import N_ACTIONS
 from uabs_rl.evaluation.evaluator import Evaluator, greedy_policy, make_eval_env
 from uabs_rl.rng import make_generator
@@ -31,6 +31,7 @@ from uabs_rl.training.members import Checkpoints, Member, member_dir, member_see
 from uabs_rl.training.rollout import Collector, UpdateSchedule, episode_records, epsilon
 from uabs_rl.training.runfolder import write_error
 from uabs_rl.training.runlog import check_logger
+from uabs_rl.training.startup import validate_run
 from uabs_rl.training.threads import setup_threads
 
 log = logging.getLogger(__name__)

@@ -8,25 +8,22 @@ from __future__ import annotations
 import os
 import sys
 from dataclasses import dataclass
-from functools import cached_property, lru_cache
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
-from uabs_rl.config import MaskingMode
+from uabs_rl.config import MaskingMode, default_settings, keys_with_role
+from uabs_rl.config.roles import BASELINE_ROLES, NEUTRAL_ROLES
 from uabs_rl.training.runlog import read_metrics
 
 MODES = tuple(m.value for m in MaskingMode)
 
 # settings that do not change results: never a reason to tell runs apart (the seed is
-# what a group's runs differ in)
-NEUTRAL = ("seed", "resume", "device", "train.progress", "train.population",
-           "train.logger", "train.threads", "train.compile", "train.trajectory_images",
-           "train.checkpoint_buffer", "traces.cache_dir", "traces.workers",
-           "algo.loss",  # fused and torchrl compute the same loss
-           "obs.name")  # a label: the obs.* settings say what was observed
+# what a group's runs differ in; their roles: uabs_rl.config.roles)
+NEUTRAL = keys_with_role(*NEUTRAL_ROLES)
 # settings the baselines depend on (what uabs-eval may change, and the start positions
 # of evaluations): groups that differ in one of them get their own Fig. 4 panel
-ENV_SETTINGS = ("scenario.", "channel.", "masking.", "traces.", "train.eval_seed")
+ENV_SETTINGS = keys_with_role(*BASELINE_ROLES)
 
 
 class ReportError(ValueError):
@@ -80,6 +77,9 @@ class Run:
         except CheckpointError as e:
             ckpt = self.path / "checkpoints" / "last.pt"
             raise CheckpointError(e if str(ckpt) in str(e) else f"{ckpt}: {e}") from None
+        # another learner's own settings (algo.mixing_embed_dim) as their defaults
+        full = {k: full.get(k, v) for k, v in default_settings().items()
+                if k in full or k.startswith("algo.")}
         return {k: v for k, v in full.items() if not _is(k, NEUTRAL)}
 
     @property
@@ -98,14 +98,6 @@ class Run:
         return max(self.evals, key=lambda r: r["return"])
 
 
-@lru_cache(maxsize=1)
-def _default_settings() -> dict[str, Any]:
-    from uabs_rl.config import RunConfig
-    from uabs_rl.training.checkpoint import config_dict, flatten
-
-    return flatten(config_dict(RunConfig()))
-
-
 def describe(settings: dict[str, Any], skip: tuple[str, ...] = (), words: bool = True) -> str:
     """Settings against the defaults: the observation (``paper``, ``lookahead``,
     ``lookahead+motion``, ``egocentric`` or ``egocentric-static`` (without the motion
@@ -114,7 +106,7 @@ def describe(settings: dict[str, Any], skip: tuple[str, ...] = (), words: bool =
     that differs from its default (``lookahead algo.lr=0.0003``), three or more of one
     section as ``algo.{hidden=[32, 32], batch_size=32, ...}``. With ``words=False``,
     settings only (``obs.lookahead=true``), "" for none."""
-    defaults = _default_settings()
+    defaults = default_settings()
     obs = ("obs.frame", "obs.lookahead", "obs.motion", "masking.recoverable")
     keys = [k for k, v in settings.items()
             if k not in skip and (k not in obs or not words) and v != defaults.get(k)]

@@ -104,13 +104,13 @@ def update_work(cfg: RunConfig) -> int:
     """Multiply-adds of one forward pass of the Q-network over an update's batch
     (``algo.batch_size`` transitions of each of the M agents, of each member): the size
     of the products that more CPU threads split."""
+    from uabs_rl.algorithms import Dims, algorithm_class
     from uabs_rl.env.params import EnvParams
     from uabs_rl.env.uabs_env import N_ACTIONS
 
     obs_dim = EnvParams.from_config(cfg.scenario, cfg.channel, cfg.obs).obs_dim
-    widths = [obs_dim, *cfg.algo.hidden]
-    per_row = sum(i * o for i, o in zip(widths, widths[1:], strict=False))
-    per_row += widths[-1] * (1 + N_ACTIONS)  # value and advantage heads
+    dims = Dims(obs_dim, N_ACTIONS, cfg.scenario.n_uabs)
+    per_row = algorithm_class(cfg.algo.name).network_size(cfg.algo, dims).multiply_adds
     return cfg.algo.batch_size * cfg.scenario.n_uabs * cfg.train.population * per_row
 
 

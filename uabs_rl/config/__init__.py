@@ -1,0 +1,181 @@
+"""The config layer, the bottom of the package (it imports nothing of ``uabs_rl``): typed
+schemas (Hydra ConfigStore) and the per-section checks that run at start-up.
+
+Every yaml under ``conf/`` is validated against the schemas, so a misspelt key or a value
+of the wrong type fails when the config is composed. Value checks that a type cannot
+express (a fleet of 0, a NaN or infinite number, traces larger than the machine's memory,
+...) raise :class:`ConfigError` naming the key, before anything is built or written. The
+checks that need the env or a learner (a channel model's name, the sizes of the replay,
+envs and networks) live above them: :func:`uabs_rl.env.params.validate_world` and
+:mod:`uabs_rl.training.startup`.
+
+* :mod:`~uabs_rl.config.base`: :class:`ConfigError`, the enums, the roles, finite numbers
+  and ranges;
+* :mod:`~uabs_rl.config.schema`: the dataclasses, each setting's role;
+* :mod:`~uabs_rl.config.roles`: which settings change results, derived from the roles;
+* :mod:`~uabs_rl.config.checks`: the per-section checks;
+* :mod:`~uabs_rl.config.memory`: the memory available, the traces' size;
+* :mod:`~uabs_rl.config.overrides`: a command line's overrides;
+* :mod:`~uabs_rl.config.store`: Hydra's ConfigStore, ``compose``, ``to_container``.
+"""
+
+from uabs_rl.config.base import (
+    RANGES,
+    SEED_END,
+    SEED_MIN,
+    SUMO_SEED_MAX,
+    ConfigError,
+    LoggerKind,
+    LosMode,
+    LossKind,
+    MaskingMode,
+    ObsFrame,
+    Range,
+    RankNextMask,
+    ReplayKind,
+    Role,
+    check_finite,
+    check_ranges,
+    enum_value,
+    setting,
+)
+from uabs_rl.config.checks import (
+    MAX_LATTICE_POINTS,
+    check_algo_schema,
+    family_scenarios,
+    fixed_demand,
+    lattice_points,
+    resolved_split,
+    split_begin,
+    split_time_range,
+    validate_device,
+    validate_env,
+    validate_family,
+    validate_learning,
+    validate_masking,
+    validate_obs,
+    validate_scenario_traces,
+)
+from uabs_rl.config.memory import available_memory, check_fits, size_text, trace_bytes
+from uabs_rl.config.overrides import (
+    APPENDED_KEYS,
+    check_duplicate_overrides,
+    check_moved_overrides,
+    command_line_overrides,
+    override_key,
+)
+from uabs_rl.config.roles import (
+    folder_name_excludes,
+    keys_with_role,
+    sections_with_role,
+    setting_roles,
+)
+from uabs_rl.config.schema import (
+    FAMILY_KEYS,
+    LEARNER_SCHEMAS,
+    MOVED,
+    TRACE_SPLITS,
+    AlgoConfig,
+    AreaConfig,
+    ChannelConfig,
+    MaskingConfig,
+    ObsConfig,
+    QmixConfig,
+    RunConfig,
+    ScenarioConfig,
+    SplitConfig,
+    SumoConfig,
+    TracesAppConfig,
+    TracesConfig,
+    TrainConfig,
+    algo_schema,
+)
+from uabs_rl.config.store import (
+    CONF_DIR,
+    PROJECT_ROOT,
+    compose,
+    default_settings,
+    flatten,
+    own_learner_settings,
+    register_configs,
+    resolve_path,
+    structured_run,
+    to_container,
+)
+
+__all__ = [
+    "APPENDED_KEYS",
+    "AlgoConfig",
+    "AreaConfig",
+    "CONF_DIR",
+    "ChannelConfig",
+    "ConfigError",
+    "FAMILY_KEYS",
+    "LEARNER_SCHEMAS",
+    "LoggerKind",
+    "LosMode",
+    "LossKind",
+    "MAX_LATTICE_POINTS",
+    "MOVED",
+    "MaskingConfig",
+    "MaskingMode",
+    "ObsConfig",
+    "ObsFrame",
+    "PROJECT_ROOT",
+    "QmixConfig",
+    "RANGES",
+    "Range",
+    "RankNextMask",
+    "ReplayKind",
+    "Role",
+    "RunConfig",
+    "SEED_END",
+    "SEED_MIN",
+    "SUMO_SEED_MAX",
+    "ScenarioConfig",
+    "SplitConfig",
+    "SumoConfig",
+    "TRACE_SPLITS",
+    "TracesAppConfig",
+    "TracesConfig",
+    "TrainConfig",
+    "algo_schema",
+    "available_memory",
+    "check_algo_schema",
+    "check_duplicate_overrides",
+    "check_finite",
+    "check_fits",
+    "check_moved_overrides",
+    "check_ranges",
+    "command_line_overrides",
+    "compose",
+    "default_settings",
+    "enum_value",
+    "family_scenarios",
+    "fixed_demand",
+    "flatten",
+    "folder_name_excludes",
+    "keys_with_role",
+    "lattice_points",
+    "override_key",
+    "own_learner_settings",
+    "register_configs",
+    "resolve_path",
+    "resolved_split",
+    "sections_with_role",
+    "setting",
+    "setting_roles",
+    "size_text",
+    "split_begin",
+    "split_time_range",
+    "structured_run",
+    "to_container",
+    "trace_bytes",
+    "validate_device",
+    "validate_env",
+    "validate_family",
+    "validate_learning",
+    "validate_masking",
+    "validate_obs",
+    "validate_scenario_traces",
+]

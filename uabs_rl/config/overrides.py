@@ -1,0 +1,75 @@
+"""What a command line's overrides are: the words that set a key, the key each sets, and
+the refusals that need no config (a setting given twice, a setting that moved)."""
+
+from __future__ import annotations
+
+from uabs_rl.config.base import ConfigError
+from uabs_rl.config.schema import MOVED
+
+
+def check_moved_overrides(overrides: list[str]) -> None:
+    """Refuse a command-line override of a setting that moved, saying what to type."""
+    for o in overrides:
+        key, _, value = o.lstrip("+~").partition("=")
+        for (sec, old), (new_sec, new) in MOVED.items():
+            if key == f"{sec}.{old}":
+                hint = {"lookahead": "obs=lookahead (obs=lookahead_motion with the motion "
+                                     "features)", "motion": "obs=lookahead_motion"}.get(
+                    new, f"{new_sec}.{new}={value}")
+                raise ConfigError(f"{key} moved to the observation group: type {hint} "
+                                  f"instead of {o} (conf/obs holds the observations).")
+
+
+# Hydra's flags that take the next word as their value (``--cfg job``, ``-cn config``)
+_FLAGS_WITH_VALUE = {"-c", "--cfg", "-p", "--package", "-cn", "--config-name", "-cp",
+                     "--config-path", "-cd", "--config-dir", "--experimental-rerun"}
+_INFO_TOPICS = {"all", "config", "defaults", "defaults-tree", "plugins", "searchpath"}
+# keys a command appends to what the user typed (uabs-train's resume= names the run's
+# folder again as hydra.run.dir, or hydra.sweep.dir with -m): typed once, they appear twice
+APPENDED_KEYS = ("hydra.run.dir", "hydra.sweep.dir", "hydra.output_subdir")
+
+
+def override_key(word: str) -> str | None:
+    """The setting a command-line word overrides (``+a.b=1``, ``~a.b``, ``a.b=1`` ->
+    ``a.b``; a group with a package, ``a@p=x``, stays whole), None for a flag."""
+    if word.startswith("-"):
+        return None
+    key, eq, _ = word.lstrip("+~").partition("=")
+    return key.strip() if (eq or word.startswith("~")) and key.strip() else None
+
+
+def command_line_overrides(argv: list[str]) -> list[str]:
+    """The overrides of a command line: its words that are neither flags nor a flag's
+    value."""
+    out, skip = [], False
+    for i, word in enumerate(argv):
+        if skip:
+            skip = False
+            continue
+        if word in _FLAGS_WITH_VALUE or (word == "--info" and i + 1 < len(argv)
+                                         and argv[i + 1] in _INFO_TOPICS):
+            skip = True
+            continue
+        if not word.startswith("-"):
+            out.append(word)
+    return out
+
+
+def check_duplicate_overrides(argv: list[str]) -> None:
+    """Refuse a setting given twice on the command line (``masking=flat
+    masking=penalty``, ``seed=1 seed=2``; with ``-m`` too): Hydra would keep the last
+    one silently, and the run folder would be named after both."""
+    seen: dict[str, list[str]] = {}
+    for word in command_line_overrides(argv):
+        key = override_key(word)
+        if key is not None:
+            seen.setdefault(key, []).append(word)
+    resumed = "resume" in seen
+    for key, words in seen.items():
+        allowed = 2 if key in APPENDED_KEYS and resumed else 1
+        if len(words) > allowed:
+            n = len(words) - allowed + 1
+            values = ",".join(w.partition("=")[2] for w in words[:n])
+            raise ConfigError(f"{key} is given {'twice' if n == 2 else f'{n} times'} on the "
+                              f"command line ({', '.join(words[:n])}): give it once (a "
+                              f"sweep over several values: -m {key}={values}).")
