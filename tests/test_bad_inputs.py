@@ -17,8 +17,8 @@ from uabs_rl.cli.evaluate import main as eval_main
 from uabs_rl.cli.report import read_metrics
 from uabs_rl.cli.train import run
 from uabs_rl.config import ConfigError, validate_run
+from uabs_rl.runs.checkpoint import CheckpointError, load_checkpoint
 from uabs_rl.safety.make import resolve_device
-from uabs_rl.training.checkpoint import CheckpointError, load_checkpoint
 
 
 def test_malformed_network_file_names_the_key(tmp_path, trace_cache):

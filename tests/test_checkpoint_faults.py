@@ -21,8 +21,8 @@ from uabs_rl.cli import evaluate
 from uabs_rl.cli.evaluate import main as eval_main
 from uabs_rl.cli.train import run
 from uabs_rl.config import ConfigError
+from uabs_rl.runs.checkpoint import CheckpointError, load_checkpoint, load_into
 from uabs_rl.traces.store import get_traces
-from uabs_rl.training.checkpoint import CheckpointError, load_checkpoint, load_into
 
 
 @pytest.fixture(scope="module")

@@ -18,7 +18,7 @@ from uabs_rl.cli.report import find_runs
 from uabs_rl.cli.train import prepare, run
 from uabs_rl.config import AlgoConfig, ConfigError, validate_run
 from uabs_rl.rng import Generators, rand, randint
-from uabs_rl.training.checkpoint import CheckpointError, Interrupted, load_checkpoint
+from uabs_rl.runs.checkpoint import CheckpointError, Interrupted, load_checkpoint
 from uabs_rl.training.experiment import Experiment
 
 QUIET = ["train.trajectory_images=false", "train.logger=none"]

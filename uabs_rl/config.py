@@ -384,7 +384,7 @@ def validate_obs(obs: ObsConfig) -> None:
 
 
 # settings that moved: (section, old key) -> (section, new key); stored configs are
-# upgraded (uabs_rl.training.checkpoint.upgrade_config), command lines refused by
+# upgraded (uabs_rl.runs.checkpoint.upgrade_config), command lines refused by
 # check_moved_overrides
 MOVED = {("scenario", "lookahead_obs"): ("obs", "lookahead"),
          ("scenario", "motion_obs"): ("obs", "motion"),

@@ -77,8 +77,7 @@ from uabs_rl.evaluation.planner import gap_share, junction_sites
 from uabs_rl.evaluation.predict import PREDICTORS, make_predictor, parse_sees
 from uabs_rl.evaluation.stats import paired_difference
 from uabs_rl.paths import OutputFolder, OutputInterrupted, check_path, safe_component
-from uabs_rl.safety.make import make_selector, resolve_device
-from uabs_rl.training.checkpoint import (
+from uabs_rl.runs.checkpoint import (
     CheckpointError,
     check_finite,
     check_own,
@@ -86,6 +85,7 @@ from uabs_rl.training.checkpoint import (
     load_checkpoint,
     load_into,
 )
+from uabs_rl.safety.make import make_selector, resolve_device
 
 POLICIES = ("learned", *BASELINES)  # --policy all
 CHOICES = (*POLICIES, *HEURISTICS, PLANNER, MPC)  # every --policy

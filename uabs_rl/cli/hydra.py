@@ -21,8 +21,8 @@ from uabs_rl.config import (
     to_container,
 )
 from uabs_rl.paths import safe_component
-from uabs_rl.training.checkpoint import CheckpointError, Interrupted
-from uabs_rl.training.runfolder import Before
+from uabs_rl.runs.checkpoint import CheckpointError, Interrupted
+from uabs_rl.runs.folder import Before
 
 
 def start_folders(argv: list[str]) -> list[Path]:

@@ -56,10 +56,8 @@ from uabs_rl.env.channel import beam_footprint_radius, coverage_bound
 from uabs_rl.evaluation.baselines import BASELINES, MPC, PLANNER
 from uabs_rl.evaluation.stats import paired_over_seeds, spread_name, spread_over_seeds
 from uabs_rl.paths import OutputFolder, OutputInterrupted, check_path
-from uabs_rl.safety.masking import PAPER_ORDER, masks_collisions, mode_phrase
-from uabs_rl.training.checkpoint import CheckpointError
-from uabs_rl.training.runlog import read_metrics  # noqa: F401  (the metrics reader, for callers)
-from uabs_rl.training.sweep import (  # noqa: F401  (find_runs, Run: the runs, for callers)
+from uabs_rl.runs.checkpoint import CheckpointError
+from uabs_rl.runs.sweep import (  # noqa: F401  (find_runs, Run: the runs, for callers)
     Grouping,
     ReportError,
     Run,
@@ -67,6 +65,8 @@ from uabs_rl.training.sweep import (  # noqa: F401  (find_runs, Run: the runs, f
     find_runs,
     group_runs,
 )
+from uabs_rl.safety.masking import PAPER_ORDER, masks_collisions, mode_phrase
+from uabs_rl.training.runlog import read_metrics  # noqa: F401  (the metrics reader, for callers)
 
 
 def group_colors(grouping: Grouping) -> dict[str, str]:

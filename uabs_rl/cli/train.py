@@ -42,9 +42,8 @@ from uabs_rl.config import (
     validate_run,
 )
 from uabs_rl.paths import check_path, name_max
-from uabs_rl.traces.store import check_names
-from uabs_rl.training import runfolder
-from uabs_rl.training.checkpoint import (
+from uabs_rl.runs import folder as runfolder
+from uabs_rl.runs.checkpoint import (
     CheckpointError,
     check_own,
     config_dict,
@@ -54,6 +53,7 @@ from uabs_rl.training.checkpoint import (
     load_checkpoint,
     load_hydra_config,
 )
+from uabs_rl.traces.store import check_names
 from uabs_rl.training.experiment import Experiment
 from uabs_rl.training.members import complete_save, member_dir, member_seeds
 from uabs_rl.training.runlog import check_history, read_metrics
@@ -223,7 +223,7 @@ def prepare(cfg: RunConfig, run_dir: Path, overrides: list[str] | None = None,
     ``record(run_dir)`` writes a new run's settings of record (``.hydra/``) once every
     check has passed, so a refused start never changes a folder's record.
     A new run whose automatically named folder another process took writes beside it
-    (:func:`uabs_rl.training.runfolder.claim`, which ``auto_named``, ``sweep_dir`` and
+    (:func:`uabs_rl.runs.folder.claim`, which ``auto_named``, ``sweep_dir`` and
     ``on_move`` are passed to)."""
     if not cfg.resume:
         validate_run(cfg)  # before anything is sized from it (member folders, ...)

@@ -25,7 +25,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from uabs_rl.config import MOVED, ConfigError, RunConfig, to_container
 from uabs_rl.env.params import EnvParams
-from uabs_rl.training.runfolder import IDENTITY_NAME, check_identity
+from uabs_rl.runs.folder import IDENTITY_NAME, check_identity
 
 # 2: the replay keeps the agent dimension (step slots of M agents); format 1's flat
 # ring of per-agent transitions is converted on load (upgrade_state)

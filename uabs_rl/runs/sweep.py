@@ -65,7 +65,7 @@ class Run:
         today's keys: settings added since the run was written get their defaults,
         except ``masking.recoverable``, absent from runs written when the paper's
         literal masks were the only ones (so false)."""
-        from uabs_rl.training.checkpoint import (
+        from uabs_rl.runs.checkpoint import (
             CheckpointError,
             config_dict,
             config_from_checkpoint,
@@ -101,7 +101,7 @@ class Run:
 @lru_cache(maxsize=1)
 def _default_settings() -> dict[str, Any]:
     from uabs_rl.config import RunConfig
-    from uabs_rl.training.checkpoint import config_dict, flatten
+    from uabs_rl.runs.checkpoint import config_dict, flatten
 
     return flatten(config_dict(RunConfig()))
 
@@ -160,7 +160,7 @@ def _metrics_files(root: Path) -> list[Path]:
 def _load_run(metrics: Path) -> Run | str:
     """The run of a metrics.jsonl, or why it cannot be reported (no checkpoint yet, no
     evaluation yet)."""
-    from uabs_rl.training.checkpoint import check_own, load_checkpoint
+    from uabs_rl.runs.checkpoint import check_own, load_checkpoint
 
     run_dir = metrics.parent
     ckpt = run_dir / "checkpoints" / "last.pt"

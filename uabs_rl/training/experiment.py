@@ -22,12 +22,12 @@ from uabs_rl.config import RunConfig, TrainConfig, validate_run
 from uabs_rl.env.uabs_env import N_ACTIONS
 from uabs_rl.evaluation.evaluator import Evaluator, greedy_policy, make_eval_env
 from uabs_rl.rng import make_generator
+from uabs_rl.runs.checkpoint import Interrupted
+from uabs_rl.runs.folder import write_error
 from uabs_rl.safety.make import make_env, make_selector, resolve_device
 from uabs_rl.traces.store import TraceSet, training_traces
-from uabs_rl.training.checkpoint import Interrupted
 from uabs_rl.training.members import Checkpoints, Member, member_dir, member_seeds
 from uabs_rl.training.rollout import Collector, UpdateSchedule, episode_records, epsilon
-from uabs_rl.training.runfolder import write_error
 from uabs_rl.training.runlog import check_logger
 from uabs_rl.training.threads import setup_threads
 

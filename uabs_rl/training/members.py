@@ -42,7 +42,7 @@ import torch
 
 from uabs_rl.config import RunConfig
 from uabs_rl.rng import Generators
-from uabs_rl.training.checkpoint import (
+from uabs_rl.runs.checkpoint import (
     CKPT_FORMAT,
     CheckpointError,
     check_compatible,
@@ -50,7 +50,7 @@ from uabs_rl.training.checkpoint import (
     load_checkpoint,
     save_checkpoint,
 )
-from uabs_rl.training.runfolder import RunFolderError, check_identity, write_error
+from uabs_rl.runs.folder import RunFolderError, check_identity, write_error
 from uabs_rl.training.runlog import RunLog
 
 if TYPE_CHECKING:

@@ -27,7 +27,7 @@ from tensordict import TensorDictBase
 
 from uabs_rl.config import ConfigError, LoggerKind, RunConfig
 from uabs_rl.evaluation.evaluator import Evaluator
-from uabs_rl.training.runfolder import RunFolderError, write_error
+from uabs_rl.runs.folder import RunFolderError, write_error
 
 # record fields that count or index rather than measure: kept in metrics.jsonl, never
 # plotted as curves
@@ -64,7 +64,7 @@ def flat_hparams(d: dict, prefix: str = "") -> dict[str, Any]:
 def _quiet_writer_thread(args) -> None:
     """``threading.excepthook`` that leaves a file error of TensorBoard's writer thread
     to the run: the writer raises it again in the run's thread, which stops with one
-    line (:func:`uabs_rl.training.runfolder.write_error`); anything else as before."""
+    line (:func:`uabs_rl.runs.folder.write_error`); anything else as before."""
     if isinstance(args.exc_value, OSError) and type(args.thread).__name__ == "_AsyncWriterThread":
         return
     _THREAD_HOOK(args)
@@ -253,7 +253,7 @@ class RunLog:
         self.logger = make_logger(kind, self.run_dir)
         if self.logger is None:
             return
-        from uabs_rl.training.checkpoint import config_dict
+        from uabs_rl.runs.checkpoint import config_dict
 
         hparams = flat_hparams(config_dict(self.cfg))
         if kind is LoggerKind.tensorboard:
