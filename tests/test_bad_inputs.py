@@ -15,10 +15,10 @@ from tests.conftest import SMALL_TRACES, compose_cfg
 from tests.test_train import records, smoke
 from uabs_rl.cli.evaluate import main as eval_main
 from uabs_rl.cli.report import read_metrics
-from uabs_rl.cli.train import run
 from uabs_rl.config import ConfigError, validate_run
 from uabs_rl.runs.checkpoint import CheckpointError, load_checkpoint
 from uabs_rl.safety.make import resolve_device
+from uabs_rl.training.resume import run
 
 
 def test_malformed_network_file_names_the_key(tmp_path, trace_cache):

@@ -19,10 +19,10 @@ from tests.test_train import smoke
 from uabs_rl.algorithms.model import DuelingQNet
 from uabs_rl.cli import evaluate
 from uabs_rl.cli.evaluate import main as eval_main
-from uabs_rl.cli.train import run
 from uabs_rl.config import ConfigError
 from uabs_rl.runs.checkpoint import CheckpointError, load_checkpoint, load_into
 from uabs_rl.traces.store import get_traces
+from uabs_rl.training.resume import run
 
 
 @pytest.fixture(scope="module")

@@ -17,10 +17,10 @@ import pytest
 import torch
 
 from tests.test_train import records, smoke
-from uabs_rl.cli.train import prepare, run
 from uabs_rl.runs.checkpoint import CheckpointError, load_checkpoint
 from uabs_rl.runs.folder import RunFolderError, RunLock
 from uabs_rl.training.members import complete_save
+from uabs_rl.training.resume import prepare, run
 
 QUIET = ["train.trajectory_images=false", "train.logger=none", "train.threads=1"]
 

@@ -19,7 +19,7 @@ from omegaconf import OmegaConf
 
 from tests.conftest import SMALL_TRACES
 from tests.test_train import smoke
-from uabs_rl.cli.train import run
+from uabs_rl.training.resume import run
 
 QUIET = ("train.logger=none", "train.trajectory_images=false")
 LONG = "x" * 300

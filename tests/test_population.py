@@ -15,11 +15,11 @@ from tests.test_train import records, smoke
 from uabs_rl.algorithms.model import DuelingQNet
 from uabs_rl.cli.evaluate import load_evaluation
 from uabs_rl.cli.report import find_runs
-from uabs_rl.cli.train import prepare, run
 from uabs_rl.config import AlgoConfig, ConfigError, validate_run
 from uabs_rl.rng import Generators, rand, randint
 from uabs_rl.runs.checkpoint import CheckpointError, Interrupted, load_checkpoint
 from uabs_rl.training.experiment import Experiment
+from uabs_rl.training.resume import prepare, run
 
 QUIET = ["train.trajectory_images=false", "train.logger=none"]
 

@@ -13,7 +13,7 @@ from tests.test_train import records, smoke
 from uabs_rl.cli.evaluate import main as eval_main
 from uabs_rl.cli.report import build_report, find_runs, group_runs
 from uabs_rl.cli.report import main as report_main
-from uabs_rl.cli.train import run
+from uabs_rl.training.resume import run
 
 QUIET = ("train.logger=none", "train.trajectory_images=false", "scenario.n_uabs=4")
 

@@ -18,8 +18,9 @@ import pytest
 import torch
 
 from tests.test_train import records, smoke
-from uabs_rl.cli.train import prepare, run, summary_text
+from uabs_rl.cli.train import summary_text
 from uabs_rl.runs.checkpoint import CheckpointError, load_checkpoint
+from uabs_rl.training.resume import prepare, run
 
 RUN = ["experiment=smoke", "train.episodes=60", "train.eval_every=5",
        "train.checkpoint_buffer=true", "train.logger=none",

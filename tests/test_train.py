@@ -17,7 +17,6 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 from tests.conftest import compose_cfg
 from uabs_rl.algorithms import Dims, make_algorithm
 from uabs_rl.cli.evaluate import load_evaluation
-from uabs_rl.cli.train import prepare, run
 from uabs_rl.config import ConfigError, validate_run
 from uabs_rl.runs.checkpoint import (
     CheckpointError,
@@ -28,6 +27,7 @@ from uabs_rl.runs.checkpoint import (
 from uabs_rl.safety.make import make_selector
 from uabs_rl.traces.store import TraceSet
 from uabs_rl.training.experiment import Experiment
+from uabs_rl.training.resume import prepare, run
 
 
 def smoke(trace_cache, *extra: str):

@@ -14,8 +14,8 @@ import yaml
 
 from tests.test_train import smoke
 from uabs_rl.cli.evaluate import main as eval_main
-from uabs_rl.cli.train import run
 from uabs_rl.traces.store import netgenerate_path
+from uabs_rl.training.resume import run
 
 
 def _netgenerate() -> str:
