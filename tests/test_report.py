@@ -194,7 +194,7 @@ def test_planner_places_each_group_on_the_greedy_to_planner_scale(sweep, tmp_pat
     and each group's greedy rows hold (learned − greedy) / (planner − greedy) with the
     interval of learned − greedy divided by the same gap; its value equals the planner
     of ``uabs-eval`` on the panel's run."""
-    from uabs_rl.cli.evaluate import evaluate_policies, load_evaluation
+    from uabs_rl.evaluation.load import evaluate_policies, load_evaluation
 
     out = tmp_path / "report"
     assert report_main([str(sweep), "--out", str(out), "--planner", "2"]) == 0

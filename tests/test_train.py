@@ -16,8 +16,8 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 
 from tests.conftest import compose_cfg
 from uabs_rl.algorithms import Dims, make_algorithm
-from uabs_rl.cli.evaluate import load_evaluation
 from uabs_rl.config import ConfigError, validate_run
+from uabs_rl.evaluation.load import load_evaluation
 from uabs_rl.runs.checkpoint import (
     CheckpointError,
     Interrupted,

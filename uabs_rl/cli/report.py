@@ -253,7 +253,7 @@ def evaluate_on_test(runs: list[Run], planner_runs: frozenset[Path] = frozenset(
     ``planner_runs`` also the receding-horizon planner of ``horizon``, for those in
     ``mpc_runs`` the deployable mpc of horizon ``mpc`` (constant velocity; their cost
     per decision said on stderr)."""
-    from uabs_rl.cli.evaluate import POLICIES, evaluate_policies, load_evaluation
+    from uabs_rl.evaluation.load import POLICIES, evaluate_policies, load_evaluation
 
     out = {}
     for run in runs:
@@ -336,7 +336,7 @@ def learned_vs_baselines(grouping: Grouping, tests: dict[Path, dict]) -> list[di
     fraction and P_g also hold the learned share of the greedy-to-planner gap,
     (learned − greedy) / (planner − greedy), its interval that of learned − greedy
     divided by the gap (the planner and greedy are deterministic on these windows)."""
-    from uabs_rl.cli.evaluate import METRICS, POLICIES
+    from uabs_rl.evaluation.load import METRICS, POLICIES
 
     order = sorted(grouping.groups.items(), key=lambda g: (
         g[1][0].mode, int(g[1][0].settings["scenario.n_uabs"]), g[1][0].label, g[0]))
