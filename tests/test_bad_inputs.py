@@ -14,11 +14,11 @@ from omegaconf.errors import ValidationError
 from tests.conftest import SMALL_TRACES, compose_cfg
 from tests.test_train import records, smoke
 from uabs_rl.cli.evaluate import main as eval_main
-from uabs_rl.cli.report import read_metrics
 from uabs_rl.config import ConfigError, validate_run
 from uabs_rl.runs.checkpoint import CheckpointError, load_checkpoint
 from uabs_rl.safety.make import resolve_device
 from uabs_rl.training.resume import run
+from uabs_rl.training.runlog import read_metrics
 
 
 def test_malformed_network_file_names_the_key(tmp_path, trace_cache):

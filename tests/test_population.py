@@ -13,11 +13,11 @@ import torch
 from tests.test_algorithms import batch, dqn3
 from tests.test_train import records, smoke
 from uabs_rl.algorithms.model import DuelingQNet
-from uabs_rl.cli.report import find_runs
 from uabs_rl.config import AlgoConfig, ConfigError, validate_run
 from uabs_rl.evaluation.load import load_evaluation
 from uabs_rl.rng import Generators, rand, randint
 from uabs_rl.runs.checkpoint import CheckpointError, Interrupted, load_checkpoint
+from uabs_rl.runs.sweep import find_runs
 from uabs_rl.training.experiment import Experiment
 from uabs_rl.training.resume import prepare, run
 

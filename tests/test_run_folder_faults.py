@@ -21,10 +21,9 @@ import pytest
 
 from tests.test_faults import QUIET, error_lines, uabs_train, wait_for
 from tests.test_train import smoke
-from uabs_rl.cli.report import read_metrics
 from uabs_rl.runs.folder import Before, RunFolderError, RunLock
 from uabs_rl.training.resume import run
-from uabs_rl.training.runlog import RunLog
+from uabs_rl.training.runlog import RunLog, read_metrics
 
 
 def tree(root: Path, skip: tuple[str, ...] = ()) -> dict[str, str]:
