@@ -16,9 +16,9 @@ from tests.test_train import records, smoke
 from uabs_rl.cli.evaluate import main as eval_main
 from uabs_rl.config import ConfigError, validate_run
 from uabs_rl.runs.checkpoint import CheckpointError, load_checkpoint
+from uabs_rl.runs.metrics import MetricsError, read_metrics
 from uabs_rl.safety.make import resolve_device
 from uabs_rl.training.resume import run
-from uabs_rl.training.runlog import read_metrics
 
 
 def test_malformed_network_file_names_the_key(tmp_path, trace_cache):
@@ -50,7 +50,7 @@ def test_corrupt_metrics_line_names_the_file_and_line(tmp_path, line, why):
     why (a bare number or bytes that are not text once ended in a traceback)."""
     m = tmp_path / "metrics.jsonl"
     m.write_bytes(b'{"kind": "train", "episode": 1, "env_steps": 20}\n' + line + b"\n")
-    with pytest.raises(SystemExit, match=rf"metrics\.jsonl, line 2, is {why}"):
+    with pytest.raises(MetricsError, match=rf"metrics\.jsonl, line 2, is {why}"):
         read_metrics(m)
 
 

@@ -51,6 +51,7 @@ from uabs_rl.report.build import REPORT_FILES, build_report, default_out
 from uabs_rl.report.claims import short_run_warning
 from uabs_rl.report.figures import curves_figure
 from uabs_rl.runs.checkpoint import CheckpointError
+from uabs_rl.runs.metrics import MetricsError
 from uabs_rl.runs.sweep import ReportError, find_runs, group_runs
 
 
@@ -119,17 +120,12 @@ def main(argv: list[str] | None = None) -> int:
                 res = build_report(args.roots, folder, args.baselines, cmd, args.planner,
                                    runs=runs, export=args.export, mpc=args.mpc)
                 text = (folder / "summary.md").read_text()
-    except (ReportError, ConfigError, CheckpointError) as e:
+    except (ReportError, ConfigError, CheckpointError, MetricsError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     except OutputInterrupted as e:
         print(str(e), file=sys.stderr)
         return e.exit_code
-    except SystemExit as e:  # read_metrics: a damaged metrics line, one line already
-        if isinstance(e.code, str):
-            print(e.code, file=sys.stderr)
-            return 2
-        raise
     except OSError as e:  # an input that cannot be read (permissions, a name too long)
         print(f"error: cannot read {e.filename or 'an input'} ({e.strerror or e}): check "
               f"the FOLDER arguments.", file=sys.stderr)

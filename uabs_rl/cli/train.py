@@ -31,10 +31,10 @@ from omegaconf import OmegaConf
 
 from uabs_rl.cli.hydra import hydra_main, path_safe
 from uabs_rl.config import ConfigError, LoggerKind, RunConfig
-from uabs_rl.paths import check_path, name_max
+from uabs_rl.paths import atomic_file, atomic_write, check_path, name_max
 from uabs_rl.runs import folder as runfolder
+from uabs_rl.runs.metrics import MetricsError, read_metrics
 from uabs_rl.training.resume import prepare
-from uabs_rl.training.runlog import read_metrics
 
 
 def command(name: str) -> str:
@@ -266,13 +266,8 @@ def _write_hydra_files(cfg: RunConfig, folder: Path) -> None:
     for name, node in (("config.yaml", OmegaConf.structured(cfg)),
                        ("overrides.yaml", OmegaConf.create(list(hc.overrides.task))),
                        ("hydra.yaml", OmegaConf.create({"hydra": hc}))):
-        tmp = out / f".{name}.{os.getpid()}.tmp"
-        try:
-            OmegaConf.save(node, tmp)
-            os.replace(tmp, out / name)
-        except BaseException:
-            tmp.unlink(missing_ok=True)
-            raise
+        with atomic_file(out / name, "w") as f:
+            OmegaConf.save(node, f)
 
 
 def _copy_sweep_record(sweep_dir: Path, folder: Path) -> None:
@@ -280,9 +275,7 @@ def _copy_sweep_record(sweep_dir: Path, folder: Path) -> None:
     sweep's ``multirun.yaml`` too (re-typing the sweep with resume= needs it)."""
     src, dst = sweep_dir / "multirun.yaml", folder.parent / "multirun.yaml"
     if src.is_file() and not dst.exists():
-        tmp = dst.with_name(f".multirun.yaml.{os.getpid()}.tmp")
-        shutil.copyfile(src, tmp)
-        os.replace(tmp, dst)
+        atomic_write(dst, src.read_bytes())
 
 
 def _run_and_report(cfg: RunConfig, run_dir: Path, overrides: list[str]) -> None:
@@ -304,7 +297,11 @@ def _run_and_report(cfg: RunConfig, run_dir: Path, overrides: list[str]) -> None
                   record=lambda folder: _write_hydra_files(cfg, folder))
     print(f"{'resuming' if cfg.resume else 'run folder:'} {exp.run_dir}", file=sys.stderr)
     text = summary_text if exp.solo else population_summary_text
-    print(text(exp.cfg, exp.fit(), exp.run_dir))
+    summary = exp.fit()
+    try:
+        print(text(exp.cfg, summary, exp.run_dir))
+    except MetricsError as e:  # a metrics.jsonl damaged by another process meanwhile
+        sys.exit(f"error: {e}")
 
 
 # set (for the jobs of a sweep too) when the command line names the run folder: a name

@@ -11,7 +11,6 @@ file, never in torch's advice to load it unsafely.
 
 from __future__ import annotations
 
-import os
 import pickle
 import re
 import warnings
@@ -25,6 +24,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from uabs_rl.config import MOVED, ConfigError, RunConfig, to_container
 from uabs_rl.env.params import EnvParams
+from uabs_rl.paths import atomic_file
 from uabs_rl.runs.folder import IDENTITY_NAME, check_identity
 
 # 2: the replay keeps the agent dimension (step slots of M agents); format 1's flat
@@ -75,14 +75,8 @@ def save_checkpoint(state: dict, path: Path) -> None:
     failed write (a full disk) leaves no temporary file. Only ``checkpoints/`` itself is
     made: a run folder removed while the run writes it is not made again."""
     path.parent.mkdir(exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "wb") as f:  # through a file, a full disk is OSError(ENOSPC)
-            torch.save(state, f)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    with atomic_file(path) as f:
+        torch.save(state, f)
 
 
 def read_weights(path: Path) -> Any:

@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from uabs_rl.config import ConfigError
+from uabs_rl.paths import atomic_write
 
 LOCK_NAME = ".lock"
 IDENTITY_NAME = "run.json"
@@ -85,12 +86,10 @@ class RunLock:
         """Write who holds the lock into ``.lock``, for a second writer's refusal."""
         info = json.dumps({"pid": os.getpid(), "host": socket.gethostname(),
                            "since": time.strftime("%Y-%m-%d %H:%M:%S")}) + "\n"
-        tmp = self.path.with_name(f"{LOCK_NAME}.{os.getpid()}.tmp")
         try:  # who holds it, for the refusal's message; the lock does not depend on it
-            tmp.write_text(info)
-            os.replace(tmp, self.path)
+            atomic_write(self.path, info)
         except OSError:
-            tmp.unlink(missing_ok=True)
+            pass
 
     def holder(self) -> str:
         """Who holds the lock, as a phrase: "pid 123 on host since ..."."""
@@ -211,13 +210,7 @@ def identity(run_dir: Path) -> dict[str, Any]:
                              f"it, or remove it to adopt the run's checkpoints as they are.")
     ident = {"id": uuid.uuid4().hex, "started": time.strftime("%Y-%m-%d %H:%M:%S"),
              "host": socket.gethostname(), "command": " ".join(sys.argv)}
-    tmp = path.with_name(f".{IDENTITY_NAME}.{os.getpid()}.tmp")
-    try:
-        tmp.write_text(json.dumps(ident, indent=1) + "\n")
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    atomic_write(path, json.dumps(ident, indent=1) + "\n")
     return ident
 
 

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from uabs_rl.config import MaskingMode
-from uabs_rl.training.runlog import read_metrics
+from uabs_rl.runs.metrics import read_metrics
 
 MODES = tuple(m.value for m in MaskingMode)
 

@@ -41,6 +41,7 @@ from typing import TYPE_CHECKING
 import torch
 
 from uabs_rl.config import RunConfig
+from uabs_rl.paths import atomic_write
 from uabs_rl.rng import Generators
 from uabs_rl.runs.checkpoint import (
     CKPT_FORMAT,
@@ -173,10 +174,8 @@ class Checkpoints:
             return self.save(0, name)
         staged = [self.save(i, f"{name}.staged") for i in range(len(self.exp.members))]
         record = run_dir / f".{name}.commit"
-        tmp = record.with_name(record.name + ".tmp")
         # names relative to the population folder: it may be resumed from elsewhere or moved
-        tmp.write_text(json.dumps([os.path.relpath(p, run_dir) for p in staged]))
-        os.replace(tmp, record)
+        atomic_write(record, json.dumps([os.path.relpath(p, run_dir) for p in staged]))
         complete_save(run_dir, name)
         self.written |= {m.run_dir / "checkpoints" / f"{name}.pt" for m in self.exp.members}
         return run_dir

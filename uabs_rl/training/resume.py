@@ -28,10 +28,10 @@ from uabs_rl.runs.checkpoint import (
     load_checkpoint,
     load_hydra_config,
 )
+from uabs_rl.runs.metrics import check_history
 from uabs_rl.traces.store import check_names
 from uabs_rl.training.experiment import Experiment
 from uabs_rl.training.members import complete_save, member_dir, member_seeds
-from uabs_rl.training.runlog import check_history
 
 log = logging.getLogger(__name__)
 
