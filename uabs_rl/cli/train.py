@@ -33,6 +33,7 @@ from uabs_rl.cli.hydra import hydra_main, path_safe
 from uabs_rl.config import ConfigError, LoggerKind, RunConfig
 from uabs_rl.paths import atomic_file, atomic_write, check_path, name_max
 from uabs_rl.runs import folder as runfolder
+from uabs_rl.runs.layout import RunFolder
 from uabs_rl.runs.metrics import MetricsError, read_metrics
 from uabs_rl.training.resume import prepare
 
@@ -52,7 +53,7 @@ def summary_text(cfg: RunConfig, summary: dict[str, Any], run_dir: Path) -> str:
     """The end of a run: where it is, a table of its headline figures (from its whole
     ``metrics.jsonl``, so a resumed run counts every episode), and the next commands,
     ready to copy."""
-    metrics = run_dir / "metrics.jsonl"
+    metrics = RunFolder(run_dir).metrics
     recs = read_metrics(metrics) if metrics.is_file() else []
     train = [r for r in recs if r["kind"] == "train"]
     evals = [r for r in recs if r["kind"] == "eval"]
@@ -82,7 +83,7 @@ def summary_text(cfg: RunConfig, summary: dict[str, Any], run_dir: Path) -> str:
                 ("fallbacks", "mask fallbacks"))) + f" in {len(train)} episodes")
     q = shlex.quote(str(run_dir))
     # a sweep's job: the report over the whole sweep (it groups the sweep's settings)
-    sweep = run_dir.parent if (run_dir.parent / "multirun.yaml").is_file() else run_dir
+    sweep = run_dir.parent if RunFolder(run_dir.parent).sweep_record.is_file() else run_dir
     report_dir = shlex.quote(str(sweep))
     lines += ["next:",
               f"  {command('uabs-eval')} {q} --policy all   # test traces, beside the "
@@ -91,7 +92,8 @@ def summary_text(cfg: RunConfig, summary: dict[str, Any], run_dir: Path) -> str:
               f"the runs in that folder"]
     logger = LoggerKind(cfg.train.logger)
     if logger is LoggerKind.tensorboard:
-        lines.append(f"  {command('tensorboard')} --logdir {shlex.quote(str(run_dir / 'tb'))}")
+        tb = shlex.quote(str(RunFolder(run_dir).tb))
+        lines.append(f"  {command('tensorboard')} --logdir {tb}")
     elif logger is LoggerKind.csv:
         lines.append(f"  ls {shlex.quote(str(run_dir / 'csv' / 'scalars'))}   # one CSV per "
                      f"curve")
@@ -109,7 +111,7 @@ def population_summary_text(cfg: RunConfig, summary: dict[str, Any], run_dir: Pa
              f"  {'member':<22} {'best R (ep)':>14} {'last R':>8} {'served':>8} "
              f"{f'P_g({nhat})':>8} {'train coll.':>11}"]
     for m in summary["members"]:
-        path = Path(m["run_dir"]) / "metrics.jsonl"
+        path = RunFolder(m["run_dir"]).metrics
         recs = read_metrics(path) if path.is_file() else []
         evals = [r for r in recs if r["kind"] == "eval"]
         coll = sum(r["collisions"] for r in recs if r["kind"] == "train")
@@ -169,7 +171,7 @@ def _check_paths(argv: list[str]) -> None:
                 parent = path.parent.parent if path.suffix == ".pt" else path.parent
                 raise ConfigError(f"resume={path} is a file: pass the run folder that "
                                   f"holds checkpoints/last.pt, e.g. resume={parent}.")
-            if multirun and not (path / "multirun.yaml").is_file():
+            if multirun and not RunFolder(path).sweep_record.is_file():
                 raise ConfigError(f"resume={path} with -m: pass the sweep's folder (the "
                                   f"one holding multirun.yaml) with the sweep's own "
                                   f"command, or drop -m to resume this one run.")
@@ -189,7 +191,7 @@ def _check_paths(argv: list[str]) -> None:
                 raise ConfigError(f"resume={resumed[0]} writes into the run's own folder, "
                                   f"not {key}={value}: drop {key}.")
             if (key == "hydra.sweep.dir" and multirun and not resumed
-                    and (path / "multirun.yaml").exists() and _holds_jobs(path)):
+                    and RunFolder(path).sweep_record.exists() and _holds_jobs(path)):
                 raise ConfigError(f"hydra.sweep.dir={value} holds another sweep "
                                   f"(multirun.yaml): continue it by re-typing its command "
                                   f"with resume={value} appended, or choose another "
@@ -204,7 +206,7 @@ def _check_paths(argv: list[str]) -> None:
 def _holds_jobs(sweep: Path) -> bool:
     """True when a sweep folder holds a job that started (a refused sweep leaves only
     its multirun.yaml: a corrected command may take the folder)."""
-    return any(runfolder.holds_run(d) or (d / ".hydra").is_dir()
+    return any(runfolder.holds_run(d) or RunFolder(d).hydra.is_dir()
                for d in sweep.iterdir() if d.is_dir())
 
 
@@ -261,7 +263,7 @@ def _write_hydra_files(cfg: RunConfig, folder: Path) -> None:
     from hydra.core.hydra_config import HydraConfig
 
     hc = HydraConfig.get()
-    out = folder / ".hydra"
+    out = RunFolder(folder).hydra
     out.mkdir(parents=True, exist_ok=True)
     for name, node in (("config.yaml", OmegaConf.structured(cfg)),
                        ("overrides.yaml", OmegaConf.create(list(hc.overrides.task))),
@@ -273,7 +275,7 @@ def _write_hydra_files(cfg: RunConfig, folder: Path) -> None:
 def _copy_sweep_record(sweep_dir: Path, folder: Path) -> None:
     """A sweep's job that moved to ``<sweep>-k/<job>``: that sweep folder gets the
     sweep's ``multirun.yaml`` too (re-typing the sweep with resume= needs it)."""
-    src, dst = sweep_dir / "multirun.yaml", folder.parent / "multirun.yaml"
+    src, dst = RunFolder(sweep_dir).sweep_record, RunFolder(folder.parent).sweep_record
     if src.is_file() and not dst.exists():
         atomic_write(dst, src.read_bytes())
 
@@ -286,7 +288,7 @@ def _run_and_report(cfg: RunConfig, run_dir: Path, overrides: list[str]) -> None
     multirun = hc.mode == RunMode.MULTIRUN
     sweep_dir = Path(hc.sweep.dir) if multirun else None
     if cfg.resume and multirun:  # a re-typed sweep: this job's own folder under it
-        if runfolder.holds_run(run_dir) or (run_dir / ".hydra" / "config.yaml").is_file():
+        if runfolder.holds_run(run_dir) or RunFolder(run_dir).hydra_config.is_file():
             cfg.resume = str(run_dir)
         else:  # a job the stopped sweep never reached: it starts now, in its folder
             cfg.resume = None

@@ -45,6 +45,7 @@ from uabs_rl.runs.checkpoint import (
     load_checkpoint,
     load_into,
 )
+from uabs_rl.runs.layout import CHECKPOINTS, RunFolder, run_of_checkpoint
 from uabs_rl.safety.make import make_selector, resolve_device
 
 POLICIES = ("learned", *BASELINES)  # --policy all
@@ -174,11 +175,12 @@ def find_checkpoint(path: Path, which: str = "best") -> Path:
         raise CheckpointError(f"no checkpoint at {path}: no such file or folder. Pass a run "
                               f"folder (it holds checkpoints/best.pt and last.pt) or a .pt "
                               f"file written by uabs-train.")
-    ckpt = path / "checkpoints" / f"{which}.pt"
+    folder = RunFolder(path)
+    ckpt = folder.checkpoint(which)
     if ckpt.is_file():
         return ckpt
-    held = sorted(p.name for p in (path / "checkpoints").glob("*.pt"))
-    members = sorted({p.parent.parent.name for p in path.glob("seed=*/checkpoints/*.pt")},
+    held = sorted(p.name for p in folder.checkpoints.glob("*.pt"))
+    members = sorted({p.parent.parent.name for p in folder.member_checkpoints("*")},
                      key=lambda name: (len(name), name))
     if not held and members:
         raise CheckpointError(f"{path} is a population: evaluate one member, e.g. uabs-eval "
@@ -186,13 +188,13 @@ def find_checkpoint(path: Path, which: str = "best") -> Path:
     if held:
         other = "last" if which == "best" else "best"
         hint = (f"evaluate it with --checkpoint {other}" if f"{other}.pt" in held else
-                f"pass one of them as the path, e.g. uabs-eval {path / 'checkpoints' / held[0]}")
-        raise CheckpointError(f"no checkpoint at {ckpt}: {path / 'checkpoints'} holds only "
+                f"pass one of them as the path, e.g. uabs-eval {folder.checkpoints / held[0]}")
+        raise CheckpointError(f"no checkpoint at {ckpt}: {folder.checkpoints} holds only "
                               f"{', '.join(held)}; {hint}.")
-    if path.name == "checkpoints" and (path / f"{which}.pt").is_file():
+    if path.name == CHECKPOINTS and (path / f"{which}.pt").is_file():
         raise CheckpointError(f"{path} is a run's checkpoints folder: pass the run folder, "
                               f"uabs-eval {path.parent}, or the file {path / f'{which}.pt'}.")
-    if (path / "checkpoints").is_dir() or (path / "metrics.jsonl").is_file():
+    if folder.checkpoints.is_dir() or folder.metrics.is_file():
         raise CheckpointError(f"no checkpoint at {ckpt}: the run in {path} stopped before its "
                               f"first evaluation (train.eval_every) wrote one; continue it "
                               f"with uabs-train resume={path}.")
@@ -206,9 +208,9 @@ def check_belongs(state: dict, ckpt: Path) -> None:
     of the folder's ``run.json``, its result-changing settings those of the folder's
     ``.hydra/config.yaml`` (as ``resume`` checks); one copied in from another run is
     refused, naming the file and the fix, instead of being evaluated as this run's."""
-    if ckpt.parent.name != "checkpoints":
-        return
-    check_own(state, ckpt.parent.parent, ckpt)
+    run = run_of_checkpoint(ckpt)
+    if run is not None:
+        check_own(state, run, ckpt)
 
 
 def load_evaluation(path: Path, which: str = "best", windows: int | None = None,
@@ -252,8 +254,8 @@ def default_out_dir(path: Path, overrides: list[str] | None = None) -> Path:
     if path.is_dir():
         run = path
     else:
-        run = path.parent.parent if path.parent.name == "checkpoints" else path.parent
-    out = run / "evaluation"
+        run = run_of_checkpoint(path) or path.parent
+    out = RunFolder(run).evaluation
     return out / ",".join(o.replace("/", "_") for o in overrides) if overrides else out
 
 

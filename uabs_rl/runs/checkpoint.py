@@ -25,7 +25,8 @@ from omegaconf.errors import OmegaConfBaseException
 from uabs_rl.config import MOVED, ConfigError, RunConfig, to_container
 from uabs_rl.env.params import EnvParams
 from uabs_rl.paths import atomic_file
-from uabs_rl.runs.folder import IDENTITY_NAME, check_identity
+from uabs_rl.runs.folder import check_identity
+from uabs_rl.runs.layout import RunFolder
 
 # 2: the replay keeps the agent dimension (step slots of M agents); format 1's flat
 # ring of per-agent transitions is converted on load (upgrade_state)
@@ -425,7 +426,7 @@ def check_compatible(state: dict, cfg: RunConfig, source: Path) -> None:
 
 def load_hydra_config(run_dir: Path) -> dict | None:
     """The run's ``.hydra/config.yaml`` in today's keys, or None when it has none."""
-    path = run_dir / ".hydra" / "config.yaml"
+    path = RunFolder(run_dir).hydra_config
     if not path.is_file():
         return None
     try:
@@ -445,7 +446,7 @@ def check_own(state: dict, run_dir: Path, source: Path) -> None:
     result-changing settings than the run folder's own ``.hydra/config.yaml``. A member
     of a population (``<population>/seed=<s>``) is checked against its population's
     folder (its seed aside: each member has its own)."""
-    member = run_dir.name.startswith("seed=") and (run_dir.parent / IDENTITY_NAME).is_file()
+    member = RunFolder(run_dir).is_member and RunFolder(run_dir.parent).identity.is_file()
     home = run_dir.parent if member else run_dir
     check_identity(state, home, source)
     started = load_hydra_config(home)

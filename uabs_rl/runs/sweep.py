@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from uabs_rl.config import MaskingMode
+from uabs_rl.runs.layout import METRICS, RunFolder
 from uabs_rl.runs.metrics import read_metrics
 
 MODES = tuple(m.value for m in MaskingMode)
@@ -78,7 +79,7 @@ class Run:
         try:
             full = flatten(config_dict(config_from_checkpoint({"config": stored})))
         except CheckpointError as e:
-            ckpt = self.path / "checkpoints" / "last.pt"
+            ckpt = RunFolder(self.path).last
             raise CheckpointError(e if str(ckpt) in str(e) else f"{ckpt}: {e}") from None
         return {k: v for k, v in full.items() if not _is(k, NEUTRAL)}
 
@@ -152,8 +153,8 @@ def _metrics_files(root: Path) -> list[Path]:
             continue
         seen.add(real)
         dirs.sort()
-        if "metrics.jsonl" in files:
-            found.append(Path(here) / "metrics.jsonl")
+        if METRICS in files:
+            found.append(RunFolder(here).metrics)
     return sorted(found)
 
 
@@ -163,7 +164,7 @@ def _load_run(metrics: Path) -> Run | str:
     from uabs_rl.runs.checkpoint import check_own, load_checkpoint
 
     run_dir = metrics.parent
-    ckpt = run_dir / "checkpoints" / "last.pt"
+    ckpt = RunFolder(run_dir).last
     if not ckpt.is_file():
         return f"{run_dir} has no checkpoints/last.pt yet (stopped before its first checkpoint?)"
     state = load_checkpoint(ckpt)

@@ -24,6 +24,7 @@ from uabs_rl.evaluation.evaluator import Evaluator, greedy_policy, make_eval_env
 from uabs_rl.rng import make_generator
 from uabs_rl.runs.checkpoint import Interrupted
 from uabs_rl.runs.folder import write_error
+from uabs_rl.runs.layout import RunFolder
 from uabs_rl.safety.make import make_env, make_selector, resolve_device
 from uabs_rl.traces.store import TraceSet, training_traces
 from uabs_rl.training.members import Checkpoints, Member, member_dir, member_seeds
@@ -264,7 +265,7 @@ class Experiment:
 
     def kept(self) -> str:
         """What a run stopped at once keeps, in words."""
-        last = [m.run_dir / "checkpoints" / "last.pt" for m in self.members]
+        last = [RunFolder(m.run_dir).last for m in self.members]
         if all(p.is_file() for p in last):
             return (f"the last checkpoint is kept; continue with resume={self.run_dir}")
         return ("no checkpoint had been written yet: nothing to resume, start the run "

@@ -52,6 +52,7 @@ from uabs_rl.runs.checkpoint import (
     save_checkpoint,
 )
 from uabs_rl.runs.folder import RunFolderError, check_identity, write_error
+from uabs_rl.runs.layout import RunFolder
 from uabs_rl.training.runlog import RunLog
 
 if TYPE_CHECKING:
@@ -68,7 +69,7 @@ def member_seeds(cfg: RunConfig) -> list[int]:
 
 
 def member_dir(run_dir: Path, seed: int) -> Path:
-    return Path(run_dir) / f"seed={seed}"
+    return RunFolder(run_dir).member(seed).path
 
 
 def complete_save(run_dir: Path, name: str = "last") -> None:
@@ -82,7 +83,7 @@ def complete_save(run_dir: Path, name: str = "last") -> None:
             if staged.is_file():
                 os.replace(staged, staged.with_name(f"{name}.pt"))
         record.unlink()
-    for staged in Path(run_dir).glob(f"seed=*/checkpoints/{name}.staged.pt"):
+    for staged in RunFolder(run_dir).member_checkpoints(f"{name}.staged"):
         staged.unlink()
 
 
@@ -152,7 +153,7 @@ class Checkpoints:
         return state
 
     def save(self, i: int, name: str) -> Path:
-        path = self.exp.members[i].run_dir / "checkpoints" / f"{name}.pt"
+        path = RunFolder(self.exp.members[i].run_dir).checkpoint(name)
         self.check_written()
         try:
             save_checkpoint(self.state(i), path)
@@ -177,7 +178,7 @@ class Checkpoints:
         # names relative to the population folder: it may be resumed from elsewhere or moved
         atomic_write(record, json.dumps([os.path.relpath(p, run_dir) for p in staged]))
         complete_save(run_dir, name)
-        self.written |= {m.run_dir / "checkpoints" / f"{name}.pt" for m in self.exp.members}
+        self.written |= {RunFolder(m.run_dir).checkpoint(name) for m in self.exp.members}
         return run_dir
 
     def resume(self, states: list[dict], sources: list[Path]) -> None:
@@ -216,7 +217,7 @@ class Checkpoints:
 
     def load(self) -> None:
         """Continue every member from its ``last.pt``."""
-        paths = [m.run_dir / "checkpoints" / "last.pt" for m in self.exp.members]
+        paths = [RunFolder(m.run_dir).last for m in self.exp.members]
         self.resume([load_checkpoint(p) for p in paths], paths)
 
     def restore_counters(self, state: dict) -> None:

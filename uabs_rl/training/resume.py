@@ -7,7 +7,6 @@ run folder's lock."""
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 from collections.abc import Callable
@@ -28,7 +27,8 @@ from uabs_rl.runs.checkpoint import (
     load_checkpoint,
     load_hydra_config,
 )
-from uabs_rl.runs.metrics import check_history
+from uabs_rl.runs.layout import RunFolder
+from uabs_rl.runs.metrics import check_history, count_evaluations
 from uabs_rl.traces.store import check_names
 from uabs_rl.training.experiment import Experiment
 from uabs_rl.training.members import complete_save, member_dir, member_seeds
@@ -41,7 +41,8 @@ def saved_config(run_dir: Path) -> tuple[RunConfig, dict | None]:
     A checkpoint must be this run's own: its run id (``run.json``) and its settings
     (``.hydra/config.yaml``) are checked."""
     check_checkpoints_folder(run_dir)
-    ckpt = run_dir / "checkpoints" / "last.pt"
+    folder = RunFolder(run_dir)
+    ckpt = folder.last
     if ckpt.is_file():
         state = load_checkpoint(ckpt)
         if "population" in state:
@@ -50,7 +51,7 @@ def saved_config(run_dir: Path) -> tuple[RunConfig, dict | None]:
                                   f"resume={run_dir.parent}.")
         check_own(state, run_dir, ckpt)
         return config_from_checkpoint(state), state
-    if list(run_dir.glob("seed=*/checkpoints/last.pt")):  # a population
+    if folder.member_checkpoints():  # a population
         return population_config(run_dir), None
     hydra_cfg = load_hydra_config(run_dir)
     if hydra_cfg is None:
@@ -63,7 +64,7 @@ def saved_config(run_dir: Path) -> tuple[RunConfig, dict | None]:
 def check_checkpoints_folder(run_dir: Path) -> None:
     """Refuse a run folder whose ``checkpoints`` is not a folder (a file, a dangling
     link) before anything in it is written or truncated."""
-    ckpts = run_dir / "checkpoints"
+    ckpts = RunFolder(run_dir).checkpoints
     if (ckpts.exists() or ckpts.is_symlink()) and not ckpts.is_dir():
         raise CheckpointError(f"{ckpts} is not a folder: a run keeps its checkpoints "
                               f"there. Move that file away (nothing was changed), then "
@@ -76,16 +77,10 @@ def check_lost_checkpoint(members: list[Path]) -> None:
     member folder that logged an evaluation or holds ``best.pt`` lost its checkpoint,
     and starting again would replace its history. Refused, naming what is missing."""
     for folder in members:
-        metrics = folder / "metrics.jsonl"
-        evals = 0
-        if metrics.is_file():
-            for line in metrics.read_bytes().splitlines():
-                try:
-                    evals += json.loads(line).get("kind") == "eval"
-                except (ValueError, AttributeError):  # a damaged line: not an evaluation
-                    continue
-        best = (folder / "checkpoints" / "best.pt").is_file()
-        pictures = list((folder / "eval").glob("*.png")) if (folder / "eval").is_dir() else []
+        f = RunFolder(folder)
+        evals = count_evaluations(f.metrics)
+        best = f.best.is_file()
+        pictures = list(f.eval.glob("*.png")) if f.eval.is_dir() else []
         if evals or best or pictures:
             held = (f"{evals} evaluations in metrics.jsonl" if evals else
                     "checkpoints/best.pt" if best else "evaluation pictures in eval/")
@@ -99,7 +94,7 @@ def check_lost_checkpoint(members: list[Path]) -> None:
 def population_config(run_dir: Path) -> RunConfig:
     """The config of the population in ``run_dir``, from a member's checkpoint (the
     population's seed is its first member's)."""
-    for member in sorted(run_dir.glob("seed=*/checkpoints/last.pt")):
+    for member in RunFolder(run_dir).member_checkpoints():
         state = load_checkpoint(member)
         if "population" in state:
             cfg = config_from_checkpoint(state)
@@ -236,7 +231,7 @@ def _prepare_locked(cfg: RunConfig, run_dir: Path, overrides: list[str] | None,
                     record: Callable[[Path], None] | None = None) -> Experiment:
     if not cfg.resume:
         folders = [run_dir, *(member_dir(run_dir, s) for s in member_seeds(cfg))]
-        held = [d for d in folders if (d / "metrics.jsonl").exists()]
+        held = [d for d in folders if RunFolder(d).metrics.exists()]
         if held:
             raise ConfigError(f"{held[0]} already holds a run (metrics.jsonl): continue it "
                               f"with resume={run_dir}, or choose another hydra.run.dir.")
@@ -254,13 +249,13 @@ def _prepare_locked(cfg: RunConfig, run_dir: Path, overrides: list[str] | None,
     if state is None:
         check_lost_checkpoint([run_dir])
     else:  # before anything is built, logged or truncated
-        check_history(run_dir / "metrics.jsonl", int(state["counters"]["episode"]))
+        check_history(RunFolder(run_dir).metrics, int(state["counters"]["episode"]))
     exp = Experiment(cfg, run_dir)
     if state is None:  # stopped before its first checkpoint: start it again, in place
         log.info("%s has no checkpoint yet: starting it again from episode 0", run_dir)
         exp.members[0].log.truncate(0)
     else:
-        exp.checkpoints.resume([state], [run_dir / "checkpoints" / "last.pt"])
+        exp.checkpoints.resume([state], [RunFolder(run_dir).last])
         log.info("resuming %s at episode %d", run_dir, exp.episode)
     return exp
 
@@ -274,10 +269,10 @@ def _resume_population(cfg: RunConfig, run_dir: Path) -> Experiment:
     folders = [member_dir(run_dir, s) for s in member_seeds(cfg)]
     for folder in folders:
         check_checkpoints_folder(folder)
-    if not any((f / "checkpoints" / "last.pt").is_file() for f in folders):
+    if not any(RunFolder(f).last.is_file() for f in folders):
         check_lost_checkpoint(folders)
     pop = Experiment(cfg, run_dir)
-    have = [(m.run_dir / "checkpoints" / "last.pt").is_file() for m in pop.members]
+    have = [RunFolder(m.run_dir).last.is_file() for m in pop.members]
     if all(have):
         pop.checkpoints.load()
         for m in pop.members:  # every member's history, before any is truncated
