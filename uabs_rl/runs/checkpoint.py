@@ -37,7 +37,8 @@ COMPAT_KEYS = ("scenario", "family", "obs", "channel", "masking", "algo", "trace
 # never compared: names, not settings (obs.name), and how traces are built, not what
 # they hold (traces.workers: SUMO worker processes; sweep.NEUTRAL groups runs alike)
 LABELS = ("obs.name", "traces.workers")
-# what members.Checkpoints.state writes, entry by entry: a nested layout, or the kind of value
+# what a checkpoint holds (Experiment.member_state, and its format), entry by entry: a
+# nested layout, or the kind of value
 TENSORS, BYTES, NUMBER, INT, DICT = ("a dict of tensors", "a uint8 tensor (an RNG state)",
                                      "a number", "an integer", "a dict")
 LAYOUT: dict[str, Any] = {
@@ -175,9 +176,10 @@ def upgrade_state(state: Any) -> Any:
 
 
 def validate_state(state: Any, path: Path) -> None:
-    """Refuse a loaded checkpoint that lacks what :meth:`uabs_rl.training.members.Checkpoints.state`
-    writes, holds a config uabs_rl's settings cannot take, or holds networks whose
-    shapes do not fit that config; each message names the entry and the file."""
+    """Refuse a loaded checkpoint that lacks what
+    :meth:`uabs_rl.training.experiment.Experiment.member_state` writes, holds a config
+    uabs_rl's settings cannot take, or holds networks whose shapes do not fit that
+    config; each message names the entry and the file."""
     if not isinstance(state, dict):
         raise CheckpointError(f"{path} holds {_kind(state)}, not a uabs-train checkpoint (a "
                               f"dict of format, config, learner, counters, rng): {ANOTHER}.")
