@@ -30,8 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from uabs_rl.cli.evaluate import evaluate_policies, load_evaluation
 from uabs_rl.config import ConfigError
+from uabs_rl.evaluation.load import evaluate_policies, load_evaluation
 from uabs_rl.evaluation.stats import (
     AGGREGATE_METHOD,
     iqm_runs,

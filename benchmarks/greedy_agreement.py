@@ -18,9 +18,9 @@ from pathlib import Path
 
 import torch
 
-from uabs_rl.cli.evaluate import load_evaluation
 from uabs_rl.env.service import move_scores
 from uabs_rl.env.uabs_env import ACTION, POSITION
+from uabs_rl.evaluation.load import load_evaluation
 
 
 @torch.no_grad()

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from uabs_rl.cli.evaluate import evaluate_policies, load_evaluation
+from uabs_rl.evaluation.load import evaluate_policies, load_evaluation
 from uabs_rl.evaluation.stats import (
     AGGREGATE_METHOD,
     probability_of_improvement,

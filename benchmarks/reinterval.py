@@ -295,7 +295,7 @@ def _number(v: str) -> str | float | int:
 def summary_tables() -> None:
     """The "Settings compared" table of each summary.md beside a comparison.csv, from the
     rewritten csv (the report's own table function)."""
-    from uabs_rl.cli.report import comparison_markdown
+    from uabs_rl.report.tables import comparison_markdown
 
     for path in sorted(RESULTS.rglob("comparison.csv")):
         summary = path.with_name("summary.md")

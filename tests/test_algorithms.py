@@ -541,7 +541,7 @@ def test_qmix_settings_are_its_own():
     from hydra.errors import ConfigCompositionException
 
     from uabs_rl.config import compose
-    from uabs_rl.training.checkpoint import config_dict, config_from_checkpoint
+    from uabs_rl.runs.checkpoint import config_dict, config_from_checkpoint
     from uabs_rl.training.startup import validate_algo_name
 
     cfg = compose("config", ["algo=qmix", "algo.mixing_embed_dim=8", "experiment=smoke"])

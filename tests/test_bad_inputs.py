@@ -14,11 +14,11 @@ from omegaconf.errors import ValidationError
 from tests.conftest import SMALL_TRACES, compose_cfg
 from tests.test_train import records, smoke
 from uabs_rl.cli.evaluate import main as eval_main
-from uabs_rl.cli.report import read_metrics
-from uabs_rl.cli.train import run
 from uabs_rl.config import ConfigError
+from uabs_rl.runs.checkpoint import CheckpointError, load_checkpoint
+from uabs_rl.runs.metrics import MetricsError, read_metrics
 from uabs_rl.safety.make import resolve_device
-from uabs_rl.training.checkpoint import CheckpointError, load_checkpoint
+from uabs_rl.training.resume import run
 from uabs_rl.training.startup import validate_run
 
 
@@ -51,7 +51,7 @@ def test_corrupt_metrics_line_names_the_file_and_line(tmp_path, line, why):
     why (a bare number or bytes that are not text once ended in a traceback)."""
     m = tmp_path / "metrics.jsonl"
     m.write_bytes(b'{"kind": "train", "episode": 1, "env_steps": 20}\n' + line + b"\n")
-    with pytest.raises(SystemExit, match=rf"metrics\.jsonl, line 2, is {why}"):
+    with pytest.raises(MetricsError, match=rf"metrics\.jsonl, line 2, is {why}"):
         read_metrics(m)
 
 

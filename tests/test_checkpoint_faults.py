@@ -19,10 +19,11 @@ from tests.test_train import smoke
 from uabs_rl.algorithms.model import DuelingQNet
 from uabs_rl.cli import evaluate
 from uabs_rl.cli.evaluate import main as eval_main
-from uabs_rl.cli.train import run
 from uabs_rl.config import ConfigError
+from uabs_rl.evaluation.load import default_out_dir
+from uabs_rl.runs.checkpoint import CheckpointError, load_checkpoint, load_into
 from uabs_rl.traces.build import get_traces
-from uabs_rl.training.checkpoint import CheckpointError, load_checkpoint, load_into
+from uabs_rl.training.resume import run
 
 
 @pytest.fixture(scope="module")
@@ -279,9 +280,9 @@ def test_an_unusable_out_folder_is_refused_before_evaluating(
 
 
 def test_a_checkpoint_file_outside_a_run_writes_beside_itself(tmp_path):
-    assert evaluate.default_out_dir(tmp_path / "x.pt") == tmp_path / "evaluation"
+    assert default_out_dir(tmp_path / "x.pt") == tmp_path / "evaluation"
     run_dir = tmp_path / "run"
-    assert evaluate.default_out_dir(run_dir / "checkpoints" / "best.pt") == \
+    assert default_out_dir(run_dir / "checkpoints" / "best.pt") == \
         run_dir / "evaluation"
 
 

@@ -17,10 +17,10 @@ import pytest
 import torch
 
 from tests.test_train import records, smoke
-from uabs_rl.cli.train import prepare, run
-from uabs_rl.training.checkpoint import CheckpointError, load_checkpoint
+from uabs_rl.runs.checkpoint import CheckpointError, load_checkpoint
+from uabs_rl.runs.folder import RunFolderError, RunLock
 from uabs_rl.training.members import complete_save
-from uabs_rl.training.runfolder import RunFolderError, RunLock
+from uabs_rl.training.resume import prepare, run
 
 QUIET = ["train.trajectory_images=false", "train.logger=none", "train.threads=1"]
 
@@ -149,7 +149,7 @@ def test_a_checkpoint_of_another_run_is_refused(trace_cache, tmp_path):
     torch.save(state, rank / "checkpoints" / "last.pt")
     from omegaconf import OmegaConf
 
-    from uabs_rl.training.checkpoint import config_dict
+    from uabs_rl.runs.checkpoint import config_dict
     (rank / ".hydra").mkdir()
     OmegaConf.save(OmegaConf.create(config_dict(smoke(trace_cache, *QUIET,
                                                       "train.episodes=3"))),
@@ -199,7 +199,7 @@ def test_a_population_save_cut_between_members_is_completed_or_dropped(trace_cac
 
 def test_a_stale_lock_of_a_dead_process_is_taken_over(tmp_path):
     child = subprocess.Popen([sys.executable, "-c", (
-        "import sys, time; from uabs_rl.training.runfolder import RunLock; "
+        "import sys, time; from uabs_rl.runs.folder import RunLock; "
         f"lock = RunLock({str(tmp_path)!r}); assert lock.acquire(); print('held', flush=True); "
         "time.sleep(60)")], stdout=subprocess.PIPE, text=True)
     assert child.stdout.readline().strip() == "held"
@@ -378,7 +378,7 @@ def test_a_damaged_line_before_the_last_is_refused_on_resume(three_episodes, tra
 
 
 def test_a_failed_checkpoint_write_leaves_the_old_file_and_no_temporary(tmp_path, monkeypatch):
-    from uabs_rl.training import checkpoint
+    from uabs_rl.runs import checkpoint
 
     path = tmp_path / "checkpoints" / "last.pt"
     checkpoint.save_checkpoint({"format": 1, "x": torch.ones(3)}, path)

@@ -15,8 +15,6 @@ import torch
 from tests.test_planner import eval_env as planner_env
 from tests.test_train import smoke
 from uabs_rl.cli.evaluate import main as eval_main
-from uabs_rl.cli.report import build_report
-from uabs_rl.cli.train import run
 from uabs_rl.env.params import EnvParams
 from uabs_rl.env.uabs_env import ACTION, MASK, UABSEnv
 from uabs_rl.evaluation.baselines import baseline_policy
@@ -31,8 +29,10 @@ from uabs_rl.evaluation.predict import (
     prediction_error,
     schedule,
 )
+from uabs_rl.report.build import build_report
 from uabs_rl.safety.make import make_env, make_selector
 from uabs_rl.traces.cache import TraceSet
+from uabs_rl.training.resume import run
 
 
 def eval_env(trace_cache, *overrides: str, windows: int = 2):

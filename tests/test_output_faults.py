@@ -19,7 +19,7 @@ from omegaconf import OmegaConf
 
 from tests.conftest import SMALL_TRACES
 from tests.test_train import smoke
-from uabs_rl.cli.train import run
+from uabs_rl.training.resume import run
 
 QUIET = ("train.logger=none", "train.trajectory_images=false")
 LONG = "x" * 300
@@ -201,13 +201,13 @@ def report(sweep: Path, out: Path, *extra: str, hook: str = "") -> subprocess.Co
 
 KILL_AT_COMPARISON = """
 import os, signal
-import uabs_rl.cli.report as r
-_write = r._write_csv
+import uabs_rl.report.build as r
+_write = r.write_csv
 def _write_csv(path, *a, **k):
     _write(path, *a, **k)
     if path.name == "comparison.csv":  # table2 and the figures are written by now
         os.kill(os.getpid(), signal.{sig})
-r._write_csv = _write_csv
+r.write_csv = _write_csv
 """
 
 

@@ -12,7 +12,6 @@ import torch
 
 from tests.test_train import smoke
 from uabs_rl.cli.evaluate import main as eval_main
-from uabs_rl.cli.train import run
 from uabs_rl.config import ConfigError
 from uabs_rl.env.geometry import Geometry
 from uabs_rl.env.params import EnvParams
@@ -31,6 +30,7 @@ from uabs_rl.evaluation.planner import (
 )
 from uabs_rl.safety.make import make_env, make_selector
 from uabs_rl.traces.cache import TraceSet
+from uabs_rl.training.resume import run
 
 
 def eval_env(trace_cache, *overrides: str, windows: int = 4):

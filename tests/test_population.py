@@ -13,13 +13,13 @@ import torch
 from tests.test_algorithms import batch, dqn3
 from tests.test_train import records, smoke
 from uabs_rl.algorithms.model import DuelingQNet
-from uabs_rl.cli.evaluate import load_evaluation
-from uabs_rl.cli.report import find_runs
-from uabs_rl.cli.train import prepare, run
 from uabs_rl.config import AlgoConfig, ConfigError
+from uabs_rl.evaluation.load import load_evaluation
 from uabs_rl.rng import Generators, rand, randint
-from uabs_rl.training.checkpoint import CheckpointError, Interrupted, load_checkpoint
+from uabs_rl.runs.checkpoint import CheckpointError, Interrupted, load_checkpoint
+from uabs_rl.runs.sweep import find_runs
 from uabs_rl.training.experiment import Experiment
+from uabs_rl.training.resume import prepare, run
 from uabs_rl.training.startup import validate_run
 
 QUIET = ["train.trajectory_images=false", "train.logger=none"]

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from tests.test_train import smoke
-from uabs_rl.cli.train import run
 from uabs_rl.config import ConfigError
 from uabs_rl.evaluation.stats import iqm, paired_difference, t_interval
 from uabs_rl.traces import build as traces_mod
+from uabs_rl.training.resume import run
 from uabs_rl.training.startup import validate_run
 
 

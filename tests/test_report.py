@@ -11,9 +11,10 @@ import pytest
 
 from tests.test_train import records, smoke
 from uabs_rl.cli.evaluate import main as eval_main
-from uabs_rl.cli.report import build_report, find_runs, group_runs
 from uabs_rl.cli.report import main as report_main
-from uabs_rl.cli.train import run
+from uabs_rl.report.build import build_report
+from uabs_rl.runs.sweep import find_runs, group_runs
+from uabs_rl.training.resume import run
 
 QUIET = ("train.logger=none", "train.trajectory_images=false", "scenario.n_uabs=4")
 
@@ -83,8 +84,9 @@ def test_figures_have_panels_and_no_figure_numbers(sweep, report, tmp_path, monk
     evaluations are drawn with markers; the band of 2 seeds is called their range."""
     import matplotlib
 
-    from uabs_rl.cli.report import best_pg, fig3, fig4
     from uabs_rl.evaluation.plots import MODE_COLORS
+    from uabs_rl.report.baselines import best_pg
+    from uabs_rl.report.figures import fig3, fig4
 
     grouping = group_runs(find_runs(sweep))
     assert list(grouping.groups) == ["penalty", "rank"] and grouping.by_mode_only
@@ -194,7 +196,7 @@ def test_planner_places_each_group_on_the_greedy_to_planner_scale(sweep, tmp_pat
     and each group's greedy rows hold (learned − greedy) / (planner − greedy) with the
     interval of learned − greedy divided by the same gap; its value equals the planner
     of ``uabs-eval`` on the panel's run."""
-    from uabs_rl.cli.evaluate import evaluate_policies, load_evaluation
+    from uabs_rl.evaluation.load import evaluate_policies, load_evaluation
 
     out = tmp_path / "report"
     assert report_main([str(sweep), "--out", str(out), "--planner", "2"]) == 0
@@ -260,7 +262,7 @@ def test_runs_of_other_settings_are_grouped_not_refused(sweep, tmp_path):
      {}, "lookahead algo.{hidden=[32, 32], batch_size=32, target_update=50}"),
 ])
 def test_run_labels_name_the_observation_and_learning_settings(scenario, algo, train, label):
-    from uabs_rl.cli.report import Run
+    from uabs_rl.runs.sweep import Run
 
     cfg = {"scenario": scenario, "channel": {}, "masking": {"recoverable": True}, "algo": algo,
            "train": train, "traces": {}, "seed": 0}
@@ -276,7 +278,7 @@ def test_run_labels_name_the_observation_and_learning_settings(scenario, algo, t
 def test_run_labels_name_the_obs_group(obs, label):
     """Runs written with the obs group; a run of the same observation written before
     it (scenario.lookahead_obs, above) gets the same label."""
-    from uabs_rl.cli.report import Run
+    from uabs_rl.runs.sweep import Run
 
     cfg = {"scenario": {}, "obs": obs, "channel": {}, "masking": {"recoverable": True},
            "algo": {}, "train": {}, "traces": {}, "seed": 0}
@@ -284,7 +286,7 @@ def test_run_labels_name_the_obs_group(obs, label):
 
 
 def test_run_labels_name_a_family_by_its_cities():
-    from uabs_rl.cli.report import Run
+    from uabs_rl.runs.sweep import Run
 
     cfg = {"scenario": {}, "obs": {"frame": "egocentric", "motion": True}, "channel": {},
            "masking": {"recoverable": True}, "algo": {}, "train": {"n_envs": 4},
@@ -294,7 +296,7 @@ def test_run_labels_name_a_family_by_its_cities():
 
 
 def test_runs_written_before_recoverable_masks_are_literal():
-    from uabs_rl.cli.report import Run
+    from uabs_rl.runs.sweep import Run
 
     cfg = {"scenario": {}, "channel": {}, "masking": {"mode": "rank"}, "algo": {}, "train": {},
            "traces": {}, "seed": 0}
@@ -497,7 +499,7 @@ def test_trajectory_picture_is_cropped_to_the_area_and_tracks_are_not_lanes():
 
 
 def test_several_folders_report_into_their_common_folder(tmp_path):
-    from uabs_rl.cli.report import default_out
+    from uabs_rl.report.build import default_out
 
     assert default_out([tmp_path / "a"]) == tmp_path / "a" / "report"
     assert default_out([tmp_path / "runs" / "a", tmp_path / "runs" / "b"]) == (

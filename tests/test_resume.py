@@ -18,8 +18,9 @@ import pytest
 import torch
 
 from tests.test_train import records, smoke
-from uabs_rl.cli.train import prepare, run, summary_text
-from uabs_rl.training.checkpoint import CheckpointError, load_checkpoint
+from uabs_rl.cli.train import summary_text
+from uabs_rl.runs.checkpoint import CheckpointError, load_checkpoint
+from uabs_rl.training.resume import prepare, run
 
 RUN = ["experiment=smoke", "train.episodes=60", "train.eval_every=5",
        "train.checkpoint_buffer=true", "train.logger=none",
@@ -100,7 +101,7 @@ def test_a_run_killed_before_its_first_checkpoint_restarts_in_place(trace_cache,
         (stuck / ".hydra").mkdir(parents=True)
     from omegaconf import OmegaConf
 
-    from uabs_rl.training.checkpoint import config_dict
+    from uabs_rl.runs.checkpoint import config_dict
     cfg = smoke(trace_cache, "train.trajectory_images=false")
     OmegaConf.save(OmegaConf.create(config_dict(cfg)), stuck / ".hydra" / "config.yaml")
     (stuck / "metrics.jsonl").write_text(

@@ -9,7 +9,6 @@ from omegaconf import OmegaConf
 
 from tests.test_faults import uabs_train
 from tests.test_run_folder_faults import copy_of, finished_run  # noqa: F401
-from uabs_rl.cli.evaluate import EVAL_GROUPS
 from uabs_rl.config import (
     CONF_DIR,
     Role,
@@ -18,9 +17,10 @@ from uabs_rl.config import (
     keys_with_role,
     setting_roles,
 )
-from uabs_rl.training import sweep
-from uabs_rl.training.checkpoint import COMPAT_KEYS, config_differences
-from uabs_rl.training.runlog import read_metrics
+from uabs_rl.evaluation.load import EVAL_GROUPS
+from uabs_rl.runs import sweep
+from uabs_rl.runs.checkpoint import COMPAT_KEYS, config_differences
+from uabs_rl.runs.metrics import read_metrics
 
 RUNTIME = {"traces.cache_dir", "traces.workers", "train.checkpoint_buffer", "train.logger",
            "train.trajectory_images", "train.progress", "train.compile", "train.threads",

@@ -21,9 +21,9 @@ import pytest
 
 from tests.test_faults import QUIET, error_lines, uabs_train, wait_for
 from tests.test_train import smoke
-from uabs_rl.cli.report import read_metrics
-from uabs_rl.cli.train import run
-from uabs_rl.training.runfolder import Before, RunFolderError, RunLock
+from uabs_rl.runs.folder import Before, RunFolderError, RunLock
+from uabs_rl.runs.metrics import MetricsError, read_metrics
+from uabs_rl.training.resume import run
 from uabs_rl.training.runlog import RunLog
 
 
@@ -154,7 +154,7 @@ def test_resume_refuses_a_history_with_a_hole(finished_run, tmp_path):
     err = one_error(uabs_train(tmp_path, *args, "train.episodes=6", f"resume={run_dir}"))
     assert "starts at episode 3" in err
     assert tree(run_dir, skip=(".lock",)) == before
-    with pytest.raises(SystemExit, match="starts at episode 3"):  # uabs-report's reader
+    with pytest.raises(MetricsError, match="starts at episode 3"):  # uabs-report's reader
         read_metrics(run_dir / "metrics.jsonl")
 
 

@@ -11,7 +11,7 @@ from tensorboard.compat.proto.event_pb2 import Event
 from tensorboard.compat.proto.summary_pb2 import Summary
 
 from tests.test_train import records, smoke
-from uabs_rl.cli.train import prepare
+from uabs_rl.training.resume import prepare
 from uabs_rl.training.runlog import curves, events_up_to, truncate_csv
 
 RUN = ["train.episodes=3", "train.eval_every=3", "train.threads=1"]

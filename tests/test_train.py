@@ -16,18 +16,18 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 
 from tests.conftest import compose_cfg
 from uabs_rl.algorithms import Dims, make_algorithm
-from uabs_rl.cli.evaluate import load_evaluation
-from uabs_rl.cli.train import prepare, run
 from uabs_rl.config import ConfigError
-from uabs_rl.safety.make import make_selector
-from uabs_rl.traces.cache import TraceSet
-from uabs_rl.training.checkpoint import (
+from uabs_rl.evaluation.load import load_evaluation
+from uabs_rl.runs.checkpoint import (
     CheckpointError,
     Interrupted,
     config_from_checkpoint,
     load_checkpoint,
 )
+from uabs_rl.safety.make import make_selector
+from uabs_rl.traces.cache import TraceSet
 from uabs_rl.training.experiment import Experiment
+from uabs_rl.training.resume import prepare, run
 from uabs_rl.training.startup import validate_run
 
 
@@ -378,7 +378,7 @@ def test_a_config_with_the_observation_in_scenario_still_loads(rank_run, tmp_pat
     """Checkpoints written before the obs group held scenario.lookahead_obs,
     motion_obs and priority_obs_scale: they load with those in obs, and the command the
     run was started with (obs=..., re-typed) finds no difference."""
-    from uabs_rl.training.checkpoint import config_dict, config_differences, upgrade_config
+    from uabs_rl.runs.checkpoint import config_dict, config_differences, upgrade_config
 
     state = load_checkpoint(rank_run / "checkpoints" / "last.pt")
     cfg = dict(state["config"])

@@ -16,7 +16,7 @@ import pytest
 optuna = pytest.importorskip("optuna")
 
 from tests.test_faults import QUIET, uabs_train  # noqa: E402
-from uabs_rl.training.checkpoint import load_checkpoint  # noqa: E402
+from uabs_rl.runs.checkpoint import load_checkpoint  # noqa: E402
 
 # every file a process opens whose name is a cached trace set (<scenario>-<split>-<hash>.pt)
 AUDIT = '''import os, sys

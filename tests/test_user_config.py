@@ -14,8 +14,8 @@ import yaml
 
 from tests.test_train import smoke
 from uabs_rl.cli.evaluate import main as eval_main
-from uabs_rl.cli.train import run
 from uabs_rl.traces.inputs import netgenerate_path
+from uabs_rl.training.resume import run
 
 
 def _netgenerate() -> str:
@@ -181,8 +181,8 @@ def test_training_over_a_family_of_cities(trace_cache, user_dir, tmp_path, caplo
 def test_uabs_eval_takes_the_city_preset_with_its_traces():
     """scenario=city is a global-package file (it sizes the traces too): uabs-eval takes
     its scenario and its test traces, not its training settings."""
-    from uabs_rl.cli.evaluate import with_overrides
     from uabs_rl.config import RunConfig
+    from uabs_rl.evaluation.load import with_overrides
 
     cfg = with_overrides(RunConfig(), ["scenario=city", "scenario.n_uabs=30"])
     assert (cfg.scenario.name, cfg.scenario.n_uabs, cfg.scenario.sumo.fleet_size) == (

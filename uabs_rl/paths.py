@@ -4,6 +4,8 @@
   or folder name (``scenario.name``, ``family[i].name``, ...): a plain file-name
   component, refused otherwise with one line naming the setting.
 - :func:`inside`: a derived path must stay inside the folder it was derived from.
+- :func:`atomic_file`, :func:`atomic_write`: a file written whole or not at all (a
+  temporary sibling, flushed to disk, renamed over the file).
 - :class:`OutputFolder`: a command's output folder is written as a fresh sibling
   ``.<name>.tmp-<pid>`` and swapped in at the end with renames (old ->
   ``.<name>.old-<pid>``, new -> name, then the old one removed), so a kill at any
@@ -26,11 +28,39 @@ import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import IO
 
 from uabs_rl.config import ConfigError
 
 MAX_COMPONENT = 100  # characters; file systems allow 255 bytes, and names get suffixes
 _CONTROL = re.compile(r"[\x00-\x1f\x7f]")
+
+
+@contextmanager
+def atomic_file(path: Path, mode: str = "wb") -> Iterator[IO]:
+    """A file to write ``path`` through, whole or not at all: the temporary sibling
+    ``.<name>.<pid>.tmp``, flushed to disk and renamed over ``path`` when the block ends;
+    a failure or a kill midway (Ctrl-C, a full disk) leaves the previous file as it was
+    and removes the temporary one. Through a Python file, a full disk is ``OSError``
+    (ENOSPC)."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with open(tmp, mode) as f:
+            yield f
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def atomic_write(path: Path, data: str | bytes) -> None:
+    """``data`` (text or bytes) as the whole of ``path``, whole or not at all
+    (:func:`atomic_file`)."""
+    with atomic_file(path, "wb" if isinstance(data, bytes) else "w") as f:
+        f.write(data)
 
 
 def safe_component(value: object, setting: str) -> str:

@@ -21,8 +21,9 @@ from uabs_rl.config import (
     to_container,
 )
 from uabs_rl.paths import safe_component
-from uabs_rl.training.checkpoint import CheckpointError, Interrupted
-from uabs_rl.training.runfolder import Before
+from uabs_rl.runs.checkpoint import CheckpointError, Interrupted
+from uabs_rl.runs.folder import Before
+from uabs_rl.runs.layout import HYDRA, IDENTITY, LOCK
 
 
 def start_folders(argv: list[str]) -> list[Path]:
@@ -108,7 +109,7 @@ def hydra_main(config_name: str, body: Callable[..., Any],
         except (ConfigError, CheckpointError, OSError) as e:
             # only what this invocation made: never a folder or file that was there
             before.undo_start(Path(hc.runtime.output_dir),
-                              {".hydra", ".lock", "run.json", f"{hc.job.name}.log"})
+                              {HYDRA, LOCK, IDENTITY, f"{hc.job.name}.log"})
             if isinstance(e, OSError):  # a path the file system refuses (too long, ...)
                 where = f" ({e.filename})" if getattr(e, "filename", None) else ""
                 e = f"{e.strerror or e}{where}: check the paths of the command line and " \

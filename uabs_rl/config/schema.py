@@ -308,7 +308,7 @@ class TracesAppConfig(RunConfig):
 
 
 # settings that moved: (section, old key) -> (section, new key); stored configs are
-# upgraded (uabs_rl.training.checkpoint.upgrade_config), command lines refused by
+# upgraded (uabs_rl.runs.checkpoint.upgrade_config), command lines refused by
 # uabs_rl.config.overrides.check_moved_overrides
 MOVED = {("scenario", "lookahead_obs"): ("obs", "lookahead"),
          ("scenario", "motion_obs"): ("obs", "motion"),

@@ -24,7 +24,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from uabs_rl.training.sweep import ENV_SETTINGS, Grouping, Run, _is, fmt_value
+from uabs_rl.runs.sweep import ENV_SETTINGS, Grouping, Run, _is, fmt_value
 
 ENV_NAME = "uabs_rl"
 # metric name in the export: (per-window key of an evaluation record, its mean's key)

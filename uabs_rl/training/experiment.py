@@ -22,14 +22,15 @@ from uabs_rl.algorithms import Dims, make_algorithm
 from uabs_rl.config import RunConfig, TrainConfig
 from uabs_rl.env.uabs_env import N_ACTIONS
 from uabs_rl.evaluation.evaluator import Evaluator, greedy_policy, make_eval_env
-from uabs_rl.rng import make_generator
+from uabs_rl.rng import Generators, make_generator
+from uabs_rl.runs.checkpoint import Interrupted, config_dict
+from uabs_rl.runs.folder import write_error
+from uabs_rl.runs.layout import RunFolder
 from uabs_rl.safety.make import make_env, make_selector, resolve_device
 from uabs_rl.traces.build import training_traces
 from uabs_rl.traces.cache import TraceSet
-from uabs_rl.training.checkpoint import Interrupted
 from uabs_rl.training.members import Checkpoints, Member, member_dir, member_seeds
 from uabs_rl.training.rollout import Collector, UpdateSchedule, episode_records, epsilon
-from uabs_rl.training.runfolder import write_error
 from uabs_rl.training.runlog import check_logger
 from uabs_rl.training.startup import validate_run
 from uabs_rl.training.threads import setup_threads
@@ -138,6 +139,11 @@ def _detach_terminal() -> None:
         os.close(devnull)
 
 
+def member_generator(gen: torch.Generator | Generators, i: int) -> torch.Generator:
+    """Member ``i``'s generator of ``gen`` (a single run's generator is its own)."""
+    return gen.gens[i] if isinstance(gen, Generators) else gen
+
+
 class Progress:
     """The progress bar of a run: episodes, last return, ε, collisions, last eval R."""
 
@@ -205,12 +211,69 @@ class Experiment:
         self.total_steps = tr.episodes * p.episode_steps  # per-env steps of the protocol
         self.episode = 0  # per member
         self.saved_episode: int | None = None  # the episode of the last ``last`` saved
-        self.identity: dict | None = None  # the run folder's (set by train.prepare)
+        self.identity: dict | None = None  # the run folder's (set by resume.prepare)
         self.run_lock = None  # the run folder's lock, released when fit ends
         # called after each evaluation with the episode and the members' validation
         # returns; True stops training there, the checkpoint saved (a tuning study's
         # pruner, uabs_rl.tuning)
         self.on_eval: Callable[[int, list[float]], bool] | None = None
+
+    # ------------------------------------------------------------------ state
+    def generators(self, i: int) -> tuple[torch.Generator, torch.Generator]:
+        """Member ``i``'s selector and env generators."""
+        return (member_generator(self.gen, i),
+                member_generator(self.collector.env.base_env.rng, i))
+
+    def member_state(self, i: int) -> dict:
+        """Member ``i``'s state, as a single run's checkpoint holds it: its config, the
+        run's identity, its learner state, the run's counters, the global RNG, its
+        selector's and env's generators and, with ``train.checkpoint_buffer``, its
+        replay buffer; ``population`` (the seeds, and which member) for a member of a
+        population."""
+        m = self.members[i]
+        selector, env = self.generators(i)
+        state = {
+            "config": config_dict(m.cfg), "run": self.identity,
+            "learner": self.learner.member_state_dict(i),
+            "counters": {"episode": self.episode, "env_steps": self.collector.env_steps,
+                         "update_credit": self.updates.credit, "best_eval": m.best_eval,
+                         "total_steps": self.total_steps},
+            "rng": {"torch": torch.get_rng_state(), "selector": selector.get_state(),
+                    "env": env.get_state()},
+            "replay": (self.buffer.member_state_dict(i) if m.cfg.train.checkpoint_buffer
+                       else None),
+        }
+        if not self.solo:
+            state["population"] = {"seeds": [x.seed for x in self.members], "member": i}
+        return state
+
+    def load_member_state(self, i: int, state: dict) -> bool:
+        """Continue member ``i`` from ``state`` (:meth:`member_state`): its learner, best
+        evaluation, generators and replay buffer; False when ``state`` holds no buffer
+        (``train.checkpoint_buffer=false``)."""
+        self.learner.load_member(i, state["learner"])
+        self.members[i].best_eval = float(state["counters"]["best_eval"])
+        selector, env = self.generators(i)
+        selector.set_state(state["rng"]["selector"])
+        env.set_state(state["rng"]["env"])
+        if state.get("replay") is None:
+            return False
+        self.buffer.load_member(i, state["replay"])
+        return True
+
+    def load_counters(self, state: dict) -> None:
+        """The run's episode, env-step and update counters and the global RNG, from a
+        member's state (the members' are equal)."""
+        c = state["counters"]
+        self.episode, self.collector.env_steps = int(c["episode"]), int(c["env_steps"])
+        self.updates.credit = float(c["update_credit"])
+        # the ε schedule as the run planned it, whatever train.episodes says now
+        planned = int(c.get("total_steps", self.total_steps))
+        if planned != self.total_steps:
+            log.info("train.episodes changed on resume: the ε schedule keeps the run's "
+                     "original length (%d env steps)", planned)
+        self.total_steps = planned
+        torch.set_rng_state(state["rng"]["torch"])
 
     # ------------------------------------------------------------------ steps
     def collect(self) -> list[list[dict[str, Any]]]:
@@ -271,7 +334,7 @@ class Experiment:
 
     def kept(self) -> str:
         """What a run stopped at once keeps, in words."""
-        last = [m.run_dir / "checkpoints" / "last.pt" for m in self.members]
+        last = [RunFolder(m.run_dir).last for m in self.members]
         if all(p.is_file() for p in last):
             return (f"the last checkpoint is kept; continue with resume={self.run_dir}")
         return ("no checkpoint had been written yet: nothing to resume, start the run "

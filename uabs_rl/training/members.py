@@ -36,25 +36,20 @@ import logging
 import math
 import os
 from pathlib import Path
-from typing import TYPE_CHECKING
-
-import torch
+from typing import Protocol
 
 from uabs_rl.config import RunConfig
-from uabs_rl.rng import Generators
-from uabs_rl.training.checkpoint import (
+from uabs_rl.paths import atomic_write
+from uabs_rl.runs.checkpoint import (
     CKPT_FORMAT,
     CheckpointError,
     check_compatible,
-    config_dict,
     load_checkpoint,
     save_checkpoint,
 )
-from uabs_rl.training.runfolder import RunFolderError, check_identity, write_error
+from uabs_rl.runs.folder import RunFolderError, check_identity, write_error
+from uabs_rl.runs.layout import RunFolder
 from uabs_rl.training.runlog import RunLog
-
-if TYPE_CHECKING:
-    from uabs_rl.training.experiment import Experiment
 
 log = logging.getLogger(__name__)
 
@@ -67,7 +62,7 @@ def member_seeds(cfg: RunConfig) -> list[int]:
 
 
 def member_dir(run_dir: Path, seed: int) -> Path:
-    return Path(run_dir) / f"seed={seed}"
+    return RunFolder(run_dir).member(seed).path
 
 
 def complete_save(run_dir: Path, name: str = "last") -> None:
@@ -81,7 +76,7 @@ def complete_save(run_dir: Path, name: str = "last") -> None:
             if staged.is_file():
                 os.replace(staged, staged.with_name(f"{name}.pt"))
         record.unlink()
-    for staged in Path(run_dir).glob(f"seed=*/checkpoints/{name}.staged.pt"):
+    for staged in RunFolder(run_dir).member_checkpoints(f"{name}.staged"):
         staged.unlink()
 
 
@@ -98,19 +93,29 @@ class Member:
         self.last_eval = float("nan")
 
 
-def member_generator(gen: torch.Generator | Generators, i: int) -> torch.Generator:
-    """Member ``i``'s generator of ``gen`` (a single run's generator is its own)."""
-    return gen.gens[i] if isinstance(gen, Generators) else gen
+class Trainer(Protocol):
+    """What :class:`Checkpoints` needs of the trainer whose members it saves
+    (:class:`~uabs_rl.training.experiment.Experiment`): the members, and each member's
+    state in and out."""
+
+    run_dir: Path
+    solo: bool
+    members: list[Member]
+
+    def member_state(self, i: int) -> dict: ...
+
+    def load_member_state(self, i: int, state: dict) -> bool: ...
+
+    def load_counters(self, state: dict) -> None: ...
 
 
 class Checkpoints:
-    """Each member's checkpoints of an :class:`~uabs_rl.training.experiment.Experiment`: its
-    config, the run's identity, its learner state, the run's counters, the global RNG,
-    its selector's and env's generators and, with ``train.checkpoint_buffer``, its
-    replay buffer; ``population`` (the seeds, and which member) for a member of a
-    population."""
+    """The checkpoint files of a trainer's members: each member's ``best.pt`` and
+    ``last.pt`` (the trainer's :meth:`~Trainer.member_state` in the checkpoint format),
+    a population's saved all or none, and a resume's checks that each file is its
+    member's own and fits the run's settings."""
 
-    def __init__(self, exp: Experiment):
+    def __init__(self, exp: Trainer):
         self.exp = exp
         self.written: set[Path] = set()  # the checkpoints this session wrote
 
@@ -126,35 +131,11 @@ class Checkpoints:
                 f"its checkpoints stay its own. Put it back and continue with "
                 f"resume={self.exp.run_dir}, or start the run again.")
 
-    def generators(self, i: int) -> tuple[torch.Generator, torch.Generator]:
-        """Member ``i``'s selector and env generators."""
-        exp = self.exp
-        return (member_generator(exp.gen, i),
-                member_generator(exp.collector.env.base_env.rng, i))
-
-    def state(self, i: int) -> dict:
-        exp, m = self.exp, self.exp.members[i]
-        selector, env = self.generators(i)
-        state = {
-            "format": CKPT_FORMAT, "config": config_dict(m.cfg), "run": exp.identity,
-            "learner": exp.learner.member_state_dict(i),
-            "counters": {"episode": exp.episode, "env_steps": exp.collector.env_steps,
-                         "update_credit": exp.updates.credit, "best_eval": m.best_eval,
-                         "total_steps": exp.total_steps},
-            "rng": {"torch": torch.get_rng_state(), "selector": selector.get_state(),
-                    "env": env.get_state()},
-            "replay": (exp.buffer.member_state_dict(i) if m.cfg.train.checkpoint_buffer
-                       else None),
-        }
-        if not exp.solo:
-            state["population"] = {"seeds": [x.seed for x in exp.members], "member": i}
-        return state
-
     def save(self, i: int, name: str) -> Path:
-        path = self.exp.members[i].run_dir / "checkpoints" / f"{name}.pt"
+        path = RunFolder(self.exp.members[i].run_dir).checkpoint(name)
         self.check_written()
         try:
-            save_checkpoint(self.state(i), path)
+            save_checkpoint({"format": CKPT_FORMAT, **self.exp.member_state(i)}, path)
         except (OSError, RuntimeError) as e:
             raise write_error(e, self.exp.run_dir) from None
         if not name.endswith(".staged"):
@@ -173,12 +154,10 @@ class Checkpoints:
             return self.save(0, name)
         staged = [self.save(i, f"{name}.staged") for i in range(len(self.exp.members))]
         record = run_dir / f".{name}.commit"
-        tmp = record.with_name(record.name + ".tmp")
         # names relative to the population folder: it may be resumed from elsewhere or moved
-        tmp.write_text(json.dumps([os.path.relpath(p, run_dir) for p in staged]))
-        os.replace(tmp, record)
+        atomic_write(record, json.dumps([os.path.relpath(p, run_dir) for p in staged]))
         complete_save(run_dir, name)
-        self.written |= {m.run_dir / "checkpoints" / f"{name}.pt" for m in self.exp.members}
+        self.written |= {RunFolder(m.run_dir).checkpoint(name) for m in self.exp.members}
         return run_dir
 
     def resume(self, states: list[dict], sources: list[Path]) -> None:
@@ -196,10 +175,8 @@ class Checkpoints:
             if not exp.solo:
                 self.check_member(st, i, path)
             check_compatible(st, m.cfg, path)
-            exp.learner.load_member(i, st["learner"])
-            m.best_eval = float(st["counters"]["best_eval"])
-            buffers &= self.restore_streams(st, i)
-        self.restore_counters(states[0])  # the members' counters are equal
+            buffers &= exp.load_member_state(i, st)
+        exp.load_counters(states[0])  # the members' counters are equal
         if not buffers:
             log.warning(NO_REPLAY)
 
@@ -217,29 +194,5 @@ class Checkpoints:
 
     def load(self) -> None:
         """Continue every member from its ``last.pt``."""
-        paths = [m.run_dir / "checkpoints" / "last.pt" for m in self.exp.members]
+        paths = [RunFolder(m.run_dir).last for m in self.exp.members]
         self.resume([load_checkpoint(p) for p in paths], paths)
-
-    def restore_counters(self, state: dict) -> None:
-        """The run's episode, env-step and update counters and the global RNG."""
-        exp, c = self.exp, state["counters"]
-        exp.episode, exp.collector.env_steps = int(c["episode"]), int(c["env_steps"])
-        exp.updates.credit = float(c["update_credit"])
-        # the ε schedule as the run planned it, whatever train.episodes says now
-        planned = int(c.get("total_steps", exp.total_steps))
-        if planned != exp.total_steps:
-            log.info("train.episodes changed on resume: the ε schedule keeps the run's "
-                     "original length (%d env steps)", planned)
-        exp.total_steps = planned
-        torch.set_rng_state(state["rng"]["torch"])
-
-    def restore_streams(self, state: dict, i: int) -> bool:
-        """Member ``i``'s generators and replay buffer; False when the checkpoint holds
-        no buffer (``train.checkpoint_buffer=false``)."""
-        selector, env = self.generators(i)
-        selector.set_state(state["rng"]["selector"])
-        env.set_state(state["rng"]["env"])
-        if state.get("replay") is None:
-            return False
-        self.exp.buffer.load_member(i, state["replay"])
-        return True

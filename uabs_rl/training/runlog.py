@@ -1,8 +1,8 @@
-"""What a training run writes besides checkpoints: ``metrics.jsonl`` (one JSON line per
-training episode and per evaluation: the record every figure is computed from), the
-same numbers through a TorchRL logger (``train.logger``: TensorBoard by default, CSV,
-wandb or MLflow; env steps on the x-axis, hyper-parameters, env steps per second), and
-the evaluation pictures under ``eval/``.
+"""What a training run writes besides checkpoints: ``metrics.jsonl``
+(:mod:`uabs_rl.runs.metrics`: one JSON line per training episode and per evaluation, the
+record every figure is computed from), the same numbers through a TorchRL logger
+(``train.logger``: TensorBoard by default, CSV, wandb or MLflow; env steps on the x-axis,
+hyper-parameters, env steps per second), and the evaluation pictures under ``eval/``.
 
 A resumed run continues its logs as an uninterrupted one would have written them: what
 was logged after the checkpoint is dropped from ``metrics.jsonl``, from TensorBoard's
@@ -11,10 +11,7 @@ event files (rewritten into one, each scalar once per env step, equal to
 
 from __future__ import annotations
 
-import errno
 import importlib.util
-import json
-import os
 import shutil
 import threading
 import time
@@ -27,7 +24,9 @@ from tensordict import TensorDictBase
 
 from uabs_rl.config import ConfigError, LoggerKind, RunConfig
 from uabs_rl.evaluation.evaluator import Evaluator
-from uabs_rl.training.runfolder import RunFolderError, write_error
+from uabs_rl.paths import atomic_write
+from uabs_rl.runs.layout import TB, RunFolder
+from uabs_rl.runs.metrics import MetricsFile, check_history
 
 # record fields that count or index rather than measure: kept in metrics.jsonl, never
 # plotted as curves
@@ -64,7 +63,7 @@ def flat_hparams(d: dict, prefix: str = "") -> dict[str, Any]:
 def _quiet_writer_thread(args) -> None:
     """``threading.excepthook`` that leaves a file error of TensorBoard's writer thread
     to the run: the writer raises it again in the run's thread, which stops with one
-    line (:func:`uabs_rl.training.runfolder.write_error`); anything else as before."""
+    line (:func:`uabs_rl.runs.folder.write_error`); anything else as before."""
     if isinstance(args.exc_value, OSError) and type(args.thread).__name__ == "_AsyncWriterThread":
         return
     _THREAD_HOOK(args)
@@ -85,7 +84,7 @@ def make_logger(kind: LoggerKind, run_dir: Path):
     run_dir = Path(run_dir)
     if kind is LoggerKind.tensorboard:
         threading.excepthook = _quiet_writer_thread
-        return get_logger("tensorboard", str(run_dir), "tb")
+        return get_logger("tensorboard", str(run_dir), TB)
     if kind is LoggerKind.csv:
         return get_logger("csv", str(run_dir), "csv")
     if kind is LoggerKind.mlflow:
@@ -162,98 +161,34 @@ def events_up_to(events: list, cutoff: int, records: list[dict[str, Any]]) -> li
     return out
 
 
-def read_metrics(path: Path) -> list[dict]:
-    """The records of a metrics.jsonl; a damaged line is an error naming file and line
-    (a run killed mid-write is repaired by resuming it)."""
-    recs = []
-    for i, line in enumerate(path.read_bytes().splitlines(), 1):
-        if not line.strip():
-            continue
-        rec = _record(line)
-        if isinstance(rec, str):
-            raise SystemExit(f"error: {path}, line {i}, is {rec}: resume that run "
-                             f"(uabs-train resume={path.parent}) to repair its metrics, or "
-                             f"move the folder out of the sweep.")
-        recs.append(rec)
-    gap = history_gap([r["episode"] for r in recs if r["kind"] == "train"])
-    if gap:
-        raise SystemExit(f"error: {path} {gap}: the file was removed, cut or mixed while "
-                         f"its run wrote it. Restore it from a copy, or move the folder "
-                         f"out of the sweep.")
-    return recs
-
-
-def history_gap(episodes: list[int], upto: int | None = None) -> str | None:
-    """Why the training episodes of a metrics.jsonl are not 1, 2, ... (``upto``: and
-    up to that episode), as a phrase; None when they are."""
-    want = list(range(1, (len(episodes) if upto is None else upto) + 1))
-    if episodes == want:
-        return None
-    if not episodes:
-        return f"holds no training episode, where its checkpoint is at episode {upto}"
-    if episodes[0] != 1:
-        return f"starts at episode {episodes[0]} (episodes 1 to {episodes[0] - 1} are missing)"
-    for i, (a, b) in enumerate(zip(episodes, episodes[1:], strict=False)):
-        if b != a + 1:
-            return f"jumps from episode {a} to {b} (line {i + 2} of its training records)"
-    return (f"ends at episode {episodes[-1]}, where its checkpoint is at episode {upto}"
-            if upto is not None else None)
-
-
-def check_history(metrics: Path, episode: int) -> None:
-    """Before a resume from a checkpoint at ``episode`` changes anything: ``metrics``
-    holds each training episode 1 .. ``episode`` (a file removed or cut would continue
-    as a history with a hole), else refused naming the gap. A damaged line is left for
-    :meth:`RunLog.truncate` to judge (it repairs a last line cut by a crash)."""
-    if not metrics.exists():
-        raise RunFolderError(f"{metrics} is missing, where the run's checkpoint is at "
-                             f"episode {episode}: restore it from a copy to continue "
-                             f"(nothing was changed).")
-    lines = [raw for raw in metrics.read_bytes().splitlines() if raw.strip()]
-    episodes = []
-    for i, raw in enumerate(lines, 1):
-        rec = _record(raw)
-        if isinstance(rec, str):
-            if i < len(lines):
-                return  # not cut by a crash: truncate refuses it, naming the line
-            continue
-        if rec["kind"] == "train" and rec["episode"] <= episode:
-            episodes.append(rec["episode"])
-    gap = history_gap(episodes, episode)
-    if gap:
-        raise RunFolderError(f"{metrics} {gap}: its history was cut or mixed. Restore it "
-                             f"from a copy to continue (nothing was changed), or start a "
-                             f"new run.")
-
-
 class RunLog:
     """Writes a run's records and figures under ``run_dir``."""
 
     def __init__(self, cfg: RunConfig, run_dir: Path):
         self.cfg, self.run_dir = cfg, Path(run_dir)
-        self.metrics_path = self.run_dir / "metrics.jsonl"
+        self.folder = RunFolder(self.run_dir)
+        self.metrics = MetricsFile(self.folder.metrics)
         self.logger = None
         self._rate: tuple[float, int] | None = None  # (time, env steps) of the last record
-        self._file: tuple[int, int, int] | None = None  # metrics.jsonl as last written
 
     def open(self, resume_episode: int | None = None) -> None:
         """Create the run folder; on resume, drop what was logged after the checkpoint
         (episode ``resume_episode``) so every episode and evaluation appears once."""
         self.run_dir.mkdir(parents=True, exist_ok=True)
-        for tmp in (self.run_dir / "checkpoints").glob(".*.tmp"):  # a write killed midway
+        for tmp in self.folder.checkpoints.glob(".*.tmp"):  # a write killed midway
             tmp.unlink()
         kind = LoggerKind(self.cfg.train.logger)
-        tb = self.run_dir / "tb"
+        tb = self.folder.tb
         old = sorted(tb.glob("events.out.tfevents.*")) if kind is LoggerKind.tensorboard else []
         records = self.truncate(resume_episode) if resume_episode is not None else []
-        self._file = self._identity()
+        self.metrics.open()
         # env steps of the checkpoint: those of the last record kept (records are written
         # before the checkpoint that follows them); a fresh start keeps no old event
         cutoff = max((r["env_steps"] for r in records), default=-1)
         self.logger = make_logger(kind, self.run_dir)
         if self.logger is None:
             return
-        from uabs_rl.training.checkpoint import config_dict
+        from uabs_rl.runs.checkpoint import config_dict
 
         hparams = flat_hparams(config_dict(self.cfg))
         if kind is LoggerKind.tensorboard:
@@ -295,63 +230,19 @@ class RunLog:
                     break
             self.logger = None
 
-    def _identity(self) -> tuple[int, int, int] | None:
-        """metrics.jsonl's device, inode and size (None when absent)."""
-        try:
-            st = os.stat(self.metrics_path)
-        except FileNotFoundError:
-            return None
-        return st.st_dev, st.st_ino, st.st_size
-
     def check_history(self, episode: int) -> None:
-        """See :func:`check_history` (this run's metrics.jsonl)."""
-        check_history(self.metrics_path, episode)
+        """See :func:`uabs_rl.runs.metrics.check_history` (this run's metrics.jsonl)."""
+        check_history(self.metrics.path, episode)
 
     def truncate(self, episode: int) -> list[dict[str, Any]]:
-        """Keep the records of episodes up to ``episode`` and drop a last line cut by a
-        crash; returns the records kept. A damaged line before the last one was not cut
-        by a crash (the file was edited or mixed): refused, naming it, nothing changed."""
-        if not self.metrics_path.exists():
-            return []
-        keep, recs = [], []
-        lines = self.metrics_path.read_bytes().splitlines()
-        while lines and not lines[-1].strip():
-            lines.pop()
-        for i, raw in enumerate(lines, 1):
-            rec = _record(raw)
-            if isinstance(rec, str):
-                if i == len(lines):
-                    break  # a line cut by a crash
-                raise RunFolderError(
-                    f"{self.metrics_path}, line {i} of {len(lines)}, is damaged ({rec}): "
-                    f"only a last line cut by a crash is repaired on resume. Restore the "
-                    f"file, or remove that line, and resume again.")
-            if rec["episode"] <= episode:
-                keep.append(raw.decode() + "\n")
-                recs.append(rec)
-        tmp = self.metrics_path.with_suffix(".jsonl.tmp")
-        tmp.write_text("".join(keep))
-        os.replace(tmp, self.metrics_path)
-        return recs
+        """See :meth:`uabs_rl.runs.metrics.MetricsFile.truncate`."""
+        return self.metrics.truncate(episode)
 
     def record(self, record: dict[str, Any]) -> None:
         """One line of ``metrics.jsonl``; its measured numbers also go to the logger,
         against env steps (the counters do not; training records add the env steps per
         second since the previous one, a figure of the machine kept out of the file)."""
-        if self._identity() != self._file:
-            if not self.run_dir.is_dir():  # the whole folder: write_error says so
-                raise write_error(FileNotFoundError(errno.ENOENT, "removed",
-                                                    str(self.metrics_path)), self.run_dir)
-            raise RunFolderError(
-                f"{self.metrics_path} was removed, replaced or changed by another process "
-                f"while this run wrote it: the run stopped so that its history is not "
-                f"mixed. Restore the file, then continue with resume={self.run_dir} (its "
-                f"last checkpoint is kept).")
-        with open(self.metrics_path, "a") as f:
-            f.write(json.dumps(record) + "\n")
-            f.flush()
-            st = os.fstat(f.fileno())
-        self._file = st.st_dev, st.st_ino, st.st_size
+        self.metrics.append(record)
         if self.logger is None:
             return
         step = record["env_steps"]
@@ -390,7 +281,7 @@ class RunLog:
                 scenario_lanes(cfg.scenario),
                 title=f"{cfg.masking.mode}, episode {record['episode']}, held-out window "
                       f"0: R = {record['returns'][0]:.0f}")
-        out = self.run_dir / "eval"
+        out = self.folder.eval
         out.mkdir(exist_ok=True)
         for name, fig in figs.items():
             # rendered once, for the PNG and TensorBoard alike (savefig and add_figure
@@ -425,21 +316,6 @@ def _is_timestamp(name: str) -> bool:
     return True
 
 
-def _record(raw: bytes) -> dict[str, Any] | str:
-    """A metrics.jsonl line as its record, or why it is not one."""
-    try:
-        rec = json.loads(raw.decode())
-    except UnicodeDecodeError:
-        return "not UTF-8 text"
-    except json.JSONDecodeError as e:
-        return f"not JSON: {e.msg}"
-    if not isinstance(rec, dict) or rec.get("kind") not in ("train", "eval"):
-        return "not a train or eval record"
-    if not isinstance(rec.get("episode"), int) or not isinstance(rec.get("env_steps"), int):
-        return "its episode or env_steps is not a whole number"
-    return rec
-
-
 def truncate_csv(scalars: Path, cutoff: int) -> None:
     """Keep the rows of the CSV logger's ``step,value`` files up to env step ``cutoff``
     (a fresh start, ``cutoff`` -1, keeps none), and no half-written row."""
@@ -453,6 +329,4 @@ def truncate_csv(scalars: Path, cutoff: int) -> None:
                     keep.append(line + "\n")
             except ValueError:
                 continue
-        tmp = f.with_name(f.name + ".tmp")
-        tmp.write_text("".join(keep))
-        os.replace(tmp, f)
+        atomic_write(f, "".join(keep))

@@ -10,7 +10,7 @@ import math
 from pathlib import Path
 from typing import Any
 
-from uabs_rl.training.sweep import ReportError
+from uabs_rl.runs.sweep import ReportError
 from uabs_rl.tuning.space import override_text
 from uabs_rl.tuning.sweeper import STUDY_FILE
 

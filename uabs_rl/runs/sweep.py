@@ -14,7 +14,8 @@ from typing import Any
 
 from uabs_rl.config import MaskingMode, default_settings, keys_with_role
 from uabs_rl.config.roles import BASELINE_ROLES, NEUTRAL_ROLES
-from uabs_rl.training.runlog import read_metrics
+from uabs_rl.runs.layout import METRICS, RunFolder
+from uabs_rl.runs.metrics import read_metrics
 
 MODES = tuple(m.value for m in MaskingMode)
 
@@ -62,7 +63,7 @@ class Run:
         today's keys: settings added since the run was written get their defaults,
         except ``masking.recoverable``, absent from runs written when the paper's
         literal masks were the only ones (so false)."""
-        from uabs_rl.training.checkpoint import (
+        from uabs_rl.runs.checkpoint import (
             CheckpointError,
             config_dict,
             config_from_checkpoint,
@@ -75,7 +76,7 @@ class Run:
         try:
             full = flatten(config_dict(config_from_checkpoint({"config": stored})))
         except CheckpointError as e:
-            ckpt = self.path / "checkpoints" / "last.pt"
+            ckpt = RunFolder(self.path).last
             raise CheckpointError(e if str(ckpt) in str(e) else f"{ckpt}: {e}") from None
         # another learner's own settings (algo.mixing_embed_dim) as their defaults
         full = {k: full.get(k, v) for k, v in default_settings().items()
@@ -144,18 +145,18 @@ def _metrics_files(root: Path) -> list[Path]:
             continue
         seen.add(real)
         dirs.sort()
-        if "metrics.jsonl" in files:
-            found.append(Path(here) / "metrics.jsonl")
+        if METRICS in files:
+            found.append(RunFolder(here).metrics)
     return sorted(found)
 
 
 def _load_run(metrics: Path) -> Run | str:
     """The run of a metrics.jsonl, or why it cannot be reported (no checkpoint yet, no
     evaluation yet)."""
-    from uabs_rl.training.checkpoint import check_own, load_checkpoint
+    from uabs_rl.runs.checkpoint import check_own, load_checkpoint
 
     run_dir = metrics.parent
-    ckpt = run_dir / "checkpoints" / "last.pt"
+    ckpt = RunFolder(run_dir).last
     if not ckpt.is_file():
         return f"{run_dir} has no checkpoints/last.pt yet (stopped before its first checkpoint?)"
     state = load_checkpoint(ckpt)

@@ -11,7 +11,6 @@ file, never in torch's advice to load it unsafely.
 
 from __future__ import annotations
 
-import os
 import pickle
 import re
 import warnings
@@ -36,7 +35,9 @@ from uabs_rl.config import (
 )
 from uabs_rl.config.roles import RESUME_ROLES
 from uabs_rl.env.params import EnvParams
-from uabs_rl.training.runfolder import IDENTITY_NAME, check_identity
+from uabs_rl.paths import atomic_file
+from uabs_rl.runs.folder import check_identity
+from uabs_rl.runs.layout import RunFolder
 
 # 2: the replay keeps the agent dimension (step slots of M agents); format 1's flat
 # ring of per-agent transitions is converted on load (upgrade_state)
@@ -45,7 +46,8 @@ CKPT_FORMAT = 2
 # run keeps (their roles: uabs_rl.config.roles), not names (obs.name), runtime settings
 # (traces.workers, traces.cache_dir), the test traces or the training protocol
 COMPAT_KEYS = frozenset(keys_with_role(*RESUME_ROLES))
-# what members.Checkpoints.state writes, entry by entry: a nested layout, or the kind of value
+# what a checkpoint holds (Experiment.member_state, and its format), entry by entry: a
+# nested layout, or the kind of value
 TENSORS, BYTES, NUMBER, INT, DICT = ("a dict of tensors", "a uint8 tensor (an RNG state)",
                                      "a number", "an integer", "a dict")
 LAYOUT: dict[str, Any] = {
@@ -84,14 +86,8 @@ def save_checkpoint(state: dict, path: Path) -> None:
     failed write (a full disk) leaves no temporary file. Only ``checkpoints/`` itself is
     made: a run folder removed while the run writes it is not made again."""
     path.parent.mkdir(exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "wb") as f:  # through a file, a full disk is OSError(ENOSPC)
-            torch.save(state, f)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    with atomic_file(path) as f:
+        torch.save(state, f)
 
 
 def read_weights(path: Path) -> Any:
@@ -189,9 +185,10 @@ def upgrade_state(state: Any) -> Any:
 
 
 def validate_state(state: Any, path: Path) -> None:
-    """Refuse a loaded checkpoint that lacks what :meth:`uabs_rl.training.members.Checkpoints.state`
-    writes, holds a config uabs_rl's settings cannot take, or holds networks whose
-    shapes do not fit that config; each message names the entry and the file."""
+    """Refuse a loaded checkpoint that lacks what
+    :meth:`uabs_rl.training.experiment.Experiment.member_state` writes, holds a config
+    uabs_rl's settings cannot take, or holds networks whose shapes do not fit that
+    config; each message names the entry and the file."""
     if not isinstance(state, dict):
         raise CheckpointError(f"{path} holds {_kind(state)}, not a uabs-train checkpoint (a "
                               f"dict of format, config, learner, counters, rng): {ANOTHER}.")
@@ -430,7 +427,7 @@ def check_compatible(state: dict, cfg: RunConfig, source: Path) -> None:
 
 def load_hydra_config(run_dir: Path) -> dict | None:
     """The run's ``.hydra/config.yaml`` in today's keys, or None when it has none."""
-    path = run_dir / ".hydra" / "config.yaml"
+    path = RunFolder(run_dir).hydra_config
     if not path.is_file():
         return None
     try:
@@ -451,7 +448,7 @@ def check_own(state: dict, run_dir: Path, source: Path) -> None:
     result-changing settings than the run folder's own ``.hydra/config.yaml``. A member
     of a population (``<population>/seed=<s>``) is checked against its population's
     folder (its seed aside: each member has its own)."""
-    member = run_dir.name.startswith("seed=") and (run_dir.parent / IDENTITY_NAME).is_file()
+    member = RunFolder(run_dir).is_member and RunFolder(run_dir.parent).identity.is_file()
     home = run_dir.parent if member else run_dir
     check_identity(state, home, source)
     started = load_hydra_config(home)

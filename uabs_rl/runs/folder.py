@@ -32,9 +32,8 @@ from pathlib import Path
 from typing import Any
 
 from uabs_rl.config import ConfigError
-
-LOCK_NAME = ".lock"
-IDENTITY_NAME = "run.json"
+from uabs_rl.paths import atomic_write
+from uabs_rl.runs.layout import RunFolder
 
 
 class RunFolderError(ConfigError):
@@ -48,7 +47,7 @@ class RunLock:
 
     def __init__(self, run_dir: Path):
         self.run_dir = Path(run_dir)
-        self.path = self.run_dir / LOCK_NAME
+        self.path = RunFolder(self.run_dir).lock
         self._fd: int | None = None
 
     def _locked_fd(self) -> int | None:
@@ -85,12 +84,10 @@ class RunLock:
         """Write who holds the lock into ``.lock``, for a second writer's refusal."""
         info = json.dumps({"pid": os.getpid(), "host": socket.gethostname(),
                            "since": time.strftime("%Y-%m-%d %H:%M:%S")}) + "\n"
-        tmp = self.path.with_name(f"{LOCK_NAME}.{os.getpid()}.tmp")
         try:  # who holds it, for the refusal's message; the lock does not depend on it
-            tmp.write_text(info)
-            os.replace(tmp, self.path)
+            atomic_write(self.path, info)
         except OSError:
-            tmp.unlink(missing_ok=True)
+            pass
 
     def holder(self) -> str:
         """Who holds the lock, as a phrase: "pid 123 on host since ..."."""
@@ -138,7 +135,8 @@ def lock(run_dir: Path) -> RunLock:
 
 def holds_run(run_dir: Path) -> bool:
     """True when ``run_dir`` holds a run's records (it has started training)."""
-    return (run_dir / "metrics.jsonl").exists() or (run_dir / IDENTITY_NAME).exists()
+    folder = RunFolder(run_dir)
+    return folder.metrics.exists() or folder.identity.exists()
 
 
 def claim(run_dir: Path, auto_named: bool, sweep_dir: Path | None = None,
@@ -199,7 +197,7 @@ def _move_log_handlers(old: Path, new: Path) -> None:
 def identity(run_dir: Path) -> dict[str, Any]:
     """The run's identity from ``run.json``, written now if the folder has none yet
     (a new run, or a run started before identities existed)."""
-    path = Path(run_dir) / IDENTITY_NAME
+    path = RunFolder(run_dir).identity
     if path.is_file():
         try:
             ident = json.loads(path.read_text())
@@ -211,13 +209,7 @@ def identity(run_dir: Path) -> dict[str, Any]:
                              f"it, or remove it to adopt the run's checkpoints as they are.")
     ident = {"id": uuid.uuid4().hex, "started": time.strftime("%Y-%m-%d %H:%M:%S"),
              "host": socket.gethostname(), "command": " ".join(sys.argv)}
-    tmp = path.with_name(f".{IDENTITY_NAME}.{os.getpid()}.tmp")
-    try:
-        tmp.write_text(json.dumps(ident, indent=1) + "\n")
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    atomic_write(path, json.dumps(ident, indent=1) + "\n")
     return ident
 
 
@@ -226,7 +218,7 @@ def check_identity(state: dict, run_dir: Path, source: Path) -> None:
     must be this folder's. Checkpoints written before identities existed carry none and
     pass (their settings are still checked against the run's own)."""
     theirs = (state.get("run") or {}).get("id") if isinstance(state.get("run"), dict) else None
-    path = Path(run_dir) / IDENTITY_NAME
+    path = RunFolder(run_dir).identity
     if theirs is None or not path.is_file():
         return
     ours = identity(run_dir)["id"]
@@ -241,8 +233,8 @@ def check_identity(state: dict, run_dir: Path, source: Path) -> None:
 def _then(run_dir: Path) -> str:
     """What the user does once the cause is fixed: resume from the last checkpoint, or,
     where the run stopped before its first one, start it again."""
-    if (run_dir / "checkpoints" / "last.pt").is_file() or any(
-            run_dir.glob("seed=*/checkpoints/last.pt")):
+    folder = RunFolder(run_dir)
+    if folder.last.is_file() or folder.member_checkpoints():
         return f"continue with resume={run_dir} (its last complete checkpoint is kept)"
     return (f"start the run again (it stopped before its first checkpoint; remove "
             f"{run_dir} or choose another hydra.run.dir)")
