@@ -24,42 +24,12 @@ from omegaconf import OmegaConf
 
 from uabs_rl.config import ConfigError
 from uabs_rl.tuning.space import known_keys, search_space, trial_overrides
-from uabs_rl.tuning.trial import TRIAL_ENV, TrialTask
+from uabs_rl.tuning.trial import TRIAL_ENV, TrialTask, make_pruner
 
 log = logging.getLogger(__name__)
 
 SAMPLERS = ("tpe", "random", "cmaes", "qmc")
-PRUNERS = ("median", "percentile", "hyperband", "threshold", "none")
 STUDY_FILE = "study.yaml"  # in the sweep folder: where its study is (for uabs-report)
-
-
-def make_pruner(spec: dict[str, Any]):
-    """The pruner ``hydra.sweeper.pruner`` names (``name`` and its settings)."""
-    import optuna
-
-    name = str(spec.get("name", "median"))
-    startup, warmup = int(spec.get("n_startup_trials", 5)), int(spec.get("n_warmup_steps", 0))
-    if name == "median":
-        return optuna.pruners.MedianPruner(n_startup_trials=startup, n_warmup_steps=warmup)
-    if name == "percentile":
-        return optuna.pruners.PercentilePruner(float(spec.get("percentile", 25.0)),
-                                               n_startup_trials=startup,
-                                               n_warmup_steps=warmup)
-    if name == "threshold":
-        lower, upper = spec.get("lower"), spec.get("upper")
-        if lower is None and upper is None:
-            raise ConfigError("hydra.sweeper.pruner.name=threshold needs pruner.lower or "
-                              "pruner.upper: the validation return below (above) which a "
-                              "trial stops.")
-        return optuna.pruners.ThresholdPruner(
-            lower=None if lower is None else float(lower),
-            upper=None if upper is None else float(upper), n_warmup_steps=warmup)
-    if name == "hyperband":
-        return optuna.pruners.HyperbandPruner()
-    if name == "none":
-        return optuna.pruners.NopPruner()
-    raise ConfigError(f"hydra.sweeper.pruner.name={name} is not a pruner: one of "
-                      f"{', '.join(PRUNERS)}.")
 
 
 def make_sampler(spec: dict[str, Any], done: int):

@@ -14,6 +14,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+from uabs_rl.config import ConfigError
+
 log = logging.getLogger(__name__)
 
 # the trial a job runs (set per job by the sweeper through hydra.job.env_set)
@@ -44,8 +46,6 @@ class Reporter:
     def trial(self):
         if self._trial is None:
             import optuna
-
-            from uabs_rl.tuning.sweeper import make_pruner
 
             study = optuna.load_study(study_name=self.study_name, storage=self.storage,
                                       pruner=make_pruner(self.pruner))
@@ -111,3 +111,35 @@ class TrialTask:
         return {"number": number, "value": value if math.isfinite(value) else None,
                 "pruned_at": reporter.pruned_at,
                 "failed": None if math.isfinite(value) else "no validation return"}
+
+
+PRUNERS = ("median", "percentile", "hyperband", "threshold", "none")
+
+
+def make_pruner(spec: dict[str, Any]):
+    """The pruner ``hydra.sweeper.pruner`` names (``name`` and its settings)."""
+    import optuna
+
+    name = str(spec.get("name", "median"))
+    startup, warmup = int(spec.get("n_startup_trials", 5)), int(spec.get("n_warmup_steps", 0))
+    if name == "median":
+        return optuna.pruners.MedianPruner(n_startup_trials=startup, n_warmup_steps=warmup)
+    if name == "percentile":
+        return optuna.pruners.PercentilePruner(float(spec.get("percentile", 25.0)),
+                                               n_startup_trials=startup,
+                                               n_warmup_steps=warmup)
+    if name == "threshold":
+        lower, upper = spec.get("lower"), spec.get("upper")
+        if lower is None and upper is None:
+            raise ConfigError("hydra.sweeper.pruner.name=threshold needs pruner.lower or "
+                              "pruner.upper: the validation return below (above) which a "
+                              "trial stops.")
+        return optuna.pruners.ThresholdPruner(
+            lower=None if lower is None else float(lower),
+            upper=None if upper is None else float(upper), n_warmup_steps=warmup)
+    if name == "hyperband":
+        return optuna.pruners.HyperbandPruner()
+    if name == "none":
+        return optuna.pruners.NopPruner()
+    raise ConfigError(f"hydra.sweeper.pruner.name={name} is not a pruner: one of "
+                      f"{', '.join(PRUNERS)}.")
