@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import csv
 import json
+import re
 
 import numpy as np
 import pytest
@@ -227,6 +228,9 @@ def test_uabs_eval_mpc_reports_its_settings_and_compute(smoke_run, tmp_path, cap
     assert mpc["ms_per_decision"] > 0 and res["policies"]["greedy"]["ms_per_decision"] > 0
     assert "mpc: horizon 3, predictor cv, sees the vehicles within 150 m; " in text
     assert "compute per decision (the whole fleet, ms per step" in text
+    # the whole evaluation's time and this process's peak memory, as a number of MiB
+    assert re.search(r"^evaluated 2 policies in \d+\.\d s, peak memory [1-9]\d* MiB$", text,
+                     re.M), text
     with pytest.raises(SystemExit) as e:
         eval_main([str(run_dir), "--policy", "mpc", "--sees", "near"])
     assert e.value.code == 2

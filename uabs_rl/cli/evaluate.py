@@ -50,6 +50,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -252,6 +253,7 @@ def _evaluate_and_write(ev: Evaluation, args: argparse.Namespace, out: Path) -> 
     the pictures into ``out``."""
     policies = tuple(dict.fromkeys(
         q for p in args.policy or ["learned"] for q in (POLICIES if p == "all" else [p])))
+    t0 = time.perf_counter()
     results = evaluate_policies(ev, policies, horizon=args.horizon,
                                 mpc_horizon=args.mpc_horizon, predictor=args.predictor,
                                 sees=args.sees)
@@ -268,6 +270,8 @@ def _evaluate_and_write(ev: Evaluation, args: argparse.Namespace, out: Path) -> 
     shares = gap_shares(results)
     _print_planner(results, shares)
     _print_mpc(results)
+    print(f"evaluated {len(results)} {'policy' if len(results) == 1 else 'policies'} in "
+          f"{time.perf_counter() - t0:.1f} s{peak_memory()}")
     (out / "eval.json").write_text(json.dumps(
         {"split": args.split, "windows": n, "checkpoint": args.checkpoint,
          "overrides": args.overrides, "scenario": ev.cfg.scenario.name,
@@ -275,6 +279,18 @@ def _evaluate_and_write(ev: Evaluation, args: argparse.Namespace, out: Path) -> 
          **({"gap_share": shares} if shares else {})},
         indent=1))
     _write_pictures(ev, results, out, args.gif, args.split)
+
+
+def peak_memory() -> str:
+    """", peak memory N MiB" (this process's largest resident set so far), or "" where
+    the platform does not say (no ``resource`` module: Windows)."""
+    try:
+        import resource
+    except ImportError:
+        return ""
+    kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux, bytes on macOS
+    mib = kib / 1024 / (1024 if sys.platform == "darwin" else 1)
+    return f", peak memory {mib:.0f} MiB"
 
 
 def _write_pictures(ev: Evaluation, results: dict, out: Path, gif: bool, split: str) -> None:
