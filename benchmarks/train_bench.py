@@ -20,7 +20,7 @@ the same FLOPs (square, n = (FLOPs / 2)^(1/3)), at the same threads.
 
     python benchmarks/train_bench.py --update --turns 15   # the update alone: eager vs compiled
 
-``--update`` times the update alone, eager and compiled (``train.compile``'s update,
+``--update`` times the update alone, eager and compiled (``train.compile_update``,
 :mod:`uabs_rl.algorithms.compiled_update`), on the same sampled batches of a filled
 replay, in turns, and prints the median µs per update of each, their ratio and the
 compile's one-off seconds.

@@ -112,7 +112,7 @@ class Algorithm(ABC):
 
     def compile_update(self, compile: bool = True) -> None:
         """Run :meth:`update` through ``torch.compile`` where the learner has a compiled
-        path (``train.compile``), eager otherwise; the default has none."""
+        path (``train.compile_update``), eager otherwise; the default has none."""
         return None
 
     @abstractmethod

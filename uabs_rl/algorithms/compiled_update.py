@@ -1,4 +1,4 @@
-"""The learner's loss and its backward as one compiled program (``train.compile``).
+"""The learner's loss and its backward as one compiled program (``train.compile_update``).
 
 :class:`LossProgram` runs a learner's loss module on a replay batch and back-propagates
 it. Compiled, the loss goes through ``torch.compile`` (Inductor, whole graph, static
@@ -11,13 +11,19 @@ graph, TensorDict batch included. Adam stays outside: it is already one fused ke
 and ``torch.compile(optim.step)`` measured no faster (see below), so the denormal
 flushing around it (:func:`~uabs_rl.algorithms.base.flush_denormals`) stays as it is.
 
-What it gains: on the 2-core development CPU, one thread, beside other load,
-in turns (``benchmarks/train_bench.py --update``), a paper-network update took about
-0.85 to 0.92 times the eager one (a population of three about 0.88); a compiled
-``optim.step`` on top took 0.99 times eager's fused step, so it stays eager. The
-update's matrix products are most of its arithmetic and stay the same library calls
-(the update already ran near the machine's matrix-product rate), so the gain is in the
-elementwise work and the kernels between them, not in the products.
+What it gains, measured on the 2-core development CPU while other processes kept it
+busy (ratios of runs in turns; absolute times there mean little):
+``benchmarks/train_bench.py --update train.threads=1`` put a paper-network update at
+0.91x the eager one's time (0.74x to 0.92x over several such runs; a population of three
+0.88x), and a compiled ``optim.step`` on top at 0.99x eager's fused step, so Adam stays
+eager. The update's matrix products are most of its arithmetic and stay the same
+library calls, so the gain is in the elementwise work and the kernels around them. Over
+a whole run the one-off compile (forward and backward graphs: 10 to 30 s with an empty
+Inductor cache, beside the env step's) weighs against about 0.1 ms saved per update: a
+100-episode run (7666 updates) was slower compiled, and the main job (80 000 updates)
+gains about what the compile costs. Hence ``train.compile_update=false`` by default,
+which also keeps the default's results bit for bit; it pays in long runs and sweeps
+whose Inductor cache is warm.
 
 Compiled and eager updates agree to float32 rounding, not bit for bit (the fused loops
 add in another order): ``tests/test_compiled_update.py`` bounds the difference. A
@@ -79,7 +85,7 @@ class LossProgram:
             if not self.compiled:
                 raise
             log.warning("torch.compile failed for the update (%s: %s); running it "
-                        "eagerly. Set train.compile=false to skip compilation.",
+                        "eagerly. Set train.compile_update=false to skip compiling it.",
                         type(e).__name__, str(e).splitlines()[0][:200] if str(e) else "")
             self.run, self.compiled = self.eager, False
             return self.step(self.run, batch, zero_grad)

@@ -231,7 +231,7 @@ class DQN3(Algorithm):
         return out.get("loss"), out.get("q_chosen")
 
     def compile_update(self, compile: bool = True) -> None:
-        """Run the loss and its backward compiled (``train.compile``; see
+        """Run the loss and its backward compiled (``train.compile_update``; see
         :mod:`uabs_rl.algorithms.compiled_update`), or eager again with ``False``."""
         self.program = LossProgram(self.loss_module, compile, self.device)
 

@@ -20,7 +20,8 @@ MODES = tuple(m.value for m in MaskingMode)
 # settings that do not change results: never a reason to tell runs apart (the seed is
 # what a group's runs differ in)
 NEUTRAL = ("seed", "resume", "device", "train.progress", "train.population",
-           "train.logger", "train.threads", "train.compile", "train.trajectory_images",
+           "train.logger", "train.threads", "train.compile", "train.compile_update",
+           "train.trajectory_images",
            "train.checkpoint_buffer", "traces.cache_dir", "traces.workers",
            "algo.loss",  # fused and torchrl compute the same loss
            "obs.name")  # a label: the obs.* settings say what was observed
