@@ -17,13 +17,20 @@ busy (ratios of runs in turns; absolute times there mean little):
 0.91x the eager one's time (0.74x to 0.92x over several such runs; a population of three
 0.88x), and a compiled ``optim.step`` on top at 0.99x eager's fused step, so Adam stays
 eager. The update's matrix products are most of its arithmetic and stay the same
-library calls, so the gain is in the elementwise work and the kernels around them. Over
-a whole run the one-off compile (forward and backward graphs: 10 to 30 s with an empty
-Inductor cache, beside the env step's) weighs against about 0.1 ms saved per update: a
-100-episode run (7666 updates) was slower compiled, and the main job (80 000 updates)
-gains about what the compile costs. Hence ``train.compile_update=false`` by default,
-which also keeps the default's results bit for bit; it pays in long runs and sweeps
-whose Inductor cache is warm.
+library calls, so the gain is in the elementwise work and the kernels around them.
+
+Over a whole run the one-off compile (forward and backward graphs: 10 to 60 s with an
+empty Inductor cache, the more the busier the machine) weighs against about 0.1 ms
+saved per update, and torch.compile compiles again whenever the thread count changes
+(its guards include it): once per change of the thread governor's count
+(:mod:`uabs_rl.training.threads`) beside busy CPUs, as for the env step. Two
+100-episode runs of the paper protocol (7666 updates, an empty cache each), in turns
+with eager ones on the busy machine, each with one change of threads, took 1.05x the
+eager runs' CPU time (the training process's; the compile workers' not counted) and
+1.45x to 1.85x their wall time (other processes' load drifted between the runs). At a
+steady thread count the main job (80 000 updates) would save about what one compile
+costs. Hence ``train.compile_update=false`` by default, which also keeps the default's
+results bit for bit.
 
 Compiled and eager updates agree to float32 rounding, not bit for bit (the fused loops
 add in another order): ``tests/test_compiled_update.py`` bounds the difference. A
