@@ -13,6 +13,18 @@ Evaluation is excluded.
 With ``train.population=P`` the figures are per member: a member's episodes per minute
 and ms per member env step, so they compare with a solo run's directly.
 
+The update's line gives its µs per update and its achieved GFLOP/s (the loss's forward
+and backward, counted by torch's FLOP formulas for the products, Adam not counted)
+beside a measured matrix-product peak of this machine: one plain ``torch.mm`` of about
+the same FLOPs (square, n = (FLOPs / 2)^(1/3)), at the same threads.
+
+    python benchmarks/train_bench.py --update --turns 15   # the update alone: eager vs compiled
+
+``--update`` times the update alone, eager and compiled (``train.compile_update``,
+:mod:`uabs_rl.algorithms.compiled_update`), on the same sampled batches of a filled
+replay, in turns, and prints the median µs per update of each, their ratio and the
+compile's one-off seconds.
+
     python benchmarks/train_bench.py --threads        # default vs train.threads=1, 2
     python benchmarks/train_bench.py --busy --turns 2 # the same beside a busy core
 
@@ -27,7 +39,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import re
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -36,8 +50,13 @@ from collections import defaultdict
 from contextlib import contextmanager
 
 import torch
+from torch.utils._python_dispatch import TorchDispatchMode
+from torch.utils.flop_counter import flop_registry
 
+from uabs_rl.algorithms import Dims, make_algorithm
 from uabs_rl.config import compose
+from uabs_rl.env.params import EnvParams
+from uabs_rl.env.uabs_env import N_ACTIONS
 from uabs_rl.training.experiment import Experiment
 from uabs_rl.training.threads import resolve_threads, usable_cpus
 
@@ -118,6 +137,113 @@ def measure(overrides: list[str], n_episodes: int) -> None:
     for name in ("env", "action selection", "replay", "update"):
         print(f"  {name:>17}: {SPENT[name]:6.2f} s  {100 * SPENT[name] / wall:5.1f} %")
     print(f"  {'other (loop)':>17}: {other:6.2f} s  {100 * other / wall:5.1f} %")
+    print(update_line(tr.learner, SPENT["update"], updates, wall))
+
+
+class FlopCount(TorchDispatchMode):
+    """FLOPs of the ops run inside (torch's own formulas: the products and
+    convolutions; elementwise ops count none)."""
+
+    def __init__(self):
+        super().__init__()
+        self.total = 0
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        out = func(*args, **kwargs)
+        count = flop_registry.get(func._overloadpacket)
+        if count is not None:
+            self.total += count(*args, **kwargs, out_val=out)
+        return out
+
+
+def update_flops(learner) -> int:
+    """FLOPs of one update's loss, forward and backward, on a sample of its replay
+    (the gradients it leaves are cleared; no parameter moves)."""
+    batch = learner.buffer.sample()
+    with FlopCount() as count:
+        learner.program.step(learner.program.eager, batch, learner.zero_grad)
+    learner.zero_grad()
+    return count.total
+
+
+def matmul_peak(flops: int, repeats: int = 20) -> float:
+    """GFLOP/s of one plain ``torch.mm`` of square float32 matrices with about ``flops``
+    FLOPs (the best of ``repeats``), at the current thread count."""
+    n = max(8, round((flops / 2) ** (1 / 3)))
+    a, b = torch.randn(n, n), torch.randn(n, n)
+    best = math.inf
+    for _ in range(repeats + 3):
+        t0 = time.perf_counter()
+        torch.mm(a, b)
+        best = min(best, time.perf_counter() - t0)
+    return 2 * n ** 3 / best / 1e9
+
+
+def update_line(learner, spent_s: float, updates: int, wall: float) -> str:
+    """The update's µs per update and GFLOP/s, beside the machine's matrix-product peak."""
+    if not updates:
+        return "  no update in the timed episodes"
+    flops = update_flops(learner)
+    us = 1e6 * spent_s / updates
+    return (f"  update: {100 * spent_s / wall:.1f} % of the step, {us:.0f} µs per update, "
+            f"{flops / 1e6:.1f} MFLOP (loss forward + backward) at {flops / us / 1e3:.1f} "
+            f"GFLOP/s; a torch.mm of the same FLOPs: {matmul_peak(flops):.1f} GFLOP/s "
+            f"({torch.get_num_threads()} thread(s))")
+
+
+def filled_learner(overrides: list[str]):
+    """The run's learner (as uabs-train builds it, eager, at the run's threads) with a
+    replay of random transitions, and its config."""
+    cfg = compose("config", ["train.progress=false", "train.logger=none", *overrides])
+    torch.set_num_threads(resolve_threads(cfg)[0])
+    p = EnvParams.from_config(cfg.scenario, cfg.channel, cfg.obs)
+    m, d = p.n_uabs, p.obs_dim
+    seeds = [cfg.seed + i for i in range(cfg.train.population)]
+    learner = make_algorithm(cfg.algo, Dims(d, N_ACTIONS, m), seeds, torch.device("cpu"))
+    g = torch.Generator().manual_seed(0)
+    n = len(seeds) * max(400, cfg.algo.batch_size)
+    learner.buffer.extend({
+        "obs": torch.randn(n, m, d, generator=g),
+        "action": torch.randint(0, N_ACTIONS, (n, m), generator=g),
+        "mask": torch.ones(n, m, N_ACTIONS, dtype=torch.bool),
+        "reward": torch.randn(n, m, generator=g), "next_obs": torch.randn(n, m, d, generator=g),
+        "next_mask": torch.rand(n, m, N_ACTIONS, generator=g) < 0.7,
+        "terminated": torch.rand(n, m, generator=g) < 0.05})
+    return learner, cfg
+
+
+def compare_update(overrides: list[str], turns: int, per_turn: int = 50) -> None:
+    """The update alone, eager and compiled, on the same batches, in turns."""
+    learners = {}
+    for name, compiled in (("eager", False), ("compiled", True)):
+        learner, cfg = filled_learner(overrides)
+        learner.compile_update(compiled)
+        t0 = time.perf_counter()
+        learner.update(learner.buffer.sample())
+        print(f"{name}: first update {time.perf_counter() - t0:.2f} s"
+              + " (the compile included)" * compiled, flush=True)
+        learners[name] = learner
+    batches = [learners["eager"].buffer.sample() for _ in range(per_turn)]
+    us: dict[str, list[float]] = {name: [] for name in learners}
+    for _ in range(turns):
+        for name, learner in learners.items():
+            t0 = time.perf_counter()
+            for b in batches:
+                learner.update(b)
+            us[name].append(1e6 * (time.perf_counter() - t0) / per_turn)
+    flops = update_flops(learners["eager"])
+    print(f"algo={cfg.algo.name} hidden={list(cfg.algo.hidden)} batch={cfg.algo.batch_size} "
+          f"population={cfg.train.population} threads={torch.get_num_threads()}; "
+          f"{turns} turns of {per_turn} updates; {flops / 1e6:.1f} MFLOP per update; "
+          f"a torch.mm of the same FLOPs: {matmul_peak(flops):.1f} GFLOP/s")
+    base = statistics.median(us["eager"])
+    for name, times in us.items():
+        med = statistics.median(times)
+        print(f"  {name:>8}: {med:7.0f} µs per update (min {min(times):.0f}), "
+              f"{flops / med / 1e3:6.1f} GFLOP/s, {med / base:.3f}x eager")
+    print(json.dumps({"overrides": overrides, "us_per_update": {
+        name: statistics.median(times) for name, times in us.items()}}))
 
 
 BUSY_LOOP = "while True: pass"
@@ -169,13 +295,18 @@ def main() -> None:
                     help="compare the default thread count with train.threads=1, 2, ...")
     ap.add_argument("--busy", action="store_true",
                     help="--threads beside one other process keeping a core busy")
-    ap.add_argument("--turns", type=int, default=1, help="rounds of --threads / --busy")
+    ap.add_argument("--turns", type=int, default=1,
+                    help="rounds of --threads / --busy / --update")
+    ap.add_argument("--update", action="store_true",
+                    help="time the update alone, eager against compiled, in turns")
     ap.add_argument("overrides", nargs="*", help="uabs-train overrides")
     args = ap.parse_args()
     if args.threads or args.busy:
         if any(o.startswith("train.threads=") for o in args.overrides):
             ap.error("--threads and --busy set train.threads themselves")
         compare_threads(args.overrides, args.episodes, args.busy, args.turns)
+    elif args.update:
+        compare_update(args.overrides, args.turns)
     else:
         measure(args.overrides, args.episodes)
 

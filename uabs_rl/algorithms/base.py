@@ -119,6 +119,11 @@ class Algorithm(ABC):
         chosen Q) as tensors, 0-d for a single run, ``[P]`` for a population, without a
         device sync."""
 
+    def compile_update(self, compile: bool = True) -> None:
+        """Run :meth:`update` through ``torch.compile`` where the learner has a compiled
+        path (``train.compile_update``), eager otherwise; the default has none."""
+        return None
+
     @abstractmethod
     def member_state_dict(self, p: int) -> dict:
         """Member ``p``'s learner state (networks, optimiser, counters) as a single run's."""

@@ -41,6 +41,7 @@ from uabs_rl.algorithms.base import (
     flush_denormals,
     register,
 )
+from uabs_rl.algorithms.compiled_update import LossProgram
 from uabs_rl.algorithms.model import DuelingQNet, StackedQNet
 from uabs_rl.algorithms.replay import TransitionReplay
 from uabs_rl.config import AlgoConfig, ConfigError, LossKind, ReplayKind
@@ -190,6 +191,7 @@ class DQN3(Algorithm):
         # fused Adam: one kernel for all parameters (3x faster than foreach on CPU here)
         self.optim = torch.optim.Adam(self.policy.parameters(), lr=algo.lr, fused=True)
         self.optims = [self.optim]  # every optimiser an update steps
+        self.program = LossProgram(self.loss_module)  # eager until compile_update
         prioritized = algo.replay == ReplayKind.prioritized
         self.buffer = TransitionReplay(algo.buffer_size, dims.obs_dim, dims.n_actions,
                                        dims.n_agents, self.seeds, self.sample_size(),
@@ -228,12 +230,17 @@ class DQN3(Algorithm):
         out = self.loss_module(batch)
         return out.get("loss"), out.get("q_chosen")
 
-    def update(self, batch: TensorDict) -> tuple[torch.Tensor, torch.Tensor]:
-        out = self.loss_module(batch)
-        loss, q_chosen = out.get("loss"), out.get("q_chosen")
+    def compile_update(self, compile: bool = True) -> None:
+        """Run the loss and its backward compiled (``train.compile_update``; see
+        :mod:`uabs_rl.algorithms.compiled_update`), or eager again with ``False``."""
+        self.program = LossProgram(self.loss_module, compile, self.device)
+
+    def zero_grad(self) -> None:
         for optim in self.optims:
             optim.zero_grad(set_to_none=True)
-        (loss if loss.dim() == 0 else loss.sum()).backward()
+
+    def update(self, batch: TensorDict) -> tuple[torch.Tensor, torch.Tensor]:
+        loss, q_chosen, td_error = self.program(batch, self.zero_grad)
         if self.algo.grad_clip is not None:
             self.clip_gradients()
         with flush_denormals():
@@ -241,8 +248,8 @@ class DQN3(Algorithm):
                 optim.step()
         self.updates += 1
         self.target_updater.step()
-        if "td_error" in out.keys():  # a prioritized sample: its new priorities
-            self.buffer.update_priority(batch.get("index"), out.get("td_error"))
+        if td_error is not None:  # a prioritized sample: its new priorities
+            self.buffer.update_priority(batch.get("index"), td_error)
         return loss.detach(), q_chosen
 
     def clip_gradients(self) -> None:
