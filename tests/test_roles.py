@@ -23,7 +23,8 @@ from uabs_rl.runs.checkpoint import COMPAT_KEYS, config_differences
 from uabs_rl.runs.metrics import read_metrics
 
 RUNTIME = {"traces.cache_dir", "traces.workers", "train.checkpoint_buffer", "train.logger",
-           "train.trajectory_images", "train.progress", "train.compile", "train.threads",
+           "train.trajectory_images", "train.progress", "train.compile", "train.compile_update",
+           "train.threads",
            "device", "resume"}
 
 
