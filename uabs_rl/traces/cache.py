@@ -34,7 +34,7 @@ from uabs_rl.config import (
     TracesConfig,
     resolved_split,
 )
-from uabs_rl.paths import check_path, inside, safe_component
+from uabs_rl.paths import atomic_file, check_path, inside, safe_component
 from uabs_rl.traces.inputs import scenario_inputs, split_begin, sumocfg_inputs
 
 log = logging.getLogger(__name__)
@@ -148,17 +148,12 @@ def save_traceset(ts: TraceSet, path: Path) -> None:
     file (nor its temporary file) behind, and never damages the previous file. A write
     that fails is a ConfigError naming ``traces.cache_dir``."""
     meta = dict(ts.meta, checksum=_checksum(ts.positions, ts.present))
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        with open(tmp, "wb") as f:  # through a Python file: a full disk is ENOSPC
+        with atomic_file(path) as f:
             torch.save({"positions": ts.positions, "present": ts.present,
                         "meta_json": json.dumps(meta)}, f)
-        os.replace(tmp, path)
-    except BaseException as e:
-        tmp.unlink(missing_ok=True)
-        if not isinstance(e, OSError):
-            raise
+    except OSError as e:
         why = ("no space left on the device" if e.errno == errno.ENOSPC
                else e.strerror or str(e))
         raise ConfigError(f"traces.cache_dir: cannot write the trace cache file {path}: "
