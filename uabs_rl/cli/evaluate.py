@@ -67,6 +67,7 @@ from uabs_rl.evaluation.load import (
     find_checkpoint,
     gap_shares,
     load_evaluation,
+    peak_memory,
 )
 from uabs_rl.evaluation.predict import PREDICTORS, parse_sees
 from uabs_rl.paths import OutputFolder, OutputInterrupted, check_path
@@ -279,18 +280,6 @@ def _evaluate_and_write(ev: Evaluation, args: argparse.Namespace, out: Path) -> 
          **({"gap_share": shares} if shares else {})},
         indent=1))
     _write_pictures(ev, results, out, args.gif, args.split)
-
-
-def peak_memory() -> str:
-    """", peak memory N MiB" (this process's largest resident set so far), or "" where
-    the platform does not say (no ``resource`` module: Windows)."""
-    try:
-        import resource
-    except ImportError:
-        return ""
-    kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux, bytes on macOS
-    mib = kib / 1024 / (1024 if sys.platform == "darwin" else 1)
-    return f", peak memory {mib:.0f} MiB"
 
 
 def _write_pictures(ev: Evaluation, results: dict, out: Path, gif: bool, split: str) -> None:

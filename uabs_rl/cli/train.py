@@ -31,7 +31,7 @@ from omegaconf import OmegaConf
 
 from uabs_rl.cli.hydra import hydra_main, path_safe
 from uabs_rl.config import ConfigError, LoggerKind, RunConfig
-from uabs_rl.paths import atomic_file, atomic_write, check_path, name_max
+from uabs_rl.paths import check_path, name_max
 from uabs_rl.runs import folder as runfolder
 from uabs_rl.runs.layout import RunFolder
 from uabs_rl.runs.metrics import MetricsError, read_metrics
@@ -256,31 +256,6 @@ def _check_auto_name(argv: list[str], multirun: bool) -> None:
                           f"system takes: name it with {typed}=<folder>.")
 
 
-def _write_hydra_files(cfg: RunConfig, folder: Path) -> None:
-    """The Hydra record of this job (config, overrides, Hydra's config) in
-    ``folder/.hydra``, each file written whole or not at all. Hydra itself writes none
-    (``hydra.output_subdir`` is null): the run writes its record once its start-up
-    checks have passed, so a refused command never changes a run's record."""
-    from hydra.core.hydra_config import HydraConfig
-
-    hc = HydraConfig.get()
-    out = RunFolder(folder).hydra
-    out.mkdir(parents=True, exist_ok=True)
-    for name, node in (("config.yaml", OmegaConf.structured(cfg)),
-                       ("overrides.yaml", OmegaConf.create(list(hc.overrides.task))),
-                       ("hydra.yaml", OmegaConf.create({"hydra": hc}))):
-        with atomic_file(out / name, "w") as f:
-            OmegaConf.save(node, f)
-
-
-def _copy_sweep_record(sweep_dir: Path, folder: Path) -> None:
-    """A sweep's job that moved to ``<sweep>-k/<job>``: that sweep folder gets the
-    sweep's ``multirun.yaml`` too (re-typing the sweep with resume= needs it)."""
-    src, dst = RunFolder(sweep_dir).sweep_record, RunFolder(folder.parent).sweep_record
-    if src.is_file() and not dst.exists():
-        atomic_write(dst, src.read_bytes())
-
-
 def _run_and_report(cfg: RunConfig, run_dir: Path, overrides: list[str]) -> dict[str, Any]:
     from hydra.core.hydra_config import HydraConfig
     from hydra.types import RunMode
@@ -295,9 +270,9 @@ def _run_and_report(cfg: RunConfig, run_dir: Path, overrides: list[str]) -> dict
             cfg.resume = None
     exp = prepare(cfg, run_dir, overrides, auto_named=not os.environ.get(_TYPED_DIR),
                   sweep_dir=sweep_dir,
-                  on_move=(lambda folder: _copy_sweep_record(sweep_dir, folder))
+                  on_move=(lambda folder: runfolder.copy_sweep_record(sweep_dir, folder))
                   if multirun else None,
-                  record=lambda folder: _write_hydra_files(cfg, folder))
+                  record=lambda folder: runfolder.write_hydra_record(cfg, folder))
     print(f"{'resuming' if cfg.resume else 'run folder:'} {exp.run_dir}", file=sys.stderr)
     exp.on_eval = evaluation_hook()  # a tuning study's trial reports to its pruner
     text = summary_text if exp.solo else population_summary_text

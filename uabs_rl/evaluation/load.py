@@ -11,6 +11,7 @@ built."""
 
 from __future__ import annotations
 
+import sys
 import time
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -318,3 +319,15 @@ def differences(results: dict[str, tuple[dict, Any]]) -> dict[str, dict[str, dic
     learned = results["learned"][0]
     return {name: {m: paired_difference(learned[k], rec[k]) for m, k in METRICS.items()}
             for name, (rec, _) in results.items() if name != "learned"}
+
+
+def peak_memory() -> str:
+    """", peak memory N MiB" (this process's largest resident set so far), or "" where
+    the platform does not say (no ``resource`` module: Windows)."""
+    try:
+        import resource
+    except ImportError:
+        return ""
+    kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux, bytes on macOS
+    mib = kib / 1024 / (1024 if sys.platform == "darwin" else 1)
+    return f", peak memory {mib:.0f} MiB"

@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from uabs_rl.config import ConfigError
-from uabs_rl.paths import atomic_write
+from uabs_rl.paths import atomic_file, atomic_write
 from uabs_rl.runs.layout import RunFolder
 
 
@@ -267,6 +267,32 @@ def write_error(e: OSError | RuntimeError, run_dir: Path) -> Exception:
 
 # ------------------------------------------------------------------- a refused start
 _ABSENT = object()
+
+
+def write_hydra_record(cfg: Any, folder: Path) -> None:
+    """The Hydra record of this job (config, overrides, Hydra's config) in
+    ``folder/.hydra``, each file written whole or not at all. Hydra itself writes none
+    (``hydra.output_subdir`` is null): the run writes its record once its start-up
+    checks have passed, so a refused command never changes a run's record."""
+    from hydra.core.hydra_config import HydraConfig
+    from omegaconf import OmegaConf
+
+    hc = HydraConfig.get()
+    out = RunFolder(folder).hydra
+    out.mkdir(parents=True, exist_ok=True)
+    for name, node in (("config.yaml", OmegaConf.structured(cfg)),
+                       ("overrides.yaml", OmegaConf.create(list(hc.overrides.task))),
+                       ("hydra.yaml", OmegaConf.create({"hydra": hc}))):
+        with atomic_file(out / name, "w") as f:
+            OmegaConf.save(node, f)
+
+
+def copy_sweep_record(sweep_dir: Path, folder: Path) -> None:
+    """A sweep's job that moved to ``<sweep>-k/<job>``: that sweep folder gets the
+    sweep's ``multirun.yaml`` too (re-typing the sweep with resume= needs it)."""
+    src, dst = RunFolder(sweep_dir).sweep_record, RunFolder(folder.parent).sweep_record
+    if src.is_file() and not dst.exists():
+        atomic_write(dst, src.read_bytes())
 
 
 class Before:
