@@ -19,8 +19,12 @@ FILES = ("study.md", "trials.csv", "importances.png", "importances.pdf", "histor
 
 
 def is_study(folder: Path) -> bool:
-    """True for the sweep folder of a tuning study."""
-    return (Path(folder) / STUDY_FILE).is_file()
+    """True for the sweep folder of a tuning study; False for a path that cannot be a
+    folder (too long a name, ...): the report's own checks then say why in one line."""
+    try:
+        return (Path(folder) / STUDY_FILE).is_file()
+    except OSError:
+        return False
 
 
 def load_study(folder: Path, storage: str | None = None):
