@@ -25,7 +25,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
 from uabs_rl.config import ConfigError
-from uabs_rl.env.channel import assign_beams
+from uabs_rl.env.channel import footprint_inside
 from uabs_rl.env.service import move_scores
 from uabs_rl.env.uabs_env import BEAM_PRIORITY, MASK, POSITION, UABSEnv
 from uabs_rl.evaluation.predict import Predictor, TrueFuture
@@ -41,7 +41,7 @@ def footprint(cand: torch.Tensor, veh: torch.Tensor, r_b: float,
     lead = (slice(None),) + (None,) * (cand.dim() - 2)
     dx = veh[lead + (0, slice(None))] - cand[..., 0:1]
     dy = veh[lead + (1, slice(None))] - cand[..., 1:2]
-    return assign_beams(dx, dy, r_b, n_beams)[0]
+    return footprint_inside(dx, dy, r_b, n_beams)
 
 
 def footprint_path(path: torch.Tensor, veh: torch.Tensor, r_b: float,
