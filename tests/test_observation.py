@@ -156,3 +156,36 @@ def test_scores_in_blocks_equal_the_scores_in_one_block(monkeypatch, block):
                   if inside[n] and present[i, n])
     assert whole[i, j, k].item() == by_hand
     assert whole.sum() > 0
+
+
+@pytest.mark.parametrize("block", [1, 37, 1 << 30])
+def test_scores_from_the_near_vehicles_equal_the_scores_over_all(monkeypatch, block):
+    """Over a district (vehicles spread far beyond the footprints' reach) each UABS's
+    candidates are tested against its near vehicles only: the same numbers as against
+    every vehicle, in any block size, with vehicles at the very edge of the reach."""
+    from uabs_rl.env import service
+
+    g = torch.Generator().manual_seed(5)
+    e, m, r_b = 2, 6, 25.0
+    cand = ((torch.rand(e, m, 1, 2, generator=g) * 1800).round()
+            + map_offsets(2, 20.0, torch.device("cpu")))  # [E, M, 25, 2]
+    spread = torch.rand(e, 2, 400, generator=g) * 1800
+    # just inside the reach (3 x 25 m) of the map's outer candidates (40 m from its
+    # centre), just beyond it, and at a corner
+    edge = torch.tensor([[114.99, 0.0], [-114.99, 0.0], [0.0, 114.99], [0.0, -114.99],
+                         [115.01, 0.0], [90.0, 89.0]])
+    at_edge = (cand[:, :, 12, None, :] + edge).reshape(e, -1, 2).transpose(1, 2)
+    veh = torch.cat([spread, at_edge], dim=-1)
+    v = veh.shape[-1]
+    present = torch.rand(e, v, generator=g) < 0.9
+    priority = torch.randint(0, 40, (e, v), generator=g).float()
+    groups = cand.reshape(e, -1, cand.shape[-2], 2)
+    weight = torch.where(present, priority.clamp_min(1.0), 0.0)
+    assert service.near_vehicles(groups, veh, weight, 3 * r_b) is not None  # chosen here
+    monkeypatch.setattr(service, "SCORE_BLOCK", block)
+    near = service.move_scores(cand, veh, present, priority, r_b, 9)
+    monkeypatch.setattr(service, "near_vehicles", lambda *args: None)
+    every = service.move_scores(cand, veh, present, priority, r_b, 9)
+    assert torch.equal(near, every)
+    outer = (map_offsets(2, 20.0, torch.device("cpu")).abs().amax(-1) == 40.0)
+    assert (every[..., outer] > 0).float().mean() > 0.3  # the edge vehicles are scored

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import torch
 
-from uabs_rl.env.channel import footprint_inside
+from uabs_rl.env.channel import beam_grid_side, footprint_inside
 
 
 def vehicles_at(st: dict[str, torch.Tensor], veh_pos: torch.Tensor,
@@ -83,18 +83,61 @@ def move_scores(cand: torch.Tensor, veh: torch.Tensor, present: torch.Tensor,
     ``cand [E, M, K, 2]``, for vehicles ``veh [E, 2, V]`` with ``priority [E, V]`` (every
     present vehicle counts at least 1, so a fresh one is worth approaching).
 
-    The E x M x K x V footprint tests run in blocks of at most :data:`SCORE_BLOCK`
+    Only the vehicles near a UABS's candidates can lie under their footprints (within
+    k·r_b of a candidate on each axis, for a k x k beam grid): where a street network
+    spreads its traffic over a district, each UABS's K candidates are tested against
+    its own near vehicles only (:func:`near_vehicles`), and against all V where most are
+    near anyway (a small grid). The tests run in blocks of at most :data:`SCORE_BLOCK`
     elements, so the memory stays bounded whatever the fleet and the traffic (a district
     at M = 25 with 700 vehicles and a 5 x 5 map scores 440 000 pairs per window). Each
-    candidate's sum is over whole priorities (integers), so it is exact in float32 and
-    the blocks change no digit."""
+    candidate's sum is over whole priorities (integers), so it is exact in float32: the
+    blocks and the choice of vehicles change no digit."""
     e, v = veh.shape[0], veh.shape[-1]
-    flat = cand.reshape(e, -1, 2)
-    weight = torch.where(present, priority.clamp_min(1.0), 0.0)[:, None, :]
-    step = max(1, SCORE_BLOCK // max(1, e * v))
+    weight = torch.where(present, priority.clamp_min(1.0), 0.0)  # [E, V]
+    groups = cand.reshape(e, -1, cand.shape[-2], 2)  # [E, G, K, 2]: one UABS's candidates
+    near = near_vehicles(groups, veh, weight, beam_grid_side(n_beams) * r_b)
+    if near is None:  # most vehicles are near: every candidate against all V
+        flat = cand.reshape(e, -1, 2)
+        step = max(1, SCORE_BLOCK // max(1, e * v))
+        out = []
+        for c in flat.split(step, dim=1):
+            dx = veh[:, None, 0, :] - c[..., 0:1]  # [E, chunk, V]
+            dy = veh[:, None, 1, :] - c[..., 1:2]
+            out.append((footprint_inside(dx, dy, r_b, n_beams) * weight[:, None, :]).sum(-1))
+        return torch.cat(out, dim=1).reshape(cand.shape[:-1])
+    vx, vy, w = near  # [E, G, n] each: the near vehicles of each group, weight 0 as padding
+    k, n = groups.shape[2], vx.shape[-1]
+    step = max(1, SCORE_BLOCK // max(1, e * k * n))
     out = []
-    for c in flat.split(step, dim=1):
-        dx = veh[:, None, 0, :] - c[..., 0:1]  # [E, chunk, V]
-        dy = veh[:, None, 1, :] - c[..., 1:2]
-        out.append((footprint_inside(dx, dy, r_b, n_beams) * weight).sum(-1))
+    for g0 in range(0, groups.shape[1], step):
+        c = groups[:, g0:g0 + step]  # [E, chunk, K, 2]
+        dx = vx[:, g0:g0 + step, None, :] - c[..., 0:1]  # [E, chunk, K, n]
+        dy = vy[:, g0:g0 + step, None, :] - c[..., 1:2]
+        inside = footprint_inside(dx, dy, r_b, n_beams)
+        out.append((inside * w[:, g0:g0 + step, None, :]).sum(-1))
     return torch.cat(out, dim=1).reshape(cand.shape[:-1])
+
+
+def near_vehicles(groups: torch.Tensor, veh: torch.Tensor, weight: torch.Tensor,
+                  reach: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+    """The vehicles that may lie under a footprint of some candidate of each group
+    ``groups [E, G, K, 2]`` (within ``reach`` of the group's bounding box on each axis,
+    plus a metre against rounding), with weight ``weight [E, V]`` > 0: ``(x, y, weight)``,
+    each ``[E, G, n]`` with n the largest such count (the shorter lists padded with
+    weight 0); None when n exceeds half of V (no gain in choosing)."""
+    v = veh.shape[-1]
+    reach = reach + 1.0
+    lo, hi = groups.amin(2) - reach, groups.amax(2) + reach  # [E, G, 2]
+    x, y = veh[:, None, 0, :], veh[:, None, 1, :]  # [E, 1, V]
+    near = ((x >= lo[..., 0:1]) & (x <= hi[..., 0:1]) & (y >= lo[..., 1:2])
+            & (y <= hi[..., 1:2]) & (weight[:, None, :] > 0))  # [E, G, V]
+    n = int(near.sum(-1).amax()) if near.numel() else 0
+    if v == 0 or 2 * n > v:
+        return None
+    idx = near.to(torch.float32).topk(max(n, 1), dim=-1).indices  # [E, G, n]
+    flat = idx.flatten(1)
+
+    def pick(t: torch.Tensor) -> torch.Tensor:  # [E, V] -> [E, G, n]
+        return t.gather(1, flat).view(idx.shape)
+
+    return pick(veh[:, 0, :]), pick(veh[:, 1, :]), pick(weight) * near.gather(-1, idx)
