@@ -119,7 +119,9 @@ def trajectory_figure(area: AreaConfig, uabs: torch.Tensor, vehicles: torch.Tens
                           autolim=False)
     t_on, v_on = np.nonzero(present)
     ax.scatter(vehicles[t_on, 0, v_on], vehicles[t_on, 1, v_on], s=2.5, color="0.3",
-               alpha=0.6, lw=0, zorder=1)  # one artist: fast to draw
+               alpha=0.6, lw=0, zorder=1,
+               rasterized=True)  # one artist, an image in the PDF: a district's 50 000
+    # points would be 50 000 vector markers (slow to write, slow to open)
     last = present[-1]
     ax.scatter(vehicles[-1, 0, last], vehicles[-1, 1, last], s=9, color="k", zorder=2)
     centres = beam_centres(r_b, n_beams).numpy()
