@@ -17,7 +17,8 @@ pairs where its network fits, in the columns ``other − greedy``, and the two-g
 difference learned − other with Welch's 95 % CI (``learned_minus_other``). ``--mpc H``
 adds the deployable receding-horizon planner of horizon H (constant-velocity prediction,
 ``uabs-eval --policy mpc``) beside greedy and the oracle: its served fraction and
-learned − mpc (columns ``mpc``, ``learned_minus_mpc``).
+learned − mpc (columns ``mpc``, ``learned_minus_mpc``; with ``--beside``, also
+``other_minus_mpc``).
 """
 
 from __future__ import annotations
@@ -117,7 +118,8 @@ def table(rows: list[dict], other: bool, marks: dict[str, str] | None = None) ->
     head = ("| city | M | windows | learned | greedy | oracle |" + (" mpc |" if mpc else "")
             + " learned − greedy [95 % CI] | learned − oracle [95 % CI] |"
             + (" learned − mpc [95 % CI] |" if mpc else "")
-            + (" beside − greedy [95 % CI] |" if other else ""))
+            + (" beside − greedy [95 % CI] |" if other else "")
+            + (" beside − mpc [95 % CI] |" if other and mpc else ""))
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
 
     def cell(r: dict, value: str, lo: str, hi: str) -> str:
@@ -132,8 +134,12 @@ def table(rows: list[dict], other: bool, marks: dict[str, str] | None = None) ->
                  cell(r, "learned_minus_oracle", "oracle_ci_low", "oracle_ci_high"),
                  *([cell(r, "learned_minus_mpc", "mpc_ci_low", "mpc_ci_high")] if mpc else [])]
         if other:
+            fits = r.get("other") not in (None, "")
             cells.append(cell(r, "other_minus_greedy", "other_ci_low", "other_ci_high")
-                         if r.get("other") not in (None, "") else "does not fit")
+                         if fits else "does not fit")
+            if mpc:
+                cells.append(cell(r, "other_minus_mpc", "other_mpc_ci_low",
+                                  "other_mpc_ci_high") if fits else "does not fit")
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
@@ -181,6 +187,9 @@ def main(argv: list[str] | None = None) -> None:
             d2, lo2, hi2 = versus(theirs, base["greedy"])
             row.update(other=float(np.mean([s.mean() for s in theirs])),
                        other_minus_greedy=d2, other_ci_low=lo2, other_ci_high=hi2)
+            if args.mpc:
+                d3, lo3, hi3 = versus(theirs, base["mpc"])
+                row.update(other_minus_mpc=d3, other_mpc_ci_low=lo3, other_mpc_ci_high=hi3)
             if len(mine) > 1 and len(theirs) > 1:
                 w = welch_difference([s.mean() for s in mine], [s.mean() for s in theirs])
                 row.update(learned_minus_other=w["diff"], welch_ci_low=w["ci_low"],
