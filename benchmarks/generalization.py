@@ -18,13 +18,18 @@ difference learned − other with Welch's 95 % CI (``learned_minus_other``). ``-
 adds the deployable receding-horizon planner of horizon H (constant-velocity prediction,
 ``uabs-eval --policy mpc``) beside greedy and the oracle: its served fraction and
 learned − mpc (columns ``mpc``, ``learned_minus_mpc``; with ``--beside``, also
-``other_minus_mpc``).
+``other_minus_mpc``). The mpc costs far more than the learned policies (about a second
+per fleet decision at M = 25 over a district): ``--mpc-from CITY:M=EVAL_JSON`` takes a
+pair's mpc from a ``uabs-eval RUN <the pair's overrides> --policy mpc --mpc-horizon H``
+of a run with the same masking and channel (its ``eval.json``: per window, the same
+windows) instead of flying it again.
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import json
 import sys
 import time
 from pathlib import Path
@@ -52,6 +57,27 @@ def members(root: Path) -> list[Path]:
 def overrides(at: str) -> list[str]:
     city, m = at.split(":")
     return ([] if city == "home" else [f"scenario={city}"]) + [f"scenario.n_uabs={m}"]
+
+
+def mpc_from(path: Path, at: str, horizon: int) -> np.ndarray:
+    """The mpc's served fraction per window from a ``uabs-eval --policy mpc`` record
+    (``eval.json``) of the pair ``at``: the test split, the pair's overrides, horizon H,
+    the constant-velocity predictor and every vehicle seen; refused otherwise."""
+    try:
+        d = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise SystemExit(f"--mpc-from {at}={path}: cannot read it ({e})") from None
+    rec = d.get("policies", {}).get("mpc") if isinstance(d, dict) else None
+    want = {"split": "test", "overrides": sorted(overrides(at))}
+    have = {"split": d.get("split"), "overrides": sorted(d.get("overrides") or [])} \
+        if isinstance(d, dict) else {}
+    if rec is None or have != want or (rec.get("horizon"), rec.get("predictor"),
+                                       rec.get("sees")) != (horizon, "cv", "all"):
+        raise SystemExit(
+            f"--mpc-from {at}={path}: not the mpc of {at} on the test split at horizon "
+            f"{horizon} (constant velocity, every vehicle seen); write it with uabs-eval "
+            f"RUN {' '.join(overrides(at))} --policy mpc --mpc-horizon {horizon}")
+    return np.asarray(rec[METRIC], dtype=float)
 
 
 def evaluate(runs: list[Path], over: list[str], dirs: list[Path],
@@ -153,7 +179,14 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--csv", type=Path)
     ap.add_argument("--mpc", type=int, metavar="H",
                     help="also the deployable mpc of horizon H (constant velocity)")
+    ap.add_argument("--mpc-from", nargs="+", default=[], metavar="CITY:M=EVAL_JSON",
+                    help="a pair's mpc from a uabs-eval --policy mpc record (with --mpc)")
     args = ap.parse_args(argv)
+    given = dict(item.split("=", 1) for item in args.mpc_from)
+    if given and not args.mpc:
+        raise SystemExit("--mpc-from needs --mpc H (the horizon the records must have)")
+    if set(given) - set(args.at):
+        raise SystemExit(f"--mpc-from names pairs not in --at: {sorted(set(given) - set(args.at))}")
     runs = members(args.runs)
     other = members(args.beside) if args.beside else []
     rows = []
@@ -163,11 +196,17 @@ def main(argv: list[str] | None = None) -> None:
     for at in args.at:
         t0 = time.perf_counter()
         over = overrides(at)
+        fly_mpc = args.mpc and at not in given
         found = evaluate(runs, over, args.config_dir,
-                         ("greedy", "oracle", *(["mpc"] if args.mpc else [])), args.mpc or 5)
+                         ("greedy", "oracle", *(["mpc"] if fly_mpc else [])), args.mpc or 5)
         if found is None:
             raise SystemExit(f"{args.runs}: its network does not fit {at}")
         mine, base = found
+        if args.mpc and not fly_mpc:
+            base["mpc"] = mpc_from(Path(given[at]), at, args.mpc)
+            if base["mpc"].shape != base["greedy"].shape:
+                raise SystemExit(f"--mpc-from {at}: {base['mpc'].size} windows, the test "
+                                 f"split has {base['greedy'].size} here")
         theirs = evaluate(other, over, args.config_dir) if other else None
         if args.mpc:
             dm, lo_m, hi_m = versus(mine, base["mpc"])
