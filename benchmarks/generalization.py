@@ -187,6 +187,7 @@ def main(argv: list[str] | None = None) -> None:
         raise SystemExit("--mpc-from needs --mpc H (the horizon the records must have)")
     if set(given) - set(args.at):
         raise SystemExit(f"--mpc-from names pairs not in --at: {sorted(set(given) - set(args.at))}")
+    recorded = {at: mpc_from(Path(path), at, args.mpc) for at, path in given.items()}
     runs = members(args.runs)
     other = members(args.beside) if args.beside else []
     rows = []
@@ -203,7 +204,7 @@ def main(argv: list[str] | None = None) -> None:
             raise SystemExit(f"{args.runs}: its network does not fit {at}")
         mine, base = found
         if args.mpc and not fly_mpc:
-            base["mpc"] = mpc_from(Path(given[at]), at, args.mpc)
+            base["mpc"] = recorded[at]
             if base["mpc"].shape != base["greedy"].shape:
                 raise SystemExit(f"--mpc-from {at}: {base['mpc'].size} windows, the test "
                                  f"split has {base['greedy'].size} here")
