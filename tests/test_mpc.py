@@ -7,19 +7,30 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import re
 
 import numpy as np
 import pytest
 import torch
+from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 
 from tests.test_planner import eval_env as planner_env
 from tests.test_train import smoke
 from uabs_rl.cli.evaluate import main as eval_main
 from uabs_rl.env.params import EnvParams
-from uabs_rl.env.uabs_env import ACTION, MASK, UABSEnv
+from uabs_rl.env.service import move_scores
+from uabs_rl.env.uabs_env import ACTION, BEAM_PRIORITY, MASK, POSITION, UABSEnv
 from uabs_rl.evaluation.baselines import baseline_policy
 from uabs_rl.evaluation.evaluator import Evaluator
+from uabs_rl.evaluation.planner import (
+    PlannerScore,
+    footprint,
+    footprint_path,
+    lattice_index,
+    lattice_offsets,
+    on_lattice,
+)
 from uabs_rl.evaluation.predict import (
     ConstantVelocity,
     Predictor,
@@ -32,6 +43,7 @@ from uabs_rl.evaluation.predict import (
 )
 from uabs_rl.report.build import build_report
 from uabs_rl.safety.make import make_env, make_selector
+from uabs_rl.safety.rules import ACTION_VALUE, rank_order
 from uabs_rl.traces.cache import TraceSet
 from uabs_rl.training.resume import run
 
@@ -271,3 +283,151 @@ def test_mpc_option_errors_are_one_line(module, args, says, capsys):
     assert e.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and says in err[0]
+
+
+# ------------------------------------------------ the search's footprint table, checked
+def reference_next_priority(p, served, present, prev_present, start):
+    """next_priority as it was first written (the reference of the test below)."""
+    lead = (slice(None),) + (None,) * (p.dim() - 2)
+    present, prev_present = present[lead], prev_present[lead]
+    reset = start[lead + (None,)] | (present & ~prev_present)
+    return (p + served.float()).masked_fill(reset, 1.0).masked_fill(~present, 0.0)
+
+
+class ReferencePlanner(PlannerScore):
+    """The planner's search as it was first written: every candidate of every search
+    tested against every vehicle (no footprint table), each candidate's priorities
+    copied from its beam's. The fast search must give its scores bit for bit."""
+
+    @torch.no_grad()
+    def future(self, td, w=None):
+        p = self.env.params
+        pos, allowed = td.get(POSITION), td.get(MASK)
+        e, m = pos.shape[:2]
+        rows = torch.arange(e, device=pos.device)
+        w = self.world() if w is None else w
+        order = rank_order(td.get(BEAM_PRIORITY))
+        plan = pos[:, :, None, :].expand(e, m, self.horizon, 2).clone()
+        cover = torch.zeros(e, m, self.horizon, w["veh"].shape[-1], dtype=torch.bool)
+        planned = torch.zeros(e, m, dtype=torch.bool)
+        out = torch.zeros(e, m, 4)
+        for r in range(self.rounds * m):
+            u = order[:, r % m]
+            others = planned.clone()
+            others[rows, u] = False
+            value, path = self.search(pos[rows, u], plan, cover, others, w)
+            out[rows, u] = value
+            total = value + move_scores(pos[rows, u][:, None, None, :] + self.env.math.moves,
+                                        w["veh"][0], w["present"][1], self.env.priority,
+                                        p.r_b, p.n_beams)[:, 0]
+            best = total.masked_fill(~allowed[rows, u], -math.inf).argmax(-1)
+            plan[rows, u] = path[rows, best]
+            cover[rows, u] = footprint_path(plan[rows, u], w["veh"], p.r_b, p.n_beams)
+            planned[rows, u] = True
+        return out
+
+    def search(self, pos, plan, cover, others, w):
+        p, geo, h = self.env.params, self.env.math.geometry, self.horizon
+        e = pos.shape[0]
+        oth_cover = (cover & others[:, :, None, None]).any(1)
+        first = pos[:, None, :] + self.env.math.moves
+        own = footprint(first, w["veh"][0], p.r_b, p.n_beams)
+        prio = reference_next_priority(self.env.priority[:, None, :],
+                                       own | oth_cover[:, None, 0], w["present"][1],
+                                       w["present"][0], w["start"][0])
+        beams = {"pos": first[:, :, None, :], "prio": prio[:, :, None, :],
+                 "value": torch.zeros(e, 4, 1),
+                 "path": first[:, :, None, None, :].expand(e, 4, 1, h, 2).clone()}
+        for k in range(1, h):
+            beams = self.expand(beams, k, plan, others, oth_cover, w, geo)
+        value = beams["value"].amax(-1)
+        path = beams["path"][:, :, 0]
+        dead = torch.isinf(value)
+        floor = value.masked_fill(dead, math.inf).amin(-1, keepdim=True) - 1.0
+        value = torch.where(dead, torch.where(dead.all(-1, keepdim=True), 0.0, floor), value)
+        return value, path
+
+    def expand(self, beams, k, plan, others, oth_cover, w, geo):
+        p = self.env.params
+        e, a, b = beams["value"].shape
+        cand = (beams["pos"][:, :, :, None, :] + self.env.math.moves).reshape(e, a, b * 4, 2)
+        ok = geo.boundary_mask(beams["pos"]).reshape(e, a, b * 4) & torch.isfinite(
+            beams["value"]).repeat_interleave(4, -1)
+        near = (cand[:, :, :, None, :] - plan[:, None, None, :, k, :]).norm(dim=-1)
+        ok &= ~((near < p.d_th) & others[:, None, None, :]).any(-1)
+        veh, present = w["veh"][k], w["present"][k + 1]
+        inside = footprint(cand, veh, p.r_b, p.n_beams)
+        prio = beams["prio"].repeat_interleave(4, 2)
+        weight = torch.where(present & ~oth_cover[:, k], 1.0, 0.0)[:, None, None, :]
+        gain = (inside * prio.clamp_min(1.0) * weight).sum(-1) * w["live"][k][:, None, None]
+        value = (beams["value"].repeat_interleave(4, -1) + gain).masked_fill(~ok, -math.inf)
+        value, idx = value.sort(-1, descending=True)
+        cand = cand.gather(2, idx[..., None].expand(-1, -1, -1, 2))
+        key = torch.round(cand * 8.0).long()
+        key = key[..., 0] * 1_000_003 + key[..., 1]
+        same = key[..., :, None] == key[..., None, :]
+        value = value.masked_fill(torch.tril(same, diagonal=-1).any(-1), -math.inf)
+        value, top = value.topk(min(self.beam, value.shape[-1]), dim=-1)
+        src = idx.gather(-1, top)
+        new_pos = cand.gather(2, top[..., None].expand(-1, -1, -1, 2))
+        served = inside.gather(2, src[..., None].expand(-1, -1, -1, inside.shape[-1]))
+        served = served | oth_cover[:, None, None, k]
+        prio = reference_next_priority(prio.gather(2, src[..., None].expand_as(served)),
+                                       served, present, w["present"][k], w["start"][k])
+        path = beams["path"].repeat_interleave(4, 2).gather(
+            2, src[..., None, None].expand(-1, -1, -1, *beams["path"].shape[-2:])).clone()
+        path[:, :, :, k:] = new_pos[:, :, :, None, :]
+        return {"pos": new_pos, "prio": prio, "value": value, "path": path}
+
+
+class Checked(TensorDictModuleBase):
+    """The scores of ``fast`` at every step, checked equal (``torch.equal``) to those of
+    ``reference`` (its own generator, seeded alike) on the same input."""
+
+    def __init__(self, fast: PlannerScore, reference: PlannerScore):
+        super().__init__()
+        self.fast, self.reference, self.steps = fast, reference, 0
+        self.in_keys, self.out_keys = fast.in_keys, fast.out_keys
+
+    def forward(self, td):
+        want = self.reference(td.clone()).get(ACTION_VALUE)
+        td = self.fast(td)
+        assert torch.equal(td.get(ACTION_VALUE), want), f"step {self.steps}"
+        self.steps += 1
+        return td
+
+
+@pytest.mark.parametrize("overrides, exact", [
+    (("masking=rank",), True), (("masking=flat", "scenario.n_uabs=6"), True),
+    (("masking=rank", "scenario.lattice=false"), False)])
+def test_the_footprint_table_gives_the_first_searchs_scores_bit_for_bit(trace_cache,
+                                                                          overrides, exact):
+    cfg, env = eval_env(trace_cache, *overrides)
+    base, h = env.base_env, 4
+    env.set_seed(0)
+    step = float(base.math.moves.abs().amax())
+    # the lattice's points are exact floats (a table is made); off it, each candidate
+    # is tested as before
+    assert on_lattice(env.reset()[POSITION], step, h) is exact
+    for pred in (ConstantVelocity(), TrueFuture()):
+        gens = [torch.Generator().manual_seed(0) for _ in range(2)]
+        checked = Checked(PlannerScore(base, h, gens[0], predictor=pred),
+                          ReferencePlanner(base, h, gens[1], predictor=pred))
+        rec, td = Evaluator(env, cfg.train.eval_seed).evaluate(
+            TensorDictSequential(checked, make_selector(env)))
+        assert checked.steps == cfg.scenario.episode_steps > 0
+        assert rec["collisions"] == 0
+
+
+def test_lattice_offsets_index_and_exactness_by_hand():
+    for n in (1, 2, 5):
+        off = lattice_offsets(n, torch.device("cpu"))
+        assert off.shape == ((n + 1) ** 2, 2)
+        # every offset n moves can reach, once: |i| + |j| <= n of n's parity
+        assert off.abs().sum(-1).le(n).all() and (off.sum(-1) - n).remainder(2).eq(0).all()
+        assert len({tuple(o) for o in off.tolist()}) == (n + 1) ** 2
+        assert torch.equal(lattice_index(off, n), torch.arange((n + 1) ** 2))
+    assert lattice_offsets(1, torch.device("cpu")).tolist() == [[-1, 0], [0, -1], [0, 1], [1, 0]]
+    assert on_lattice(torch.tensor([[9.0, 1819.5]]), 20.0, 5)
+    assert not on_lattice(torch.tensor([[9.1, 1819.5]]), 20.0, 5)  # 9.1 + 20 rounds
+    assert not on_lattice(torch.tensor([[0.0, 1e8]]), 20.0, 1)  # float32 steps of 8 there

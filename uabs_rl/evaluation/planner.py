@@ -26,7 +26,7 @@ from tensordict.nn import TensorDictModuleBase
 
 from uabs_rl.config import ConfigError
 from uabs_rl.env.channel import footprint_inside
-from uabs_rl.env.service import move_scores
+from uabs_rl.env.service import SCORE_BLOCK, move_scores
 from uabs_rl.env.uabs_env import BEAM_PRIORITY, MASK, POSITION, UABSEnv
 from uabs_rl.evaluation.predict import Predictor, TrueFuture
 from uabs_rl.safety.rules import ACTION_VALUE, rank_order
@@ -54,6 +54,52 @@ def footprint_path(path: torch.Tensor, veh: torch.Tensor, r_b: float,
     return inside.reshape(h, e, -1).transpose(0, 1)
 
 
+def on_lattice(pos: torch.Tensor, step: float, reach: int) -> bool:
+    """Whether every point ``pos [..., 2] + n · step`` (per axis, |n| <= ``reach``) is a
+    value of ``pos``'s dtype: then each sum of moves along a path is exact, whatever the
+    order, and a lattice offset names one position bit for bit."""
+    n = torch.arange(-reach, reach + 1, device=pos.device, dtype=torch.float64)
+    offset = torch.tensor(step, dtype=pos.dtype).double() * n
+    exact = pos.double()[..., None] + offset  # exact in float64
+    return bool((exact == exact.to(pos.dtype).double()).all()
+                and (offset == offset.to(pos.dtype).double()).all())
+
+
+def lattice_offsets(n: int, device: torch.device) -> torch.Tensor:
+    """[(n+1)², 2] the lattice offsets (i, j) reachable in exactly ``n`` moves
+    (|i| + |j| <= n, i + j ≡ n mod 2), offset ``a (n+1) + b`` being
+    (a + b − n, a − b) for a, b in 0..n (:func:`lattice_index` inverts it)."""
+    a, b = torch.meshgrid(torch.arange(n + 1, device=device),
+                          torch.arange(n + 1, device=device), indexing="ij")
+    return torch.stack([a + b - n, a - b], dim=-1).reshape(-1, 2)
+
+
+def lattice_index(off: torch.Tensor, n: int) -> torch.Tensor:
+    """[...] the index in :func:`lattice_offsets` ``(n)`` of the offsets ``off [..., 2]``
+    (integers, reachable in exactly n moves)."""
+    i, j = off[..., 0], off[..., 1]
+    return torch.div(i + j + n, 2, rounding_mode="floor") * (n + 1) + torch.div(
+        i - j + n, 2, rounding_mode="floor")
+
+
+def footprint_table(pos: torch.Tensor, veh: torch.Tensor, step: torch.Tensor, r_b: float,
+                    n_beams: int) -> list[torch.Tensor]:
+    """For n = 1..H, ``[E, M, (n+1)², V]`` True where vehicle v at step n
+    (``veh [H, E, 2, V]``) lies in a footprint of a UABS at ``pos [E, M, 2]`` moved by
+    :func:`lattice_offsets` ``(n)`` lattice steps (``step``, a scalar tensor). Computed in
+    blocks of at most :data:`~uabs_rl.env.service.SCORE_BLOCK` elements."""
+    e, m = pos.shape[:2]
+    block = max(1, SCORE_BLOCK // max(1, e * veh.shape[-1]))
+    out = []
+    for n in range(1, veh.shape[0] + 1):
+        cand = pos[:, :, None, :] + lattice_offsets(n, pos.device).to(pos.dtype) * step
+        cand = cand.reshape(e, -1, 2)  # [E, M (n+1)², 2]
+        inside = torch.cat([footprint(c, veh[n - 1], r_b, n_beams)
+                            for c in cand.split(block, dim=1)], dim=1)
+        out.append(inside.reshape(e, m, (n + 1) ** 2, -1))
+    return out
+
+
 def next_priority(p: torch.Tensor, served: torch.Tensor, present: torch.Tensor,
                   prev_present: torch.Tensor, start: torch.Tensor) -> torch.Tensor:
     """Priorities one step on (docs/model.md §4, as ``service.update_service``): + 1
@@ -62,7 +108,7 @@ def next_priority(p: torch.Tensor, served: torch.Tensor, present: torch.Tensor,
     lead = (slice(None),) + (None,) * (p.dim() - 2)
     present, prev_present = present[lead], prev_present[lead]
     reset = start[lead + (None,)] | (present & ~prev_present)
-    return (p + served.float()).masked_fill(reset, 1.0).masked_fill(~present, 0.0)
+    return torch.where(present & ~reset, p + served, present.to(p.dtype))
 
 
 class PlannerScore(TensorDictModuleBase):
@@ -130,53 +176,74 @@ class PlannerScore(TensorDictModuleBase):
     def future(self, td: TensorDictBase, w: dict[str, torch.Tensor] | None = None
                ) -> torch.Tensor:
         """[E, M, 4] the best value of steps 2..H after each first move of each UABS
-        (over the world ``w``, default :meth:`world`)."""
+        (over the world ``w``, default :meth:`world`).
+
+        Every position a path of UABS u can reach at step n lies on the lattice within n
+        moves of u's position, so where the positions are exact lattice values
+        (:func:`on_lattice`) the footprint tests are made once per decision, for each
+        UABS and each such position (:func:`footprint_table`), and every search looks
+        its candidates up there (:class:`Lookup`: the same booleans as testing them one
+        by one)."""
         p = self.env.params
         pos, allowed = td.get(POSITION), td.get(MASK)
         e, m = pos.shape[:2]
         rows = torch.arange(e, device=pos.device)
         w = self.world() if w is None else w
+        moves = self.env.math.moves
+        step = moves.abs().amax()
+        table = (footprint_table(pos, w["veh"], step, p.r_b, p.n_beams)
+                 if on_lattice(pos, float(step), self.horizon) else None)
+        first = move_scores(pos[:, :, None, :] + moves, w["veh"][0], w["present"][1],
+                            self.env.priority, p.r_b, p.n_beams)  # [E, M, 4]
         order = rank_order(td.get(BEAM_PRIORITY))  # [E, M]
         plan = pos[:, :, None, :].expand(e, m, self.horizon, 2).clone()  # [E, M, H, 2]
         cover = torch.zeros(e, m, self.horizon, w["veh"].shape[-1], dtype=torch.bool,
                             device=pos.device)  # [E, M, H, V] each plan's coverage
+        covers = torch.zeros(cover[:, 0].shape, dtype=torch.int32, device=pos.device)
+        # [E, H, V] how many plans cover each vehicle (a UABS not planned yet covers none)
         planned = torch.zeros(e, m, dtype=torch.bool, device=pos.device)
         out = torch.zeros(e, m, 4, device=pos.device)
         for r in range(self.rounds * m):
             u = order[:, r % m]
             others = planned.clone()
             others[rows, u] = False
-            value, path = self.search(pos[rows, u], plan, cover, others, w)
+            own = cover[rows, u]  # [E, H, V]; the others cover where covers > own
+            look = None if table is None else Lookup(pos[rows, u], step,
+                                                    [t[rows, u] for t in table])
+            value, path = self.search(pos[rows, u], plan, others, covers > own, w, look)
             out[rows, u] = value
-            total = value + move_scores(pos[rows, u][:, None, None, :] + self.env.math.moves,
-                                        w["veh"][0], w["present"][1], self.env.priority,
-                                        p.r_b, p.n_beams)[:, 0]
+            total = value + first[rows, u]
             best = total.masked_fill(~allowed[rows, u], -math.inf).argmax(-1)  # [E]
             plan[rows, u] = path[rows, best]
-            cover[rows, u] = footprint_path(plan[rows, u], w["veh"], p.r_b, p.n_beams)
+            new = (footprint_path(plan[rows, u], w["veh"], p.r_b, p.n_beams)
+                   if look is None else look.path(plan[rows, u]))
+            covers += new.int() - own.int()
+            cover[rows, u] = new
             planned[rows, u] = True
         return out
 
-    def search(self, pos: torch.Tensor, plan: torch.Tensor, cover: torch.Tensor,
-               others: torch.Tensor, w: dict[str, torch.Tensor]) -> tuple[torch.Tensor,
-                                                                           torch.Tensor]:
-        """Beam search of one UABS at ``pos [E, 2]`` given the plans of ``others [E, M]``:
+    def search(self, pos: torch.Tensor, plan: torch.Tensor, others: torch.Tensor,
+               oth_cover: torch.Tensor, w: dict[str, torch.Tensor],
+               look: Lookup | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Beam search of one UABS at ``pos [E, 2]`` given the plans ``plan [E, M, H, 2]``
+        of ``others [E, M]`` and the vehicles they cover, ``oth_cover [E, H, V]``:
         ``(value [E, 4], path [E, 4, H, 2])``, the best value of steps 2..H and its path
         (positions at steps 1..H) per first move. A first move with no path that keeps
-        d_th gets a value just below the others'."""
+        d_th gets a value just below the others'. ``look``: its footprint tests, made in
+        advance (:class:`Lookup`; default: tested here)."""
         p, geo, h = self.env.params, self.env.math.geometry, self.horizon
         moves = self.env.math.moves
         e = pos.shape[0]
-        oth_cover = (cover & others[:, :, None, None]).any(1)  # [E, H, V]
         first = pos[:, None, :] + moves  # [E, 4, 2]
-        own = footprint(first, w["veh"][0], p.r_b, p.n_beams)  # [E, 4, V]
+        own = (footprint(first, w["veh"][0], p.r_b, p.n_beams) if look is None
+               else look(first, 1))  # [E, 4, V]
         prio = next_priority(self.env.priority[:, None, :], own | oth_cover[:, None, 0],
                              w["present"][1], w["present"][0], w["start"][0])
         beams = {"pos": first[:, :, None, :], "prio": prio[:, :, None, :],
                  "value": torch.zeros(e, 4, 1, device=pos.device),
                  "path": first[:, :, None, None, :].expand(e, 4, 1, h, 2).clone()}
         for k in range(1, h):
-            beams = self.expand(beams, k, plan, others, oth_cover, w, geo)
+            beams = self.expand(beams, k, plan, others, oth_cover, w, geo, look)
         value = beams["value"].amax(-1)  # [E, 4]
         path = beams["path"][:, :, 0]  # the best beam per first move (sorted)
         dead = torch.isinf(value)
@@ -186,9 +253,12 @@ class PlannerScore(TensorDictModuleBase):
 
     def expand(self, beams: dict[str, torch.Tensor], k: int, plan: torch.Tensor,
                others: torch.Tensor, oth_cover: torch.Tensor, w: dict[str, torch.Tensor],
-               geo) -> dict[str, torch.Tensor]:
+               geo, look: Lookup | None = None) -> dict[str, torch.Tensor]:
         """One step (index ``k`` = step k+1) of the beam search: every beam × 4 moves,
-        scored, one per position, the best ``beam`` kept per first move."""
+        scored, one per position, the best ``beam`` kept per first move. Beam b's
+        candidates are c = 4 b .. 4 b + 3: each earns the priorities ``beams["prio"]
+        [E, a, b, V]`` under its footprints, and one kept inherits b's priorities and
+        path."""
         p = self.env.params
         e, a, b = beams["value"].shape
         cand = (beams["pos"][:, :, :, None, :] + self.env.math.moves).reshape(e, a, b * 4, 2)
@@ -197,10 +267,16 @@ class PlannerScore(TensorDictModuleBase):
         near = (cand[:, :, :, None, :] - plan[:, None, None, :, k, :]).norm(dim=-1)  # [E,a,c,M]
         ok &= ~((near < p.d_th) & others[:, None, None, :]).any(-1)
         veh, present = w["veh"][k], w["present"][k + 1]
-        inside = footprint(cand, veh, p.r_b, p.n_beams)  # [E, a, c, V]
-        prio = beams["prio"].repeat_interleave(4, 2)  # [E, a, c, V]
         weight = torch.where(present & ~oth_cover[:, k], 1.0, 0.0)[:, None, None, :]
-        gain = (inside * prio.clamp_min(1.0) * weight).sum(-1) * w["live"][k][:, None, None]
+        parent = beams["prio"].clamp_min(1.0).mul_(weight)  # [E, a, b, V]
+        # each sum is over whole priorities (integers): exact in any order
+        if look is None:
+            inside = footprint(cand, veh, p.r_b, p.n_beams)  # [E, a, c, V]
+            gain = inside.reshape(e, a, b, 4, -1).to(parent.dtype) @ parent[..., None]
+        else:
+            where = look.index(cand, k + 1)  # [E, a, c]
+            gain = look.gain(parent, where, k + 1)
+        gain = gain.reshape(e, a, b * 4) * w["live"][k][:, None, None]
         value = (beams["value"].repeat_interleave(4, -1) + gain).masked_fill(~ok, -math.inf)
         # one beam per position: the best path that reaches it
         value, idx = value.sort(-1, descending=True)
@@ -212,14 +288,57 @@ class PlannerScore(TensorDictModuleBase):
         value, top = value.topk(min(self.beam, value.shape[-1]), dim=-1)
         src = idx.gather(-1, top)  # the candidates kept, as indices before sorting
         new_pos = cand.gather(2, top[..., None].expand(-1, -1, -1, 2))
-        served = inside.gather(2, src[..., None].expand(-1, -1, -1, inside.shape[-1]))
+        served = (inside.gather(2, src[..., None].expand(-1, -1, -1, inside.shape[-1]))
+                  if look is None else look.at(where.gather(-1, src), k + 1))
         served = served | oth_cover[:, None, None, k]
-        prio = next_priority(prio.gather(2, src[..., None].expand_as(served)), served,
-                             present, w["present"][k], w["start"][k])
-        path = beams["path"].repeat_interleave(4, 2).gather(
-            2, src[..., None, None].expand(-1, -1, -1, *beams["path"].shape[-2:])).clone()
+        src = torch.div(src, 4, rounding_mode="floor")  # their parents
+        prio = next_priority(beams["prio"].gather(2, src[..., None].expand_as(served)),
+                             served, present, w["present"][k], w["start"][k])
+        path = beams["path"].gather(
+            2, src[..., None, None].expand(-1, -1, -1, *beams["path"].shape[-2:]))
         path[:, :, :, k:] = new_pos[:, :, :, None, :]
         return {"pos": new_pos, "prio": prio, "value": value, "path": path}
+
+
+class Lookup:
+    """The footprint tests of one UABS at ``origin [E, 2]``, made in advance:
+    ``table[n-1] [E, (n+1)², V]`` for the lattice offsets reachable in n moves
+    (:func:`footprint_table`), the lattice step being ``step`` (a scalar tensor). The
+    positions looked up must be exact lattice values (:func:`on_lattice`)."""
+
+    def __init__(self, origin: torch.Tensor, step: torch.Tensor, table: list[torch.Tensor]):
+        self.origin, self.step, self.table = origin, step, table
+        self.weights: dict[int, torch.Tensor] = {}  # the tables as 0/1 floats, as needed
+
+    def index(self, cand: torch.Tensor, n: int) -> torch.Tensor:
+        """[E, *K] the table index of positions ``cand [E, *K, 2]`` n moves from
+        ``origin``."""
+        lead = (slice(None),) + (None,) * (cand.dim() - 2)
+        return lattice_index(torch.round((cand - self.origin[lead]) / self.step).long(), n)
+
+    def at(self, where: torch.Tensor, n: int) -> torch.Tensor:
+        """[E, *K, V] the tests at table indices ``where [E, *K]`` (n moves)."""
+        rows = torch.arange(where.shape[0], device=where.device)
+        return self.table[n - 1][rows[(slice(None),) + (None,) * (where.dim() - 1)], where]
+
+    def __call__(self, cand: torch.Tensor, n: int) -> torch.Tensor:
+        """[E, *K, V] the tests of positions ``cand [E, *K, 2]`` n moves from ``origin``."""
+        return self.at(self.index(cand, n), n)
+
+    def gain(self, parent: torch.Tensor, where: torch.Tensor, n: int) -> torch.Tensor:
+        """[E, A, B, 4] the sum of ``parent [E, A, B, V]`` over the vehicles under the
+        footprints of each of its 4 children, at table indices ``where [E, A, 4 B]``:
+        one product with the whole table (n moves), then the children's columns."""
+        if n not in self.weights:
+            self.weights[n] = self.table[n - 1].to(parent.dtype).transpose(1, 2)
+        e, a, b = parent.shape[:3]
+        g = parent.reshape(e, a * b, -1) @ self.weights[n]  # [E, A B, (n+1)²]
+        return g.reshape(e, a, b, -1).gather(-1, where.reshape(e, a, b, 4))
+
+    def path(self, path: torch.Tensor) -> torch.Tensor:
+        """[E, H, V] the tests of ``path [E, H, 2]`` (step n: n moves from ``origin``),
+        as :func:`footprint_path`."""
+        return torch.stack([self(path[:, n - 1], n) for n in range(1, path.shape[1] + 1)], 1)
 
 
 # ----------------------------------------------------------------------------- heuristics
