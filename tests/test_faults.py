@@ -16,6 +16,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from tests.conftest import Ran, run_command
 from tests.test_train import records, smoke
 from uabs_rl.runs.checkpoint import CheckpointError, load_checkpoint
 from uabs_rl.runs.folder import RunFolderError, RunLock
@@ -31,6 +32,14 @@ def uabs_train(cwd: Path, *args: str, env: dict | None = None) -> subprocess.Pop
                              "train.progress=false", *(a for a in args if a not in flags)],
                             cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, env=None if env is None else {**os.environ, **env})
+
+
+def uabs_train_here(cwd: Path, *args: str) -> Ran:
+    """``uabs_train``'s command run in this process (tests.conftest.run_command), for a
+    refusal, which ends before any training."""
+    flags = [a for a in args if a.startswith("-")]
+    return run_command("train", *flags, "train.progress=false",
+                       *(a for a in args if a not in flags), cwd=cwd)
 
 
 def wait_for(path: Path, proc: subprocess.Popen, timeout: float = 120) -> None:
@@ -296,8 +305,8 @@ def test_bad_run_folders_and_ctrl_c_while_loading_are_one_line(trace_cache, tmp_
     for args, expected in (
             (["hydra.run.dir=afile/run"], "hydra.run.dir=afile/run: afile is a file"),
             ([f"resume={tmp_path / 'nowhere'}"], "no such folder")):
-        p = uabs_train(tmp_path, "experiment=smoke", *args)
-        _, err = p.communicate(timeout=120)
+        p = uabs_train_here(tmp_path, "experiment=smoke", *args)
+        err = p.stderr
         assert p.returncode == 2 and error_lines(err) == [err.strip()], err[-2000:]
         assert expected in err
     assert not (tmp_path / "nowhere").exists() and not (tmp_path / "outputs").exists()
@@ -305,8 +314,8 @@ def test_bad_run_folders_and_ctrl_c_while_loading_are_one_line(trace_cache, tmp_
     run_dir = tmp_path / "garbled"
     (run_dir / ".hydra").mkdir(parents=True)
     (run_dir / ".hydra" / "config.yaml").write_text("scenario: [unclosed\n")
-    p = uabs_train(tmp_path, f"resume={run_dir}", f"traces.cache_dir={trace_cache}")
-    _, err = p.communicate(timeout=120)
+    p = uabs_train_here(tmp_path, f"resume={run_dir}", f"traces.cache_dir={trace_cache}")
+    err = p.stderr
     assert p.returncode == 2 and error_lines(err) == [err.strip()], err[-2000:]
     assert ".hydra/config.yaml is damaged" in err
     # Ctrl-C while torch and Hydra load: one line, status 130
