@@ -8,6 +8,7 @@ import os
 import signal
 import sys
 import traceback
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -66,6 +67,10 @@ class Ran:
     stderr: str
 
 
+def _print_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    sys.stderr.write(warnings.formatwarning(message, category, filename, lineno, line))
+
+
 ENTRY = {"train": "main", "traces": "main", "evaluate": "run_main", "report": "run_main"}
 
 
@@ -76,8 +81,10 @@ def run_command(module: str, *args: str, cwd: Path | None = None) -> Ran:
     stderr and status 1, as Python reports it). For the refusals, which end before any
     work; a few tests run the real commands as subprocesses (test_train's
     test_cli_entry_point, test_faults, test_bologna's walkthrough, the kills and signals).
-    What the command sets for its own process (sys.argv, the working folder, environment
-    variables, logging, signal handlers, torch's threads) is put back afterwards."""
+    Logging and warnings are as a fresh interpreter has them (what it would print on
+    stderr is in ``stderr``); what the command sets for its own process (sys.argv, the
+    working folder, environment variables, logging, signal handlers, torch's threads) is
+    put back afterwards."""
     import torch
 
     entry = getattr(importlib.import_module(f"uabs_rl.cli.{module}"), ENTRY[module])
@@ -94,7 +101,19 @@ def run_command(module: str, *args: str, cwd: Path | None = None) -> Ran:
         sys.argv = [f"uabs_rl/cli/{module}.py", *args]
         if cwd is not None:
             os.chdir(cwd)
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        # logging and warnings as a fresh interpreter has them (pytest captures both):
+        # the root logger without handlers at WARNING, Python's default warning filters,
+        # a warning printed on stderr
+        logging.root.handlers[:] = []
+        logging.root.setLevel(logging.WARNING)
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err), \
+                warnings.catch_warnings():
+            warnings.resetwarnings()
+            for category in (DeprecationWarning, PendingDeprecationWarning, ImportWarning,
+                             ResourceWarning):
+                warnings.filterwarnings("ignore", category=category)
+            warnings.filterwarnings("default", category=DeprecationWarning, module="__main__")
+            warnings.showwarning = _print_warning
             try:
                 entry()
             except SystemExit as e:
