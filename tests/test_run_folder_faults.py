@@ -82,13 +82,13 @@ def test_a_bad_value_aimed_at_a_users_folder_leaves_it_as_it_was(trace_cache, tm
     (mine / "hydra.log").write_text("the user's own hydra.log\n")
     before = tree(mine)
     err = one_error(uabs_train_here(tmp_path, "experiment=smoke", f"traces.cache_dir={trace_cache}",
-                               f"hydra.run.dir={mine}", "scenario.n_uabs=0"))
+                                    f"hydra.run.dir={mine}", "scenario.n_uabs=0"))
     assert "scenario.n_uabs" in err
     assert tree(mine) == before  # nothing removed, nothing added (.lock, .hydra)
     # a folder the command made (with its parents) goes with the refused start
     err = one_error(uabs_train_here(tmp_path, "experiment=smoke", f"traces.cache_dir={trace_cache}",
-                               f"hydra.run.dir={tmp_path / 'new' / 'deep' / 'run'}",
-                               "scenario.n_uabs=0"))
+                                    f"hydra.run.dir={tmp_path / 'new' / 'deep' / 'run'}",
+                                    "scenario.n_uabs=0"))
     assert not (tmp_path / "new").exists()
 
 
@@ -107,13 +107,12 @@ def test_a_refused_command_leaves_a_finished_runs_record_and_history(finished_ru
     (run_dir / ".lock").write_text("the last holder's record\n")
     before = tree(run_dir)
     err = one_error(uabs_train_here(tmp_path, *args, "train.episodes=4", "algo.lr=0.5",
-                               f"hydra.run.dir={run_dir}"))
+                                    f"hydra.run.dir={run_dir}"))
     assert "already holds a run" in err
     assert tree(run_dir) == before  # .hydra/ and .lock included
     # so the run's own command, re-typed with resume= appended, still continues it
-    p = uabs_train(tmp_path, *args, "train.episodes=6", f"resume={run_dir}")
-    _, err = p.communicate(timeout=300)
-    assert p.returncode == 0, err[-2000:]
+    p = uabs_train_here(tmp_path, *args, "train.episodes=6", f"resume={run_dir}")
+    assert p.returncode == 0, p.stderr[-2000:]
     assert [r["episode"] for r in read_metrics(run_dir / "metrics.jsonl")
             if r["kind"] == "train"] == list(range(1, 7))
 
@@ -126,7 +125,7 @@ def test_a_second_sweep_into_a_sweeps_folder_is_refused(trace_cache, tmp_path):
     (job / ".hydra" / "config.yaml").write_text("seed: 0\n")
     before = tree(sweep)
     err = one_error(uabs_train_here(tmp_path, "-m", "experiment=smoke", "masking=flat,rank",
-                               f"traces.cache_dir={trace_cache}", f"hydra.sweep.dir={sweep}"))
+                                    f"traces.cache_dir={trace_cache}", f"hydra.sweep.dir={sweep}"))
     assert "holds another sweep" in err and f"resume={sweep}" in err
     assert tree(sweep) == before
 
@@ -265,7 +264,7 @@ def test_a_nohup_run_is_not_stopped_by_a_hang_up():
 @pytest.mark.parametrize("override", ["hydra.run.dir", "resume"])
 def test_a_folder_name_too_long_for_the_file_system_is_one_line(tmp_path, override):
     err = one_error(uabs_train_here(tmp_path, "experiment=smoke",
-                               f"{override}={tmp_path / ('x' * 300)}"), timeout=120)
+                                    f"{override}={tmp_path / ('x' * 300)}"), timeout=120)
     assert "300 bytes long" in err
 
 
@@ -282,12 +281,12 @@ def test_a_run_started_in_a_folder_that_moved_writes_its_own_record(trace_cache,
     args = ["experiment=smoke", f"traces.cache_dir={trace_cache}", *QUIET,
             "train.episodes=2", "train.eval_every=2",
             "hydra.run.dir=outputs/${now:%Y-%m-%d}_same"]
-    first = uabs_train(tmp_path, *args, "seed=1")
-    assert first.wait(timeout=300) == 0
+    first = uabs_train_here(tmp_path, *args, "seed=1")
+    assert first.returncode == 0, first.stderr[-2000:]
     runs = list((tmp_path / "outputs").iterdir())
     record = tree(runs[0] / ".hydra")
-    second = uabs_train(tmp_path, *args, "seed=2")
-    assert second.wait(timeout=300) == 0
+    second = uabs_train_here(tmp_path, *args, "seed=2")
+    assert second.returncode == 0, second.stderr[-2000:]
     assert tree(runs[0] / ".hydra") == record
     moved = [d for d in (tmp_path / "outputs").iterdir() if d != runs[0]]
     assert len(moved) == 1 and moved[0].name.endswith("-2")
@@ -300,15 +299,15 @@ def test_a_name_with_a_slash_neither_nests_nor_leads_a_run_folder_out(trace_cach
     cwd = tmp_path / "a" / "b"
     cwd.mkdir(parents=True)
     err = one_error(uabs_train_here(cwd, "experiment=smoke", f"traces.cache_dir={trace_cache}",
-                               "scenario.name=../../../elsewhere/ESCAPED"))
+                                    "scenario.name=../../../elsewhere/ESCAPED"))
     assert "scenario.name" in err
     assert sorted(p.name for p in tmp_path.rglob("*")) == ["a", "b"]  # nothing made
     # a value that is a path (a network file) names one folder under outputs/runs
     net = Path(__file__).parents[1] / "sumo" / "manhattan" / "manhattan.net.xml"
-    p = uabs_train(cwd, "experiment=smoke", f"traces.cache_dir={trace_cache}", *QUIET,
-                   "train.episodes=2", "train.eval_every=2", f"scenario.sumo.net_file={net}")
-    _, err = p.communicate(timeout=300)
-    assert p.returncode == 0, err[-2000:]
+    p = uabs_train_here(cwd, "experiment=smoke", f"traces.cache_dir={trace_cache}", *QUIET,
+                        "train.episodes=2", "train.eval_every=2",
+                        f"scenario.sumo.net_file={net}")
+    assert p.returncode == 0, p.stderr[-2000:]
     (run,) = (cwd / "outputs" / "runs").iterdir()
     assert "%2F" in run.name and (run / "metrics.jsonl").is_file()
 
@@ -347,10 +346,9 @@ def test_resume_takes_a_setting_that_changes_no_result(finished_run, tmp_path):
     sweep; a resume that types it is no change of results either."""
     run_dir, args = finished_run
     run_dir = copy_of(run_dir, tmp_path)
-    p = uabs_train(tmp_path, *args, "train.episodes=4", "traces.workers=4",
-                   f"resume={run_dir}")
-    _, err = p.communicate(timeout=300)
-    assert p.returncode == 0, err[-2000:]
+    p = uabs_train_here(tmp_path, *args, "train.episodes=4", "traces.workers=4",
+                        f"resume={run_dir}")
+    assert p.returncode == 0, p.stderr[-2000:]
 
 
 def test_a_members_checkpoint_is_checked_against_its_population(trace_cache, tmp_path,
@@ -378,7 +376,7 @@ def test_hydra_settings_the_project_owns_are_refused(finished_run, tmp_path):
     run_dir = copy_of(run_dir, tmp_path)
     before = tree(run_dir)
     err = one_error(uabs_train_here(tmp_path, *args, "train.episodes=4", "algo.lr=0.5",
-                               "hydra.output_subdir=.hydra", f"hydra.run.dir={run_dir}"))
+                                    "hydra.output_subdir=.hydra", f"hydra.run.dir={run_dir}"))
     assert "hydra.output_subdir is set by uabs_rl itself" in err
     assert tree(run_dir) == before
     from uabs_rl.cli.hydra import check_command_line
@@ -450,9 +448,9 @@ def test_checkpoints_removed_while_the_run_writes_them_stop_the_run(trace_cache,
 
 def test_a_path_the_file_system_refuses_is_one_line_and_leaves_nothing(trace_cache, tmp_path):
     run_dir = tmp_path / "run"
+    net = tmp_path / ("y" * 300) / "x.net.xml"
     err = one_error(uabs_train_here(tmp_path, "experiment=smoke", f"traces.cache_dir={trace_cache}",
-                               f"hydra.run.dir={run_dir}",
-                               f"scenario.sumo.net_file={tmp_path / ('y' * 300) / 'x.net.xml'}"))
+                                    f"hydra.run.dir={run_dir}", f"scenario.sumo.net_file={net}"))
     assert "File name too long" in err
     assert not run_dir.exists()
 
