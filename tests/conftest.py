@@ -74,9 +74,11 @@ def _print_warning(message, category, filename, lineno, file=None, line=None) ->
 ENTRY = {"train": "main", "traces": "main", "evaluate": "run_main", "report": "run_main"}
 
 
-def run_command(module: str, *args: str, cwd: Path | None = None) -> Ran:
+def run_command(module: str, *args: str, cwd: Path | None = None,
+                env: dict[str, str] | None = None) -> Ran:
     """``python -m uabs_rl.cli.<module> args`` run in this process: the module's entry
-    point with ``sys.argv`` set, in ``cwd``, its standard output and error captured and
+    point with ``sys.argv`` set, in ``cwd``, with ``env`` added to the environment, its
+    standard output and error captured and
     its exit status taken from ``SystemExit`` (an exception it lets out is a traceback on
     stderr and status 1, as Python reports it). For the refusals, which end before any
     work; a few tests run the real commands as subprocesses (test_train's
@@ -101,6 +103,7 @@ def run_command(module: str, *args: str, cwd: Path | None = None) -> Ran:
         sys.argv = [f"uabs_rl/cli/{module}.py", *args]
         if cwd is not None:
             os.chdir(cwd)
+        os.environ.update(env or {})
         # logging and warnings as a fresh interpreter has them (pytest captures both):
         # the root logger without handlers at WARNING, Python's default warning filters,
         # a warning printed on stderr
