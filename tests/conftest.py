@@ -1,5 +1,15 @@
 from __future__ import annotations
 
+import contextlib
+import importlib
+import io
+import logging
+import os
+import signal
+import sys
+import traceback
+import warnings
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -44,3 +54,95 @@ def train(small_traces_cfg):
 def held_out(small_traces_cfg):
     """The small case's held-out traces (1 sim x 60 s)."""
     return get_traces(small_traces_cfg.scenario, small_traces_cfg.traces, "eval")
+
+
+@dataclass
+class Ran:
+    """What a command run by :func:`run_command` left: its exit status and output, as
+    ``subprocess.run(..., capture_output=True, text=True)`` reports them."""
+
+    args: list[str]
+    returncode: int
+    stdout: str
+    stderr: str
+
+
+def _print_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    sys.stderr.write(warnings.formatwarning(message, category, filename, lineno, line))
+
+
+ENTRY = {"train": "main", "traces": "main", "evaluate": "run_main", "report": "run_main"}
+
+
+def run_command(module: str, *args: str, cwd: Path | None = None,
+                env: dict[str, str] | None = None) -> Ran:
+    """``python -m uabs_rl.cli.<module> args`` run in this process: the module's entry
+    point with ``sys.argv`` set, in ``cwd``, with ``env`` added to the environment, its
+    standard output and error captured and
+    its exit status taken from ``SystemExit`` (an exception it lets out is a traceback on
+    stderr and status 1, as Python reports it). For the refusals, which end before any
+    work; a few tests run the real commands as subprocesses (test_train's
+    test_cli_entry_point, test_faults, test_bologna's walkthrough, the kills and signals).
+    Logging and warnings are as a fresh interpreter has them (what it would print on
+    stderr is in ``stderr``); what the command sets for its own process (sys.argv, the
+    working folder, environment variables, logging, signal handlers, torch's threads) is
+    put back afterwards."""
+    import torch
+
+    entry = getattr(importlib.import_module(f"uabs_rl.cli.{module}"), ENTRY[module])
+    loggers = [logging.getLogger(), *(lg for lg in logging.Logger.manager.loggerDict.values()
+                                      if isinstance(lg, logging.Logger))]
+    saved_loggers = [(lg, lg.level, lg.disabled, lg.propagate, lg.handlers[:])
+                     for lg in loggers]
+    saved = (sys.argv[:], os.getcwd(), dict(os.environ), logging.raiseExceptions,
+             {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)},
+             torch.get_num_threads())
+    out, err = io.StringIO(), io.StringIO()
+    code: int | str | None = 0
+    try:
+        sys.argv = [f"uabs_rl/cli/{module}.py", *args]
+        if cwd is not None:
+            os.chdir(cwd)
+        os.environ.update(env or {})
+        # logging and warnings as a fresh interpreter has them (pytest captures both):
+        # the root logger without handlers at WARNING, Python's default warning filters,
+        # a warning printed on stderr
+        logging.root.handlers[:] = []
+        logging.root.setLevel(logging.WARNING)
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err), \
+                warnings.catch_warnings():
+            warnings.resetwarnings()
+            for category in (DeprecationWarning, PendingDeprecationWarning, ImportWarning,
+                             ResourceWarning):
+                warnings.filterwarnings("ignore", category=category)
+            warnings.filterwarnings("default", category=DeprecationWarning, module="__main__")
+            warnings.showwarning = _print_warning
+            try:
+                entry()
+            except SystemExit as e:
+                code = e.code
+                if isinstance(code, str):  # sys.exit("message"): the message, status 1
+                    print(code, file=sys.stderr)
+                    code = 1
+            except Exception:
+                traceback.print_exc()
+                code = 1
+    finally:
+        argv, where, env, raise_exceptions, handlers, threads = saved
+        sys.argv = argv
+        os.chdir(where)
+        os.environ.clear()
+        os.environ.update(env)
+        logging.raiseExceptions = raise_exceptions
+        for s, h in handlers.items():
+            signal.signal(s, h)
+        torch.set_num_threads(threads)
+        for lg, level, disabled, propagate, kept in saved_loggers:
+            for h in lg.handlers:
+                if h not in kept:
+                    h.close()  # the command's log file, or a stream it captured
+            lg.handlers[:] = kept
+            lg.setLevel(level)
+            lg.disabled, lg.propagate = disabled, propagate
+    return Ran([module, *args], 0 if code is None else int(code), out.getvalue(),
+               err.getvalue())

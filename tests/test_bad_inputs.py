@@ -4,14 +4,12 @@ lists them with the test behind each)."""
 from __future__ import annotations
 
 import pickle
-import subprocess
-import sys
 
 import pytest
 import torch
 from omegaconf.errors import ValidationError
 
-from tests.conftest import SMALL_TRACES, compose_cfg
+from tests.conftest import SMALL_TRACES, compose_cfg, run_command
 from tests.test_train import records, smoke
 from uabs_rl.cli.evaluate import main as eval_main
 from uabs_rl.config import ConfigError
@@ -34,9 +32,7 @@ def test_malformed_network_file_names_the_key(tmp_path, trace_cache):
 
 
 def test_uabs_traces_config_error_is_one_line(trace_cache):
-    proc = subprocess.run([sys.executable, "-m", "uabs_rl.cli.traces", "scenario.dt=-1",
-                           f"traces.cache_dir={trace_cache}"], capture_output=True, text=True,
-                          timeout=120)
+    proc = run_command("traces", "scenario.dt=-1", f"traces.cache_dir={trace_cache}")
     assert proc.returncode == 2
     assert proc.stderr.strip().splitlines() == ["error: scenario.dt must be > 0 seconds, "
                                                 "got -1.0."]

@@ -6,12 +6,11 @@ of the command line it is given."""
 from __future__ import annotations
 
 import re
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
+from tests.conftest import run_command
 from uabs_rl.config import CONF_DIR, PROJECT_ROOT, setting_roles
 
 # the pages these checks own (docs/results/ and docs/bad_inputs.md are generated or
@@ -97,9 +96,7 @@ def test_commands_and_their_flags_exist(page):
 
 
 def render_help(*overrides: str) -> str:
-    out = subprocess.run([sys.executable, "-m", "uabs_rl.cli.train", *overrides,
-                          "hydra/help=uabs_train", "--help"], capture_output=True, text=True,
-                         timeout=120, cwd=PROJECT_ROOT)
+    out = run_command("train", *overrides, "hydra/help=uabs_train", "--help", cwd=PROJECT_ROOT)
     assert out.returncode == 0, out.stderr[-2000:]
     return out.stdout
 

@@ -16,6 +16,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from tests.conftest import Ran, run_command
 from tests.test_train import records, smoke
 from uabs_rl.runs.checkpoint import CheckpointError, load_checkpoint
 from uabs_rl.runs.folder import RunFolderError, RunLock
@@ -31,6 +32,14 @@ def uabs_train(cwd: Path, *args: str, env: dict | None = None) -> subprocess.Pop
                              "train.progress=false", *(a for a in args if a not in flags)],
                             cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, env=None if env is None else {**os.environ, **env})
+
+
+def uabs_train_here(cwd: Path, *args: str, env: dict | None = None) -> Ran:
+    """``uabs_train``'s command run in this process (tests.conftest.run_command): for a
+    command that runs to its end (no kill, no signal, no second command beside it)."""
+    flags = [a for a in args if a.startswith("-")]
+    return run_command("train", *flags, "train.progress=false",
+                       *(a for a in args if a not in flags), cwd=cwd, env=env)
 
 
 def wait_for(path: Path, proc: subprocess.Popen, timeout: float = 120) -> None:
@@ -114,12 +123,10 @@ def test_the_original_command_with_resume_appended_continues_the_run(trace_cache
     run_dir = tmp_path / "masking=flat,seed=3"
     original = ["experiment=smoke", "masking=flat", "seed=3", f"traces.cache_dir={trace_cache}",
                 *QUIET, f"hydra.run.dir='{run_dir}'"]
-    first = uabs_train(tmp_path, *original, "train.episodes=3")
-    _, err = first.communicate(timeout=300)
-    assert first.returncode == 0, err[-2000:]
-    again = uabs_train(tmp_path, *original, f"resume={run_dir}")  # 6 episodes, as typed
-    _, err = again.communicate(timeout=300)
-    assert again.returncode == 0, err[-2000:]
+    first = uabs_train_here(tmp_path, *original, "train.episodes=3")
+    assert first.returncode == 0, first.stderr[-2000:]
+    again = uabs_train_here(tmp_path, *original, f"resume={run_dir}")  # 6 episodes, as typed
+    assert again.returncode == 0, again.stderr[-2000:]
     assert episodes(run_dir) == [1, 2, 3, 4, 5, 6]
     state = load_checkpoint(run_dir / "checkpoints" / "last.pt")
     assert state["config"]["masking"]["mode"] == "flat" and state["config"]["seed"] == 3
@@ -236,17 +243,15 @@ def test_a_slurm_requeued_job_continues_its_run(trace_cache, tmp_path):
     run_dir = tmp_path / "job"
     args = ["experiment=smoke", f"traces.cache_dir={trace_cache}", *QUIET,
             f"hydra.run.dir={run_dir}"]
-    p = uabs_train(tmp_path, *args, "train.episodes=3")
-    assert p.wait(timeout=300) == 0
+    p = uabs_train_here(tmp_path, *args, "train.episodes=3")
+    assert p.returncode == 0, p.stderr[-2000:]
     # the same command again, as SLURM requeues it: the run continues in place
-    p = uabs_train(tmp_path, *args, env={"SLURM_RESTART_COUNT": "1"})
-    _, err = p.communicate(timeout=300)
-    assert p.returncode == 0, err[-2000:]
+    p = uabs_train_here(tmp_path, *args, env={"SLURM_RESTART_COUNT": "1"})
+    assert p.returncode == 0, p.stderr[-2000:]
     assert episodes(run_dir) == [1, 2, 3, 4, 5, 6]
     # outside a requeue the same command refuses to overwrite the run
-    p = uabs_train(tmp_path, *args)
-    _, err = p.communicate(timeout=300)
-    assert p.returncode == 2 and "already holds a run" in err
+    p = uabs_train_here(tmp_path, *args)
+    assert p.returncode == 2 and "already holds a run" in p.stderr
 
 
 def test_a_full_disk_a_read_only_folder_and_a_removed_folder_are_one_line(
@@ -296,8 +301,8 @@ def test_bad_run_folders_and_ctrl_c_while_loading_are_one_line(trace_cache, tmp_
     for args, expected in (
             (["hydra.run.dir=afile/run"], "hydra.run.dir=afile/run: afile is a file"),
             ([f"resume={tmp_path / 'nowhere'}"], "no such folder")):
-        p = uabs_train(tmp_path, "experiment=smoke", *args)
-        _, err = p.communicate(timeout=120)
+        p = uabs_train_here(tmp_path, "experiment=smoke", *args)
+        err = p.stderr
         assert p.returncode == 2 and error_lines(err) == [err.strip()], err[-2000:]
         assert expected in err
     assert not (tmp_path / "nowhere").exists() and not (tmp_path / "outputs").exists()
@@ -305,8 +310,8 @@ def test_bad_run_folders_and_ctrl_c_while_loading_are_one_line(trace_cache, tmp_
     run_dir = tmp_path / "garbled"
     (run_dir / ".hydra").mkdir(parents=True)
     (run_dir / ".hydra" / "config.yaml").write_text("scenario: [unclosed\n")
-    p = uabs_train(tmp_path, f"resume={run_dir}", f"traces.cache_dir={trace_cache}")
-    _, err = p.communicate(timeout=120)
+    p = uabs_train_here(tmp_path, f"resume={run_dir}", f"traces.cache_dir={trace_cache}")
+    err = p.stderr
     assert p.returncode == 2 and error_lines(err) == [err.strip()], err[-2000:]
     assert ".hydra/config.yaml is damaged" in err
     # Ctrl-C while torch and Hydra load: one line, status 130
@@ -322,14 +327,13 @@ def test_bad_run_folders_and_ctrl_c_while_loading_are_one_line(trace_cache, tmp_
 def test_a_sweep_retyped_with_resume_continues_every_job(trace_cache, tmp_path):
     sweep = ["-m", "experiment=smoke", "masking=flat,rank", f"traces.cache_dir={trace_cache}",
              *QUIET, "train.episodes=3", "hydra.sweep.dir=sweep"]
-    p = uabs_train(tmp_path, *sweep)
-    _, err = p.communicate(timeout=300)
-    assert p.returncode == 0, err[-2000:]
+    p = uabs_train_here(tmp_path, *sweep)
+    assert p.returncode == 0, p.stderr[-2000:]
     jobs = sorted(d for d in (tmp_path / "sweep").iterdir() if d.is_dir())
     assert len(jobs) == 2
     first = {j: load_checkpoint(j / "checkpoints" / "last.pt")["run"]["id"] for j in jobs}
-    p = uabs_train(tmp_path, *sweep, f"resume={tmp_path / 'sweep'}")
-    _, err = p.communicate(timeout=300)
+    p = uabs_train_here(tmp_path, *sweep, f"resume={tmp_path / 'sweep'}")
+    err = p.stderr
     assert p.returncode == 0, err[-2000:]
     for j in jobs:  # each job continued its own run (finished: nothing appended)
         assert f"resuming {j}" in err
@@ -338,8 +342,8 @@ def test_a_sweep_retyped_with_resume_continues_every_job(trace_cache, tmp_path):
     assert sorted(d for d in (tmp_path / "sweep").iterdir() if d.is_dir()) == jobs
     # a sweep stopped before its last job: re-typed, that job starts in its own folder
     shutil.rmtree(jobs[1])
-    p = uabs_train(tmp_path, *sweep, f"resume={tmp_path / 'sweep'}")
-    _, err = p.communicate(timeout=300)
+    p = uabs_train_here(tmp_path, *sweep, f"resume={tmp_path / 'sweep'}")
+    err = p.stderr
     assert p.returncode == 0, err[-2000:]
     assert f"resuming {jobs[0]}" in err and f"run folder: {jobs[1]}" in err
     assert episodes(jobs[0]) == episodes(jobs[1]) == [1, 2, 3]

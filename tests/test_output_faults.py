@@ -1,4 +1,5 @@
-"""Issue #35 as users reach it, through the real commands run as subprocesses: a name
+"""Issue #35 as users reach it, through the commands' entry points (as subprocesses where
+the fault is the process's own: killed, signalled, a full disk mid-write): a name
 that becomes a path never writes outside its folder; an output folder holds one
 invocation's files, complete, or the previous one untouched (kill -9, SIGTERM, a full
 disk); a checkpoint copied in from another run is refused; bad input is one line on
@@ -17,7 +18,7 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from tests.conftest import SMALL_TRACES
+from tests.conftest import SMALL_TRACES, Ran, run_command
 from tests.test_train import smoke
 from uabs_rl.training.resume import run
 
@@ -27,21 +28,21 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def command(module: str, *args: str, cwd: Path | None = None, hook: str = "",
-            timeout: int = 300) -> subprocess.CompletedProcess:
-    """``python -m uabs_rl.cli.<module> args``; with ``hook``, that Python code runs in the
-    command's process first (a fault injected where a user's machine would have one)."""
+            timeout: int = 300) -> subprocess.CompletedProcess | Ran:
+    """``python -m uabs_rl.cli.<module> args``, run in this process (its entry point, as
+    tests.conftest.run_command runs it); with ``hook``, as a subprocess in which that
+    Python code runs first (a fault injected where a user's machine would have one: a
+    kill, a signal, a full disk)."""
+    if not hook:
+        return run_command(module, *args, cwd=cwd)
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    if hook:
-        code = (f"{hook}\nimport importlib\n"
-                f"importlib.import_module('uabs_rl.cli.{module}').run_main()")
-        argv = [sys.executable, "-c", code, *args]
-    else:
-        argv = [sys.executable, "-m", f"uabs_rl.cli.{module}", *args]
-    return subprocess.run(argv, capture_output=True, text=True, timeout=timeout, cwd=cwd,
-                          env=env)
+    code = (f"{hook}\nimport importlib\n"
+            f"importlib.import_module('uabs_rl.cli.{module}').run_main()")
+    return subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True,
+                          timeout=timeout, cwd=cwd, env=env)
 
 
-def one_line(proc: subprocess.CompletedProcess, *words: str, code: int = 2) -> str:
+def one_line(proc: subprocess.CompletedProcess | Ran, *words: str, code: int = 2) -> str:
     """The command exited with ``code`` and said one line on stderr holding ``words``."""
     assert "Traceback" not in proc.stderr + proc.stdout, proc.stderr
     lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
@@ -194,7 +195,8 @@ def sweep(runs, tmp_path_factory) -> Path:
     return root
 
 
-def report(sweep: Path, out: Path, *extra: str, hook: str = "") -> subprocess.CompletedProcess:
+def report(sweep: Path, out: Path, *extra: str,
+           hook: str = "") -> subprocess.CompletedProcess | Ran:
     return command("report", str(sweep), "--no-baselines", "--out", str(out), *extra,
                    hook=hook)
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from omegaconf import OmegaConf
 
-from tests.test_faults import uabs_train
+from tests.test_faults import uabs_train_here
 from tests.test_run_folder_faults import copy_of, finished_run  # noqa: F401
 from uabs_rl.config import (
     CONF_DIR,
@@ -77,9 +77,8 @@ def test_the_original_command_resumes_with_traces_workers_appended(finished_run,
     processes change no result, so the run continues."""
     run_dir, args = finished_run
     run_dir = copy_of(run_dir, tmp_path)
-    p = uabs_train(tmp_path, *args, "train.episodes=6", f"resume={run_dir}",
-                   "traces.workers=4")
-    _, err = p.communicate(timeout=300)
-    assert p.returncode == 0, err[-2000:]
+    p = uabs_train_here(tmp_path, *args, "train.episodes=6", f"resume={run_dir}",
+                        "traces.workers=4")
+    assert p.returncode == 0, p.stderr[-2000:]
     assert [r["episode"] for r in read_metrics(run_dir / "metrics.jsonl")
             if r["kind"] == "train"] == list(range(1, 7))

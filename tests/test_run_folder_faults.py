@@ -19,7 +19,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.test_faults import QUIET, error_lines, uabs_train, wait_for
+from tests.conftest import Ran
+from tests.test_faults import QUIET, error_lines, uabs_train, uabs_train_here, wait_for
 from tests.test_train import smoke
 from uabs_rl.runs.folder import Before, RunFolderError, RunLock
 from uabs_rl.runs.metrics import MetricsError, read_metrics
@@ -38,9 +39,9 @@ def tree(root: Path, skip: tuple[str, ...] = ()) -> dict[str, str]:
     return out
 
 
-def one_error(proc: subprocess.Popen, timeout: float = 300) -> str:
+def one_error(proc: subprocess.Popen | Ran, timeout: float = 300) -> str:
     """The one line a refused command prints; asserts exit 2 and no traceback."""
-    _, err = proc.communicate(timeout=timeout)
+    err = proc.stderr if isinstance(proc, Ran) else proc.communicate(timeout=timeout)[1]
     assert proc.returncode == 2, err[-2000:]
     assert "Traceback" not in err, err[-2000:]
     lines = error_lines(err)
@@ -50,13 +51,13 @@ def one_error(proc: subprocess.Popen, timeout: float = 300) -> str:
 
 @pytest.fixture(scope="module")
 def finished_run(trace_cache, tmp_path_factory) -> tuple[Path, list[str]]:
-    """A finished smoke run trained by the command line, and that command's overrides."""
+    """A finished smoke run trained by the command line (in this process), and that
+    command's overrides."""
     where = tmp_path_factory.mktemp("finished")
     args = ["experiment=smoke", f"traces.cache_dir={trace_cache}", "train.threads=1",
             "train.trajectory_images=false", "train.eval_every=2"]
-    p = uabs_train(where, *args, "train.episodes=4", f"hydra.run.dir={where / 'run'}")
-    _, err = p.communicate(timeout=300)
-    assert p.returncode == 0, err[-2000:]
+    p = uabs_train_here(where, *args, "train.episodes=4", f"hydra.run.dir={where / 'run'}")
+    assert p.returncode == 0, p.stderr[-2000:]
     return where / "run", args
 
 
@@ -80,14 +81,14 @@ def test_a_bad_value_aimed_at_a_users_folder_leaves_it_as_it_was(trace_cache, tm
     (mine / "important.log").write_text("precious\n")
     (mine / "hydra.log").write_text("the user's own hydra.log\n")
     before = tree(mine)
-    err = one_error(uabs_train(tmp_path, "experiment=smoke", f"traces.cache_dir={trace_cache}",
-                               f"hydra.run.dir={mine}", "scenario.n_uabs=0"))
+    err = one_error(uabs_train_here(tmp_path, "experiment=smoke", f"traces.cache_dir={trace_cache}",
+                                    f"hydra.run.dir={mine}", "scenario.n_uabs=0"))
     assert "scenario.n_uabs" in err
     assert tree(mine) == before  # nothing removed, nothing added (.lock, .hydra)
     # a folder the command made (with its parents) goes with the refused start
-    err = one_error(uabs_train(tmp_path, "experiment=smoke", f"traces.cache_dir={trace_cache}",
-                               f"hydra.run.dir={tmp_path / 'new' / 'deep' / 'run'}",
-                               "scenario.n_uabs=0"))
+    err = one_error(uabs_train_here(tmp_path, "experiment=smoke", f"traces.cache_dir={trace_cache}",
+                                    f"hydra.run.dir={tmp_path / 'new' / 'deep' / 'run'}",
+                                    "scenario.n_uabs=0"))
     assert not (tmp_path / "new").exists()
 
 
@@ -105,14 +106,13 @@ def test_a_refused_command_leaves_a_finished_runs_record_and_history(finished_ru
     run_dir = copy_of(run_dir, tmp_path)
     (run_dir / ".lock").write_text("the last holder's record\n")
     before = tree(run_dir)
-    err = one_error(uabs_train(tmp_path, *args, "train.episodes=4", "algo.lr=0.5",
-                               f"hydra.run.dir={run_dir}"))
+    err = one_error(uabs_train_here(tmp_path, *args, "train.episodes=4", "algo.lr=0.5",
+                                    f"hydra.run.dir={run_dir}"))
     assert "already holds a run" in err
     assert tree(run_dir) == before  # .hydra/ and .lock included
     # so the run's own command, re-typed with resume= appended, still continues it
-    p = uabs_train(tmp_path, *args, "train.episodes=6", f"resume={run_dir}")
-    _, err = p.communicate(timeout=300)
-    assert p.returncode == 0, err[-2000:]
+    p = uabs_train_here(tmp_path, *args, "train.episodes=6", f"resume={run_dir}")
+    assert p.returncode == 0, p.stderr[-2000:]
     assert [r["episode"] for r in read_metrics(run_dir / "metrics.jsonl")
             if r["kind"] == "train"] == list(range(1, 7))
 
@@ -124,8 +124,8 @@ def test_a_second_sweep_into_a_sweeps_folder_is_refused(trace_cache, tmp_path):
     (sweep / "multirun.yaml").write_text("the first sweep's record\n")
     (job / ".hydra" / "config.yaml").write_text("seed: 0\n")
     before = tree(sweep)
-    err = one_error(uabs_train(tmp_path, "-m", "experiment=smoke", "masking=flat,rank",
-                               f"traces.cache_dir={trace_cache}", f"hydra.sweep.dir={sweep}"))
+    err = one_error(uabs_train_here(tmp_path, "-m", "experiment=smoke", "masking=flat,rank",
+                                    f"traces.cache_dir={trace_cache}", f"hydra.sweep.dir={sweep}"))
     assert "holds another sweep" in err and f"resume={sweep}" in err
     assert tree(sweep) == before
 
@@ -135,12 +135,12 @@ def test_resume_refuses_a_run_whose_checkpoint_was_removed(finished_run, tmp_pat
     run_dir = copy_of(run_dir, tmp_path)
     shutil.rmtree(run_dir / "checkpoints")
     before = tree(run_dir, skip=(".lock",))
-    err = one_error(uabs_train(tmp_path, *args, "train.episodes=4", f"resume={run_dir}"))
+    err = one_error(uabs_train_here(tmp_path, *args, "train.episodes=4", f"resume={run_dir}"))
     assert "no checkpoints/last.pt" in err and "history" in err
     assert tree(run_dir, skip=(".lock",)) == before  # metrics.jsonl and tb/ untouched
     (run_dir / "checkpoints").write_text("not a folder")  # a file in its place
     before = tree(run_dir, skip=(".lock",))
-    err = one_error(uabs_train(tmp_path, *args, "train.episodes=4", f"resume={run_dir}"))
+    err = one_error(uabs_train_here(tmp_path, *args, "train.episodes=4", f"resume={run_dir}"))
     assert "is not a folder" in err
     assert tree(run_dir, skip=(".lock",)) == before
 
@@ -151,7 +151,7 @@ def test_resume_refuses_a_history_with_a_hole(finished_run, tmp_path):
     lines = (run_dir / "metrics.jsonl").read_text().splitlines(keepends=True)
     (run_dir / "metrics.jsonl").write_text("".join(lines[2:]))  # episodes 1-2 gone
     before = tree(run_dir, skip=(".lock",))
-    err = one_error(uabs_train(tmp_path, *args, "train.episodes=6", f"resume={run_dir}"))
+    err = one_error(uabs_train_here(tmp_path, *args, "train.episodes=6", f"resume={run_dir}"))
     assert "starts at episode 3" in err
     assert tree(run_dir, skip=(".lock",)) == before
     with pytest.raises(MetricsError, match="starts at episode 3"):  # uabs-report's reader
@@ -166,7 +166,7 @@ def test_an_empty_hydra_config_is_not_read_as_the_paper_defaults(finished_run, t
     shutil.rmtree(run_dir / "checkpoints")
     (run_dir / "metrics.jsonl").write_text("")
     (run_dir / ".hydra" / "config.yaml").write_text("")
-    err = one_error(uabs_train(tmp_path, f"resume={run_dir}"))
+    err = one_error(uabs_train_here(tmp_path, f"resume={run_dir}"))
     assert "config.yaml is damaged" in err
 
 
@@ -263,13 +263,13 @@ def test_a_nohup_run_is_not_stopped_by_a_hang_up():
 
 @pytest.mark.parametrize("override", ["hydra.run.dir", "resume"])
 def test_a_folder_name_too_long_for_the_file_system_is_one_line(tmp_path, override):
-    err = one_error(uabs_train(tmp_path, "experiment=smoke",
-                               f"{override}={tmp_path / ('x' * 300)}"), timeout=120)
+    err = one_error(uabs_train_here(tmp_path, "experiment=smoke",
+                                    f"{override}={tmp_path / ('x' * 300)}"), timeout=120)
     assert "300 bytes long" in err
 
 
 def test_a_run_folder_named_after_too_many_overrides_is_one_line(tmp_path):
-    err = one_error(uabs_train(tmp_path, "experiment=smoke", "algo.lr=0.0001" + "0" * 300),
+    err = one_error(uabs_train_here(tmp_path, "experiment=smoke", "algo.lr=0.0001" + "0" * 300),
                     timeout=120)
     assert "name it with hydra.run.dir=" in err
     assert not (tmp_path / "outputs").exists()
@@ -281,12 +281,12 @@ def test_a_run_started_in_a_folder_that_moved_writes_its_own_record(trace_cache,
     args = ["experiment=smoke", f"traces.cache_dir={trace_cache}", *QUIET,
             "train.episodes=2", "train.eval_every=2",
             "hydra.run.dir=outputs/${now:%Y-%m-%d}_same"]
-    first = uabs_train(tmp_path, *args, "seed=1")
-    assert first.wait(timeout=300) == 0
+    first = uabs_train_here(tmp_path, *args, "seed=1")
+    assert first.returncode == 0, first.stderr[-2000:]
     runs = list((tmp_path / "outputs").iterdir())
     record = tree(runs[0] / ".hydra")
-    second = uabs_train(tmp_path, *args, "seed=2")
-    assert second.wait(timeout=300) == 0
+    second = uabs_train_here(tmp_path, *args, "seed=2")
+    assert second.returncode == 0, second.stderr[-2000:]
     assert tree(runs[0] / ".hydra") == record
     moved = [d for d in (tmp_path / "outputs").iterdir() if d != runs[0]]
     assert len(moved) == 1 and moved[0].name.endswith("-2")
@@ -298,16 +298,16 @@ def test_a_run_started_in_a_folder_that_moved_writes_its_own_record(trace_cache,
 def test_a_name_with_a_slash_neither_nests_nor_leads_a_run_folder_out(trace_cache, tmp_path):
     cwd = tmp_path / "a" / "b"
     cwd.mkdir(parents=True)
-    err = one_error(uabs_train(cwd, "experiment=smoke", f"traces.cache_dir={trace_cache}",
-                               "scenario.name=../../../elsewhere/ESCAPED"))
+    err = one_error(uabs_train_here(cwd, "experiment=smoke", f"traces.cache_dir={trace_cache}",
+                                    "scenario.name=../../../elsewhere/ESCAPED"))
     assert "scenario.name" in err
     assert sorted(p.name for p in tmp_path.rglob("*")) == ["a", "b"]  # nothing made
     # a value that is a path (a network file) names one folder under outputs/runs
     net = Path(__file__).parents[1] / "sumo" / "manhattan" / "manhattan.net.xml"
-    p = uabs_train(cwd, "experiment=smoke", f"traces.cache_dir={trace_cache}", *QUIET,
-                   "train.episodes=2", "train.eval_every=2", f"scenario.sumo.net_file={net}")
-    _, err = p.communicate(timeout=300)
-    assert p.returncode == 0, err[-2000:]
+    p = uabs_train_here(cwd, "experiment=smoke", f"traces.cache_dir={trace_cache}", *QUIET,
+                        "train.episodes=2", "train.eval_every=2",
+                        f"scenario.sumo.net_file={net}")
+    assert p.returncode == 0, p.stderr[-2000:]
     (run,) = (cwd / "outputs" / "runs").iterdir()
     assert "%2F" in run.name and (run / "metrics.jsonl").is_file()
 
@@ -336,7 +336,7 @@ def test_resume_of_nothing_or_of_a_file_is_one_line(tmp_path, value, says):
     """An empty shell variable (``resume=$RUN``) once started a new run silently; a
     file once ended in Hydra's traceback."""
     (tmp_path / "notes.txt").write_text("mine\n")
-    err = one_error(uabs_train(tmp_path, "experiment=smoke", f"resume={value}"), timeout=120)
+    err = one_error(uabs_train_here(tmp_path, "experiment=smoke", f"resume={value}"), timeout=120)
     assert says in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt"]
 
@@ -346,10 +346,9 @@ def test_resume_takes_a_setting_that_changes_no_result(finished_run, tmp_path):
     sweep; a resume that types it is no change of results either."""
     run_dir, args = finished_run
     run_dir = copy_of(run_dir, tmp_path)
-    p = uabs_train(tmp_path, *args, "train.episodes=4", "traces.workers=4",
-                   f"resume={run_dir}")
-    _, err = p.communicate(timeout=300)
-    assert p.returncode == 0, err[-2000:]
+    p = uabs_train_here(tmp_path, *args, "train.episodes=4", "traces.workers=4",
+                        f"resume={run_dir}")
+    assert p.returncode == 0, p.stderr[-2000:]
 
 
 def test_a_members_checkpoint_is_checked_against_its_population(trace_cache, tmp_path,
@@ -376,8 +375,8 @@ def test_hydra_settings_the_project_owns_are_refused(finished_run, tmp_path):
     run_dir, args = finished_run
     run_dir = copy_of(run_dir, tmp_path)
     before = tree(run_dir)
-    err = one_error(uabs_train(tmp_path, *args, "train.episodes=4", "algo.lr=0.5",
-                               "hydra.output_subdir=.hydra", f"hydra.run.dir={run_dir}"))
+    err = one_error(uabs_train_here(tmp_path, *args, "train.episodes=4", "algo.lr=0.5",
+                                    "hydra.output_subdir=.hydra", f"hydra.run.dir={run_dir}"))
     assert "hydra.output_subdir is set by uabs_rl itself" in err
     assert tree(run_dir) == before
     from uabs_rl.cli.hydra import check_command_line
@@ -422,7 +421,7 @@ def test_resume_refuses_a_run_whose_checkpoints_and_metrics_were_removed(finishe
     shutil.rmtree(run_dir / "checkpoints")
     (run_dir / "metrics.jsonl").unlink()
     before = tree(run_dir)
-    err = one_error(uabs_train(tmp_path, *args, "train.episodes=4", f"resume={run_dir}"))
+    err = one_error(uabs_train_here(tmp_path, *args, "train.episodes=4", f"resume={run_dir}"))
     assert "evaluation pictures in eval/" in err
     assert tree(run_dir) == before
 
@@ -449,9 +448,9 @@ def test_checkpoints_removed_while_the_run_writes_them_stop_the_run(trace_cache,
 
 def test_a_path_the_file_system_refuses_is_one_line_and_leaves_nothing(trace_cache, tmp_path):
     run_dir = tmp_path / "run"
-    err = one_error(uabs_train(tmp_path, "experiment=smoke", f"traces.cache_dir={trace_cache}",
-                               f"hydra.run.dir={run_dir}",
-                               f"scenario.sumo.net_file={tmp_path / ('y' * 300) / 'x.net.xml'}"))
+    net = tmp_path / ("y" * 300) / "x.net.xml"
+    err = one_error(uabs_train_here(tmp_path, "experiment=smoke", f"traces.cache_dir={trace_cache}",
+                                    f"hydra.run.dir={run_dir}", f"scenario.sumo.net_file={net}"))
     assert "File name too long" in err
     assert not run_dir.exists()
 

@@ -14,7 +14,7 @@ import torch
 from hydra.errors import ConfigCompositionException
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from tests.conftest import compose_cfg
+from tests.conftest import compose_cfg, run_command
 from uabs_rl.algorithms import Dims, make_algorithm
 from uabs_rl.config import ConfigError
 from uabs_rl.evaluation.load import load_evaluation
@@ -300,10 +300,9 @@ def test_cli_entry_point(trace_cache, tmp_path):
     assert len(records(out)) == 8
     # the end of a run: its folder and the next commands, ready to copy
     assert f"run folder: {out}" in proc.stdout and f"uabs-eval {out} --policy all" in proc.stdout
-    bad = subprocess.run([sys.executable, "-m", "uabs_rl.cli.train", "experiment=smoke",
-                          "scenario.n_uabs=0", f"traces.cache_dir={trace_cache}",
-                          f"hydra.run.dir={tmp_path / 'bad'}"],
-                         capture_output=True, text=True, timeout=300)
+    # a refusal, in this process (tests.conftest.run_command: the same entry point)
+    bad = run_command("train", "experiment=smoke", "scenario.n_uabs=0",
+                      f"traces.cache_dir={trace_cache}", f"hydra.run.dir={tmp_path / 'bad'}")
     assert bad.returncode == 2 and "scenario.n_uabs must be >= 1" in bad.stderr
     assert not (tmp_path / "bad").exists()  # no empty run folder left behind
 

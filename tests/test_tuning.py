@@ -15,7 +15,7 @@ import pytest
 
 optuna = pytest.importorskip("optuna")
 
-from tests.test_faults import QUIET, uabs_train  # noqa: E402
+from tests.test_faults import QUIET, uabs_train, uabs_train_here  # noqa: E402
 from uabs_rl.runs.checkpoint import load_checkpoint  # noqa: E402
 
 # every file a process opens whose name is a cached trace set (<scenario>-<split>-<hash>.pt)
@@ -152,8 +152,8 @@ def test_a_pruned_trial_stops_saving_its_checkpoint_and_a_population_scores_its_
 
 
 def run_refused(tmp_path: Path, *args: str) -> str:
-    p = uabs_train(tmp_path, *args)
-    _, err = p.communicate(timeout=300)
+    p = uabs_train_here(tmp_path, *args)
+    err = p.stderr
     assert p.returncode == 2, err[-3000:]
     lines = [ln for ln in err.splitlines() if ln.startswith("error:")]
     assert len(lines) == 1, err[-3000:]

@@ -6,12 +6,12 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import yaml
 
+from tests.conftest import run_command
 from tests.test_train import smoke
 from uabs_rl.cli.evaluate import main as eval_main
 from uabs_rl.traces.inputs import netgenerate_path
@@ -46,8 +46,8 @@ def user_dir(tmp_path_factory) -> Path:
 
 def _composed(*args: str) -> dict:
     """The job config ``uabs-train`` composes for ``args`` (``--cfg job``: nothing runs)."""
-    proc = subprocess.run([sys.executable, "-m", "uabs_rl.cli.train", *args, "--cfg", "job"],
-                          capture_output=True, text=True, check=True)
+    proc = run_command("train", *args, "--cfg", "job")
+    assert proc.returncode == 0, proc.stderr
     return yaml.safe_load(proc.stdout)
 
 
@@ -68,10 +68,9 @@ def test_user_config_folder_composes_and_preset_keeps_user_values(user_dir):
 
 
 def test_uabs_traces_accepts_the_training_groups(user_dir, tmp_path):
-    proc = subprocess.run(
-        [sys.executable, "-m", "uabs_rl.cli.traces", "--config-dir", str(user_dir),
-         "scenario=grid4", "experiment=smoke", "masking=flat", "split=eval",
-         f"traces.cache_dir={tmp_path}"], capture_output=True, text=True)
+    proc = run_command("traces", "--config-dir", str(user_dir), "scenario=grid4",
+                       "experiment=smoke", "masking=flat", "split=eval",
+                       f"traces.cache_dir={tmp_path}")
     assert proc.returncode == 0, proc.stderr
     assert "built with SUMO" in proc.stdout and "30 slots" in proc.stdout
     assert len(list(tmp_path.glob("grid4-eval-*.pt"))) == 1
@@ -150,9 +149,7 @@ def test_an_egocentric_policy_flies_other_fleets_and_cities(egocentric_run, user
 
 
 def test_old_observation_keys_on_the_command_line_say_what_to_type():
-    proc = subprocess.run([sys.executable, "-m", "uabs_rl.cli.train",
-                           "scenario.lookahead_obs=true", "scenario.motion_obs=true"],
-                          capture_output=True, text=True)
+    proc = run_command("train", "scenario.lookahead_obs=true", "scenario.motion_obs=true")
     assert proc.returncode == 2
     assert proc.stderr.strip() == (
         "error: scenario.lookahead_obs moved to the observation group: type obs=lookahead "

@@ -6,14 +6,13 @@ from __future__ import annotations
 import itertools
 import math
 import re
-import subprocess
-import sys
 from dataclasses import replace
 from pathlib import Path
 
 import pytest
 import torch
 
+from tests.conftest import run_command
 from tests.test_train import smoke
 from uabs_rl import config
 from uabs_rl.algorithms import Dims, algorithm_class
@@ -285,11 +284,9 @@ def test_a_cuda_device_is_checked_against_its_free_memory(monkeypatch):
 
 # ----------------------------------------------------------------------------- commands
 def test_uabs_train_refuses_an_infinite_learning_rate_in_one_line(tmp_path):
-    proc = subprocess.run(
-        [sys.executable, "-m", "uabs_rl.cli.train", "experiment=smoke", "algo.lr=inf",
-         "train.threads=1", f"traces.cache_dir={tmp_path / 'cache'}",
-         f"hydra.run.dir={tmp_path / 'run'}"],
-        cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    proc = run_command("train", "experiment=smoke", "algo.lr=inf", "train.threads=1",
+                       f"traces.cache_dir={tmp_path / 'cache'}",
+                       f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
     assert proc.returncode == 2
     lines = [line for line in proc.stderr.splitlines() if line.strip()]
     assert lines == ["error: algo.lr must be a finite number, got inf. Set algo.lr to a "
@@ -298,9 +295,8 @@ def test_uabs_train_refuses_an_infinite_learning_rate_in_one_line(tmp_path):
 
 
 def test_uabs_traces_blames_a_nan_step_length_on_it(tmp_path):
-    proc = subprocess.run([sys.executable, "-m", "uabs_rl.cli.traces", "scenario.dt=nan",
-                           f"traces.cache_dir={tmp_path / 'cache'}"],
-                          cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    proc = run_command("traces", "scenario.dt=nan", f"traces.cache_dir={tmp_path / 'cache'}",
+                       cwd=tmp_path)
     assert proc.returncode == 2
     assert proc.stderr.strip().splitlines() == [
         "error: scenario.dt must be a finite number, got nan. Set scenario.dt to a finite "

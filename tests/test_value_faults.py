@@ -8,8 +8,6 @@ from __future__ import annotations
 import copy
 import json
 import math
-import subprocess
-import sys
 import typing
 from dataclasses import fields, is_dataclass, replace
 from pathlib import Path
@@ -17,6 +15,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from tests.conftest import Ran, run_command
 from tests.test_train import smoke
 from uabs_rl import config
 from uabs_rl.config import (
@@ -155,7 +154,7 @@ def test_settings_typed_once_pass(argv):
     check_duplicate_overrides(argv)
 
 
-def _one_line_error(proc: subprocess.CompletedProcess) -> str:
+def _one_line_error(proc: Ran) -> str:
     """The one line of stderr (besides a run's "run folder: ..."), "error: ..."."""
     lines = [line for line in proc.stderr.splitlines() if line.strip()
              and not line.startswith("run folder: ")]
@@ -167,22 +166,18 @@ def _one_line_error(proc: subprocess.CompletedProcess) -> str:
 
 @pytest.mark.parametrize("module", ["train", "traces"])
 def test_the_commands_refuse_a_setting_typed_twice_before_hydra(tmp_path, module):
-    proc = subprocess.run(
-        [sys.executable, "-m", f"uabs_rl.cli.{module}", "experiment=smoke", "masking=flat",
-         "masking=penalty", f"traces.cache_dir={tmp_path / 'cache'}",
-         f"hydra.run.dir={tmp_path / 'run'}"],
-        cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    proc = run_command(module, "experiment=smoke", "masking=flat", "masking=penalty",
+                       f"traces.cache_dir={tmp_path / 'cache'}",
+                       f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
     assert _one_line_error(proc).startswith("error: masking is given twice")
     assert list(tmp_path.iterdir()) == []
 
 
 def test_a_negative_eval_seed_fails_before_training(tmp_path, trace_cache):
     """It used to train 3 episodes, then fail with a traceback at the first evaluation."""
-    proc = subprocess.run(
-        [sys.executable, "-m", "uabs_rl.cli.train", "experiment=smoke", "train.eval_seed=-1",
-         "train.threads=1", f"traces.cache_dir={trace_cache}",
-         f"hydra.run.dir={tmp_path / 'run'}"],
-        cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    proc = run_command("train", "experiment=smoke", "train.eval_seed=-1", "train.threads=1",
+                       f"traces.cache_dir={trace_cache}", f"hydra.run.dir={tmp_path / 'run'}",
+                       cwd=tmp_path)
     assert _one_line_error(proc).startswith("error: train.eval_seed must be in [0, 2^64)")
     assert list(tmp_path.iterdir()) == []
 
@@ -190,19 +185,19 @@ def test_a_negative_eval_seed_fails_before_training(tmp_path, trace_cache):
 # ----------------------------------------------------------------------------- NaN
 # a run that diverges: after update `at`, the Q-network's weights are NaN (what a
 # learning rate far too large does), then the command runs as uabs-train
-DIVERGE = """
-import runpy, sys, torch
-from uabs_rl.algorithms.dqn3 import DQN3
-at, update = int(sys.argv.pop(1)), DQN3.update
-def diverging(self, batch):
-    out = update(self, batch)
-    if self.updates >= at:
-        with torch.no_grad():
-            next(self.policy.parameters()).fill_(float("nan"))
-    return out
-DQN3.update = diverging
-runpy.run_module("uabs_rl.cli.train", run_name="__main__")
-"""
+def diverge_after(monkeypatch, at: int) -> None:
+    from uabs_rl.algorithms.dqn3 import DQN3
+
+    update = DQN3.update
+
+    def diverging(self, batch):
+        out = update(self, batch)
+        if self.updates >= at:
+            with torch.no_grad():
+                next(self.policy.parameters()).fill_(float("nan"))
+        return out
+
+    monkeypatch.setattr(DQN3, "update", diverging)
 
 
 @pytest.fixture(scope="module")
@@ -231,13 +226,12 @@ def _finite_checkpoint(path: Path) -> int:
     (98, "at episode 6: a network weight is not finite"),
 ])
 def test_a_diverging_run_stops_keeping_its_last_good_checkpoint(tmp_path, smoke_cache, at,
-                                                                where):
+                                                                where, monkeypatch):
     run = tmp_path / "run"
-    proc = subprocess.run(
-        [sys.executable, "-c", DIVERGE, str(at), "experiment=smoke", "train.threads=1",
-         "train.progress=false", "train.trajectory_images=false",
-         f"traces.cache_dir={smoke_cache}", f"hydra.run.dir={run}"],
-        cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    diverge_after(monkeypatch, at)
+    proc = run_command("train", "experiment=smoke", "train.threads=1", "train.progress=false",
+                       "train.trajectory_images=false", f"traces.cache_dir={smoke_cache}",
+                       f"hydra.run.dir={run}", cwd=tmp_path)
     line = _one_line_error(proc)
     assert line.startswith(f"error: training stopped {where}"), line
     assert "the checkpoints of episode 3 and before are kept" in line
