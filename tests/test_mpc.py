@@ -250,6 +250,41 @@ def test_uabs_eval_mpc_reports_its_settings_and_compute(smoke_run, tmp_path, cap
         capsys.readouterr().err
 
 
+def test_uabs_eval_looks_at_the_cpus_every_step_unless_omp_fixes_its_threads(
+        smoke_run, tmp_path, capsys, monkeypatch):
+    """uabs-eval hands the thread governor (fewer torch threads while other processes keep
+    the CPUs busy) to the evaluator, which calls it after every step of every rollout;
+    OMP_NUM_THREADS fixes the count; a change is named in the last line."""
+    from uabs_rl.cli import evaluate as cli
+
+    made = []
+
+    class Governor:
+        def __init__(self, most, fixed):
+            self.most, self.n, self.fixed, self.calls, self.changes = most, most, fixed, 0, 1
+            self.active = not fixed
+            made.append(self)
+
+        def check(self):
+            self.calls += 1
+            return self.n
+
+    monkeypatch.setattr(cli, "ThreadGovernor", Governor)
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    args = [str(smoke_run), "--checkpoint", "last", "--policy", "greedy", "--policy",
+            "oracle", "--windows", "2"]
+    assert eval_main([*args, "--out", str(tmp_path / "a")]) == 0
+    text = capsys.readouterr().out
+    (gov,) = made
+    episode = int(re.search(r"2 windows of (\d+) steps", text)[1])
+    # two rollouts, a look after every step but the last (TorchRL's rollout callback)
+    assert not gov.fixed and gov.calls == 2 * (episode - 1)
+    assert "fewer while other processes kept the CPUs busy (1 change(s))" in text
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    assert eval_main([*args, "--out", str(tmp_path / "b")]) == 0
+    assert made[1].fixed and made[1].calls == 0
+
+
 def test_uabs_report_mpc_sits_beside_greedy_and_the_oracle(smoke_run, tmp_path):
     out = tmp_path / "report"
     res = build_report(smoke_run, out, mpc=2)

@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -72,6 +73,7 @@ from uabs_rl.evaluation.load import (
 from uabs_rl.evaluation.predict import PREDICTORS, parse_sees
 from uabs_rl.paths import OutputFolder, OutputInterrupted, check_path
 from uabs_rl.runs.checkpoint import CheckpointError
+from uabs_rl.training.threads import ThreadGovernor
 
 CHOICES = (*POLICIES, *HEURISTICS, PLANNER, MPC)  # every --policy
 
@@ -221,8 +223,13 @@ def main(argv: list[str] | None = None) -> int:
         out.check()
         ev = load_evaluation(args.path, args.checkpoint, args.windows, args.split,
                              args.overrides, args.config_dir, windows_name="--windows")
+        # torch's threads (the CPUs, or OMP_NUM_THREADS), fewer while other processes keep
+        # the CPUs busy (more threads than free cores cost several times one), unless
+        # OMP_NUM_THREADS fixes them
+        governor = ThreadGovernor(torch.get_num_threads(), fixed="OMP_NUM_THREADS" in os.environ)
+        ev.evaluator.on_step = governor.check if governor.active else None
         with out.writing() as folder:  # the previous evaluation stays whole until the end
-            _evaluate_and_write(ev, args, folder)
+            _evaluate_and_write(ev, args, folder, governor)
     except (CheckpointError, ConfigError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
@@ -249,7 +256,8 @@ def output_folder(out: Path, given: bool) -> OutputFolder:
                         "--out" if given else "the output folder", keep_dirs=True)
 
 
-def _evaluate_and_write(ev: Evaluation, args: argparse.Namespace, out: Path) -> None:
+def _evaluate_and_write(ev: Evaluation, args: argparse.Namespace, out: Path,
+                        governor: ThreadGovernor | None = None) -> None:
     """Evaluate the policies ``args`` asks for, print the tables, and write eval.json and
     the pictures into ``out``."""
     policies = tuple(dict.fromkeys(
@@ -271,8 +279,11 @@ def _evaluate_and_write(ev: Evaluation, args: argparse.Namespace, out: Path) -> 
     shares = gap_shares(results)
     _print_planner(results, shares)
     _print_mpc(results)
+    busy = (f"; torch threads: {governor.most}, fewer while other processes kept the CPUs "
+            f"busy ({governor.changes} change(s))" if governor is not None and governor.changes
+            else "")
     print(f"evaluated {len(results)} {'policy' if len(results) == 1 else 'policies'} in "
-          f"{time.perf_counter() - t0:.1f} s{peak_memory()}")
+          f"{time.perf_counter() - t0:.1f} s{peak_memory()}{busy}")
     (out / "eval.json").write_text(json.dumps(
         {"split": args.split, "windows": n, "checkpoint": args.checkpoint,
          "overrides": args.overrides, "scenario": ev.cfg.scenario.name,

@@ -5,6 +5,7 @@ replay buffer or optimiser."""
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from typing import Any
 
 import torch
@@ -107,6 +108,9 @@ class Evaluator:
     def __init__(self, env: TransformedEnv, seed: int):
         self.env, self.seed = env, seed
         self.params = env.base_env.params
+        # called after every step of a rollout but its last when set (uabs-eval: the
+        # thread governor's look at the CPUs, training.threads.ThreadGovernor.check)
+        self.on_step: Callable[[], object] | None = None
         # which fixed windows hold a vehicle at some step; in one without any, the served
         # fraction and P_g are undefined: NaN, left out of the means (None: all hold one)
         self.has_vehicles = vehicle_windows(env.base_env)
@@ -128,7 +132,9 @@ class Evaluator:
     def rollout(self, policy: TensorDictModuleBase) -> TensorDictBase:
         """One seeded episode of ``policy`` in every env: ``[E, T]``."""
         self.env.set_seed(self.seed)
-        return self.env.rollout(self.params.episode_steps, policy, break_when_any_done=False)
+        hook = self.on_step
+        return self.env.rollout(self.params.episode_steps, policy, break_when_any_done=False,
+                                callback=None if hook is None else lambda env, td: hook())
 
     def record(self, td: TensorDictBase, episode: int = 0, env_steps: int = 0) -> dict[str, Any]:
         """The evaluation record of the rollout ``td`` (or of a block of its envs: a
