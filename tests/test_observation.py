@@ -158,6 +158,25 @@ def test_scores_in_blocks_equal_the_scores_in_one_block(monkeypatch, block):
     assert whole.sum() > 0
 
 
+def test_compiled_scores_take_every_vehicle_in_one_graph():
+    """Inside a compiled program (train.compile's env step) the scores skip the choice
+    of near vehicles, whose count would be a shape read from the data (a graph break and
+    a recompile per value): one graph, the same numbers as eager."""
+    from uabs_rl.env import service
+
+    g = torch.Generator().manual_seed(7)
+    cand = ((torch.rand(2, 6, 1, 2, generator=g) * 1800).round()
+            + map_offsets(2, 20.0, torch.device("cpu")))
+    veh = torch.rand(2, 2, 400, generator=g) * 1800
+    present = torch.rand(2, 400, generator=g) < 0.9
+    priority = torch.randint(0, 40, (2, 400), generator=g).float()
+    args = (cand, veh, present, priority, 25.0, 9)
+    groups = cand.reshape(2, -1, cand.shape[-2], 2)
+    assert service.near_vehicles(groups, veh, priority + 1, 75.0) is not None  # eager: chosen
+    compiled = torch.compile(service.move_scores, fullgraph=True, backend="eager")
+    assert torch.equal(compiled(*args), service.move_scores(*args))
+
+
 @pytest.mark.parametrize("block", [1, 37, 1 << 30])
 def test_scores_from_the_near_vehicles_equal_the_scores_over_all(monkeypatch, block):
     """Over a district (vehicles spread far beyond the footprints' reach) each UABS's

@@ -89,7 +89,8 @@ def move_scores(cand: torch.Tensor, veh: torch.Tensor, present: torch.Tensor,
     its own near vehicles only (:func:`near_vehicles`), and against all V where most are
     near anyway (a small grid). The tests run in blocks of at most :data:`SCORE_BLOCK`
     elements, so the memory stays bounded whatever the fleet and the traffic (a district
-    at M = 25 with 700 vehicles and a 5 x 5 map scores 440 000 pairs per window). Each
+    at M = 25 with 700 vehicles and a 5 x 5 map scores 440 000 pairs per window; the
+    choice of near vehicles holds E x M x V flags, as the env's links do). Each
     candidate's sum is over whole priorities (integers), so it is exact in float32: the
     blocks and the choice of vehicles change no digit."""
     e, v = veh.shape[0], veh.shape[-1]
@@ -124,15 +125,18 @@ def near_vehicles(groups: torch.Tensor, veh: torch.Tensor, weight: torch.Tensor,
     ``groups [E, G, K, 2]`` (within ``reach`` of the group's bounding box on each axis,
     plus a metre against rounding), with weight ``weight [E, V]`` > 0: ``(x, y, weight)``,
     each ``[E, G, n]`` with n the largest such count (the shorter lists padded with
-    weight 0); None when n exceeds half of V (no gain in choosing)."""
+    weight 0); None when n exceeds half of V (no gain in choosing) and inside a compiled
+    program (n would be a shape read from the data: a recompile per value)."""
     v = veh.shape[-1]
+    if v == 0 or torch.compiler.is_compiling():  # its count n sets a shape: a compiled
+        return None  # step (train.compile) scores against all V, the same sums
     reach = reach + 1.0
     lo, hi = groups.amin(2) - reach, groups.amax(2) + reach  # [E, G, 2]
     x, y = veh[:, None, 0, :], veh[:, None, 1, :]  # [E, 1, V]
     near = ((x >= lo[..., 0:1]) & (x <= hi[..., 0:1]) & (y >= lo[..., 1:2])
             & (y <= hi[..., 1:2]) & (weight[:, None, :] > 0))  # [E, G, V]
     n = int(near.sum(-1).amax()) if near.numel() else 0
-    if v == 0 or 2 * n > v:
+    if 2 * n > v:
         return None
     idx = near.to(torch.float32).topk(max(n, 1), dim=-1).indices  # [E, G, n]
     flat = idx.flatten(1)
