@@ -454,6 +454,28 @@ def test_the_footprint_table_gives_the_first_searchs_scores_bit_for_bit(trace_ca
         assert rec["collisions"] == 0
 
 
+def test_a_table_over_its_budget_is_not_built_and_the_scores_stay(trace_cache, monkeypatch):
+    """A footprint table larger than planner.TABLE_BYTES (a long horizon over a district)
+    is not built: each candidate is tested, with the same scores as the reference."""
+    from uabs_rl.evaluation import planner
+
+    assert planner.table_bytes(22, 25, 5, 700) == 22 * 25 * 700 * (4 + 9 + 16 + 25 + 36)
+    assert planner.table_bytes(22, 25, 30, 700) > planner.TABLE_BYTES  # Bologna at H = 30
+    monkeypatch.setattr(planner, "TABLE_BYTES", 0)
+
+    def refused(*args, **kwargs):
+        raise AssertionError("a table over its budget was built")
+
+    monkeypatch.setattr(planner, "footprint_table", refused)
+    cfg, env = eval_env(trace_cache, "masking=rank")
+    gens = [torch.Generator().manual_seed(0) for _ in range(2)]
+    checked = Checked(PlannerScore(env.base_env, 4, gens[0], predictor=ConstantVelocity()),
+                      ReferencePlanner(env.base_env, 4, gens[1], predictor=ConstantVelocity()))
+    Evaluator(env, cfg.train.eval_seed).evaluate(TensorDictSequential(checked,
+                                                                      make_selector(env)))
+    assert checked.steps == cfg.scenario.episode_steps
+
+
 def test_lattice_offsets_index_and_exactness_by_hand():
     for n in (1, 2, 5):
         off = lattice_offsets(n, torch.device("cpu"))

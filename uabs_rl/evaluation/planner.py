@@ -82,6 +82,18 @@ def lattice_index(off: torch.Tensor, n: int) -> torch.Tensor:
         i - j + n, 2, rounding_mode="floor")
 
 
+# the largest footprint table a decision builds (:func:`table_bytes`); a longer horizon
+# or a larger fleet, traffic or batch of windows tests each candidate instead (the same
+# booleans, more time, a few MB)
+TABLE_BYTES = 256 << 20
+
+
+def table_bytes(e: int, m: int, horizon: int, v: int) -> int:
+    """Bytes of :func:`footprint_table` for E windows, M UABS, horizon H, V vehicles:
+    E·M·V booleans per lattice offset, Σ_{n=1..H} (n+1)² offsets."""
+    return e * m * v * sum((n + 1) ** 2 for n in range(1, horizon + 1))
+
+
 def footprint_table(pos: torch.Tensor, veh: torch.Tensor, step: torch.Tensor, r_b: float,
                     n_beams: int) -> list[torch.Tensor]:
     """For n = 1..H, ``[E, M, (n+1)², V]`` True where vehicle v at step n
@@ -192,7 +204,9 @@ class PlannerScore(TensorDictModuleBase):
         moves = self.env.math.moves
         step = moves.abs().amax()
         table = (footprint_table(pos, w["veh"], step, p.r_b, p.n_beams)
-                 if on_lattice(pos, float(step), self.horizon) else None)
+                 if on_lattice(pos, float(step), self.horizon)
+                 and table_bytes(e, m, self.horizon, w["veh"].shape[-1]) <= TABLE_BYTES
+                 else None)
         first = move_scores(pos[:, :, None, :] + moves, w["veh"][0], w["present"][1],
                             self.env.priority, p.r_b, p.n_beams)  # [E, M, 4]
         order = rank_order(td.get(BEAM_PRIORITY))  # [E, M]
