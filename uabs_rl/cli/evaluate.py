@@ -228,8 +228,11 @@ def main(argv: list[str] | None = None) -> int:
         # OMP_NUM_THREADS fixes them
         governor = ThreadGovernor(torch.get_num_threads(), fixed="OMP_NUM_THREADS" in os.environ)
         ev.evaluator.on_step = governor.check if governor.active else None
-        with out.writing() as folder:  # the previous evaluation stays whole until the end
-            _evaluate_and_write(ev, args, folder, governor)
+        try:
+            with out.writing() as folder:  # the previous evaluation stays whole until the end
+                _evaluate_and_write(ev, args, folder, governor)
+        finally:  # a caller of main() (a test, a script) keeps its own count
+            torch.set_num_threads(governor.most)
     except (CheckpointError, ConfigError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
