@@ -16,6 +16,7 @@ a pair misses a target.
 from __future__ import annotations
 
 import argparse
+import os
 import re
 import subprocess
 import sys
@@ -33,10 +34,7 @@ def measure(run: Path, city: str, m: int, threads: int | None) -> dict:
         cmd = [sys.executable, "-m", "uabs_rl.cli.evaluate", str(run),
                *([] if city == "home" else [f"scenario={city}"]), f"scenario.n_uabs={m}",
                "--out", out]
-        env = None
-        if threads is not None:
-            import os
-            env = {**os.environ, "OMP_NUM_THREADS": str(threads)}
+        env = None if threads is None else {**os.environ, "OMP_NUM_THREADS": str(threads)}
         t0 = time.perf_counter()
         proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
         wall = time.perf_counter() - t0
@@ -61,7 +59,9 @@ def main() -> None:
     args = ap.parse_args()
     rows = []
     for at in args.at:
-        city, m = at.split(":")
+        city, _, m = at.partition(":")
+        if not m.isdigit():
+            sys.exit(f"--at {at}: give CITY:M, for example bologna:25")
         rows.append(measure(args.run, city, int(m), args.threads))
         r = rows[-1]
         print(f"{r['city']}:{r['m']} done: {r['wall_s']:.1f} s", file=sys.stderr)

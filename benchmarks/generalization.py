@@ -182,6 +182,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--mpc-from", nargs="+", default=[], metavar="CITY:M=EVAL_JSON",
                     help="a pair's mpc from a uabs-eval --policy mpc record (with --mpc)")
     args = ap.parse_args(argv)
+    if any("=" not in item for item in args.mpc_from):
+        raise SystemExit("--mpc-from takes CITY:M=EVAL_JSON items")
     given = dict(item.split("=", 1) for item in args.mpc_from)
     if given and not args.mpc:
         raise SystemExit("--mpc-from needs --mpc H (the horizon the records must have)")
