@@ -56,6 +56,24 @@ def held_out(small_traces_cfg):
     return get_traces(small_traces_cfg.scenario, small_traces_cfg.traces, "eval")
 
 
+def _ignore_hang_up(signum, frame) -> None:
+    """This test process survives a hang-up as under nohup (a Python handler, unlike
+    SIG_IGN, is not inherited by the commands the tests start)."""
+
+
+def pytest_configure(config) -> None:
+    """Started under nohup or as a background job (``cmd &``), this process ignores SIGHUP
+    or SIGINT, and every command a test starts would inherit that (an ignored signal
+    stays ignored across exec): the tests that stop a run or a trace build with a
+    signal would fail. Python handlers in their place (a hang-up still ignored here,
+    Ctrl-C a KeyboardInterrupt as pytest expects) let the commands start with the
+    default dispositions, as from a terminal."""
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    if hasattr(signal, "SIGHUP") and signal.getsignal(signal.SIGHUP) is signal.SIG_IGN:
+        signal.signal(signal.SIGHUP, _ignore_hang_up)
+
+
 @dataclass
 class Ran:
     """What a command run by :func:`run_command` left: its exit status and output, as
