@@ -335,7 +335,7 @@ class ReferencePlanner(PlannerScore):
     copied from its beam's. The fast search must give its scores bit for bit."""
 
     @torch.no_grad()
-    def future(self, td, w=None):
+    def future(self, td, w=None, first=None):  # first: not used, scored in every search
         p = self.env.params
         pos, allowed = td.get(POSITION), td.get(MASK)
         e, m = pos.shape[:2]

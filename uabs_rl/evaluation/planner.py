@@ -171,7 +171,7 @@ class PlannerScore(TensorDictModuleBase):
         score = move_scores(cand, w["veh"][0], w["present"][1], env.priority, p.r_b,
                             p.n_beams)
         if self.horizon > 1:
-            score = score + self.future(td, w)
+            score = score + self.future(td, w, first=score)
         jitter = torch.rand(score.shape, generator=self.generator, device=score.device)
         td.set(ACTION_VALUE, score + JITTER * jitter)
         return td
@@ -185,10 +185,11 @@ class PlannerScore(TensorDictModuleBase):
         return self.predictor(self.env, self.horizon)
 
     @torch.no_grad()
-    def future(self, td: TensorDictBase, w: dict[str, torch.Tensor] | None = None
-               ) -> torch.Tensor:
+    def future(self, td: TensorDictBase, w: dict[str, torch.Tensor] | None = None,
+               first: torch.Tensor | None = None) -> torch.Tensor:
         """[E, M, 4] the best value of steps 2..H after each first move of each UABS
-        (over the world ``w``, default :meth:`world`).
+        (over the world ``w``, default :meth:`world`; ``first``: the first moves' own
+        scores in that world, as :meth:`forward` has them, else computed here).
 
         Every position a path of UABS u can reach at step n lies on the lattice within n
         moves of u's position, so where the positions are exact lattice values
@@ -207,8 +208,9 @@ class PlannerScore(TensorDictModuleBase):
                  if on_lattice(pos, float(step), self.horizon)
                  and table_bytes(e, m, self.horizon, w["veh"].shape[-1]) <= TABLE_BYTES
                  else None)
-        first = move_scores(pos[:, :, None, :] + moves, w["veh"][0], w["present"][1],
-                            self.env.priority, p.r_b, p.n_beams)  # [E, M, 4]
+        if first is None:  # [E, M, 4]
+            first = move_scores(pos[:, :, None, :] + moves, w["veh"][0], w["present"][1],
+                                self.env.priority, p.r_b, p.n_beams)
         order = rank_order(td.get(BEAM_PRIORITY))  # [E, M]
         plan = pos[:, :, None, :].expand(e, m, self.horizon, 2).clone()  # [E, M, H, 2]
         cover = torch.zeros(e, m, self.horizon, w["veh"].shape[-1], dtype=torch.bool,
