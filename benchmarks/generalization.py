@@ -67,12 +67,11 @@ def mpc_from(path: Path, at: str, horizon: int) -> np.ndarray:
         d = json.loads(path.read_text())
     except (OSError, ValueError) as e:
         raise SystemExit(f"--mpc-from {at}={path}: cannot read it ({e})") from None
-    rec = d.get("policies", {}).get("mpc") if isinstance(d, dict) else None
-    want = {"split": "test", "overrides": sorted(overrides(at))}
-    have = {"split": d.get("split"), "overrides": sorted(d.get("overrides") or [])} \
-        if isinstance(d, dict) else {}
-    if rec is None or have != want or (rec.get("horizon"), rec.get("predictor"),
-                                       rec.get("sees")) != (horizon, "cv", "all"):
+    d = d if isinstance(d, dict) else {}
+    rec = (d.get("policies") or {}).get("mpc") or {}
+    if ((d.get("split"), sorted(d.get("overrides") or [])) != ("test", sorted(overrides(at)))
+            or (rec.get("horizon"), rec.get("predictor"), rec.get("sees")) != (horizon, "cv", "all")
+            or METRIC not in rec):
         raise SystemExit(
             f"--mpc-from {at}={path}: not the mpc of {at} on the test split at horizon "
             f"{horizon} (constant velocity, every vehicle seen); write it with uabs-eval "

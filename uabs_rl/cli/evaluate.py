@@ -223,7 +223,7 @@ def main(argv: list[str] | None = None) -> int:
         out.check()
         ev = load_evaluation(args.path, args.checkpoint, args.windows, args.split,
                              args.overrides, args.config_dir, windows_name="--windows")
-        # torch's threads (the CPUs, or OMP_NUM_THREADS), fewer while other processes keep
+        # torch's default threads (or OMP_NUM_THREADS), fewer while other processes keep
         # the CPUs busy (more threads than free cores cost several times one), unless
         # OMP_NUM_THREADS fixes them
         governor = ThreadGovernor(torch.get_num_threads(), fixed="OMP_NUM_THREADS" in os.environ)
