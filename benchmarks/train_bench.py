@@ -162,7 +162,7 @@ def update_flops(learner) -> int:
     (the gradients it leaves are cleared; no parameter moves)."""
     batch = learner.buffer.sample()
     with FlopCount() as count:
-        learner.program.step(learner.program.eager, batch, learner.zero_grad)
+        learner.program(batch, learner.zero_grad)
     learner.zero_grad()
     return count.total
 

@@ -24,6 +24,7 @@ same loss and gradients.
 from __future__ import annotations
 
 import copy
+import logging
 import warnings
 
 import torch
@@ -41,12 +42,13 @@ from uabs_rl.algorithms.base import (
     flush_denormals,
     register,
 )
-from uabs_rl.algorithms.compiled_update import LossProgram
+from uabs_rl.algorithms.compiled_update import LossProgram, UpdateProgram, covered
 from uabs_rl.algorithms.model import DuelingQNet, StackedQNet
 from uabs_rl.algorithms.replay import TransitionReplay
 from uabs_rl.config import AlgoConfig, ConfigError, LossKind, ReplayKind
 
 TARGET_WARNING = "No target network updater has been associated"
+log = logging.getLogger(__name__)
 
 
 def huber(pred: torch.Tensor, y: torch.Tensor,
@@ -191,7 +193,8 @@ class DQN3(Algorithm):
         # fused Adam: one kernel for all parameters (3x faster than foreach on CPU here)
         self.optim = torch.optim.Adam(self.policy.parameters(), lr=algo.lr, fused=True)
         self.optims = [self.optim]  # every optimiser an update steps
-        self.program = LossProgram(self.loss_module)  # eager until compile_update
+        self.program = LossProgram(self.loss_module)  # the eager loss and backward
+        self.whole: UpdateProgram | None = None  # the compiled update (compile_update)
         prioritized = algo.replay == ReplayKind.prioritized
         self.buffer = TransitionReplay(algo.buffer_size, dims.obs_dim, dims.n_actions,
                                        dims.n_agents, self.seeds, self.sample_size(),
@@ -231,26 +234,84 @@ class DQN3(Algorithm):
         return out.get("loss"), out.get("q_chosen")
 
     def compile_update(self, compile: bool = True) -> None:
-        """Run the loss and its backward compiled (``train.compile_update``; see
-        :mod:`uabs_rl.algorithms.compiled_update`), or eager again with ``False``."""
-        self.program = LossProgram(self.loss_module, compile, self.device)
+        """Run the whole update (loss, gradient, clipping, Adam) as one compiled program
+        (``train.compile_update``; :mod:`uabs_rl.algorithms.compiled_update`), or eager
+        again with ``False``. TorchRL's reference loss (``algo.loss=torchrl``) and an
+        optimiser the program does not compute stay eager, said in the log."""
+        self.whole = None
+        if not compile:
+            return
+        why = ("algo.loss=torchrl is the eager reference loss"
+               if self.algo.loss == LossKind.torchrl else
+               next((w for w in map(covered, self.optims) if w), None))
+        if why:
+            log.info("the update runs eagerly: %s", why)
+            return
+        extras = [m for m in self.extras if m is not None]
+        clip = self.clipped if self.algo.grad_clip is not None else None
+        self.whole = UpdateProgram(self.loss_module, [self.policy, *extras], self.optims,
+                                   clip, self.device)
+
+    @property
+    def compiled(self) -> bool:
+        """Whether updates run as the compiled program (not eagerly)."""
+        return self.whole is not None
 
     def zero_grad(self) -> None:
         for optim in self.optims:
             optim.zero_grad(set_to_none=True)
 
     def update(self, batch: TensorDict) -> tuple[torch.Tensor, torch.Tensor]:
-        loss, q_chosen, td_error = self.program(batch, self.zero_grad)
-        if self.algo.grad_clip is not None:
-            self.clip_gradients()
-        with flush_denormals():
-            for optim in self.optims:
-                optim.step()
+        if self.whole is not None:
+            try:
+                loss, q_chosen, td_error = self.whole(batch)
+            except Exception as e:  # compilation errors surface at the first call
+                log.warning("torch.compile failed for the update (%s: %s); running it "
+                            "eagerly. Set train.compile_update=false to skip compiling it.",
+                            type(e).__name__,
+                            str(e).splitlines()[0][:200] if str(e) else "")
+                self.whole = None
+                return self.update(batch)
+        else:
+            loss, q_chosen, td_error = self.program(batch, self.zero_grad)
+            if self.algo.grad_clip is not None:
+                self.clip_gradients()
+            with flush_denormals():
+                for optim in self.optims:
+                    optim.step()
         self.updates += 1
         self.target_updater.step()
         if td_error is not None:  # a prioritized sample: its new priorities
             self.buffer.update_priority(batch.get("index"), td_error)
         return loss.detach(), q_chosen
+
+    def clipped(self, grads: list[torch.Tensor]) -> list[torch.Tensor]:
+        """:meth:`clip_gradients` as a function of the gradients (in the optimisers'
+        order: the network's, then each member's extra module's), for the compiled
+        update: each member's gradients scaled by max_norm / (their norm + 1e-6), at
+        most 1, the norm computed as ``clip_grad_norm_`` computes it."""
+        clip = float(self.algo.grad_clip)
+        if self.members == 1:
+            norm = torch.linalg.vector_norm(
+                torch.stack([torch.linalg.vector_norm(g) for g in grads]))
+            scale = (clip / (norm + 1e-6)).clamp(max=1.0)
+            return [g * scale for g in grads]
+        n = len(self.policy.weight) + len(self.policy.bias)
+        net, rest = grads[:n], grads[n:]
+        sizes = [0 if m is None else len(list(m.parameters())) for m in self.extras]
+        extra, at = [], 0
+        for size in sizes:
+            extra.append(rest[at:at + size])
+            at += size
+        sq = torch.stack([g.pow(2).flatten(1).sum(1) for g in net]).sum(0)  # [P]
+        if all(extra):
+            sq = sq + torch.stack([torch.stack([g.pow(2).sum() for g in gs]).sum()
+                                   for gs in extra])
+        scale = (clip / (sq.sqrt() + 1e-6)).clamp(max=1.0)
+        out = [g * scale.view(-1, *([1] * (g.dim() - 1))) for g in net]
+        for p, gs in enumerate(extra):
+            out += [g * scale[p] for g in gs]
+        return out
 
     def clip_gradients(self) -> None:
         """Each member's gradient (its network's and its :meth:`member_extra`'s) clipped

@@ -269,12 +269,11 @@ class TrainConfig:
     # torch.compile the env step and the action selection: ~2x faster training, ~20 s to
     # compile (eager if compilation fails)
     compile: bool = setting(Role.runtime, True)
-    # also run the update's loss and backward as one compiled program (any learner, solo
-    # or population; uabs_rl/algorithms/compiled_update.py): about 0.9x the update's time,
-    # results equal to float32 rounding, not bit for bit; off by default: over the main
-    # job its compile (10-60 s, again at each change of threads) costs about what it
-    # saves (see that module)
-    compile_update: bool = setting(Role.runtime, False)
+    # run each update (loss, gradient, Adam) as one compiled program, any learner, solo or
+    # population (uabs_rl/algorithms/compiled_update.py): results equal to the eager
+    # update's to float32 rounding, not bit for bit; ~15 s to compile; null = as
+    # train.compile
+    compile_update: bool | None = setting(Role.runtime, None)
     # torch CPU threads; null = by the update's size, at most the CPUs this process may use,
     # fewer while other processes keep them busy (uabs_rl/training/threads.py); set it for runs
     # that must be bit-reproducible whatever the load, and to cores / n_jobs in sweeps

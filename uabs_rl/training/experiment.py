@@ -193,7 +193,8 @@ class Experiment:
         eval_env = make_eval_env(cfg, traces.get("eval"), dev, members=self.n)
         self.params = p = env.base_env.params
         self.learner = make_algorithm(cfg.algo, Dims(p.obs_dim, N_ACTIONS, p.n_uabs), seeds, dev)
-        self.learner.compile_update(tr.compile_update)
+        self.learner.compile_update(tr.compile if tr.compile_update is None
+                                    else tr.compile_update)
         self.qnet, self.buffer = self.learner.policy, self.learner.buffer
         self.gen = make_generator(seed, dev)
         selector = make_selector(env, cfg.algo.eps_start, self.gen,
