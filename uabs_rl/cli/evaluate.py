@@ -4,6 +4,7 @@
     uabs-eval outputs/runs/<run dir> --policy all    # + random, greedy, oracle baselines
     uabs-eval outputs/runs/<run dir> --policy all --policy planner --horizon 10
     uabs-eval outputs/runs/<run dir> --policy all --policy mpc --mpc-horizon 5 --sees 150
+    uabs-eval outputs/runs/<run dir> --policy mpc --policy hybrid --hybrid-weight 0.5
     uabs-eval path/to/last.pt --split eval --windows 20 --gif
     uabs-eval outputs/runs/<run dir> scenario.sumo.fleet_size=120 channel.los_mode=los
     uabs-eval outputs/runs/<run dir> --config-dir myconf scenario=grid6   # another city
@@ -22,7 +23,9 @@ the vehicles' true future positions ``--horizon`` steps ahead (the clairvoyant c
 and ``mpc``, the same planner ``--mpc-horizon`` steps ahead over the positions a
 predictor gives (``--predictor cv``: constant velocity from the vehicles' current and
 previous positions, the default) seeing every vehicle or only those within ``--sees R``
-metres of a UABS: a deployable policy. Every policy's compute per decision (ms per step
+metres of a UABS: a deployable policy; ``hybrid`` adds ``--hybrid-weight`` λ times the
+learned Q-values to the mpc's scores (:mod:`uabs_rl.evaluation.hybrid`; choose λ on
+``--split eval``). Every policy's compute per decision (ms per step
 for the whole fleet, amortised over the windows run side by side) is printed. With
 learned, greedy and planner together it also prints the learned policy's share of the
 greedy-to-planner gap. Also a
@@ -49,6 +52,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 import time
@@ -59,6 +63,7 @@ import torch
 
 from uabs_rl.config import ConfigError
 from uabs_rl.evaluation.baselines import HEURISTICS, MPC, PLANNER
+from uabs_rl.evaluation.hybrid import HYBRID
 from uabs_rl.evaluation.load import (
     POLICIES,
     Evaluation,
@@ -75,7 +80,7 @@ from uabs_rl.paths import OutputFolder, OutputInterrupted, check_path
 from uabs_rl.runs.checkpoint import CheckpointError
 from uabs_rl.training.threads import ThreadGovernor
 
-CHOICES = (*POLICIES, *HEURISTICS, PLANNER, MPC)  # every --policy
+CHOICES = (*POLICIES, *HEURISTICS, PLANNER, MPC, HYBRID)  # every --policy
 
 
 def percent(x: float) -> str:
@@ -133,13 +138,17 @@ def _print_planner(results: dict[str, tuple[dict, Any]], shares: dict[str, dict]
 
 
 def _print_mpc(results: dict[str, tuple[dict, Any]]) -> None:
-    if MPC not in results:
-        return
-    rec = results[MPC][0]
-    sees = "every vehicle" if rec["sees"] == "all" else f"the vehicles within {rec['sees']:g} m"
-    print(f"\nmpc: horizon {rec['horizon']}, predictor {rec['predictor']}, sees {sees}; "
-          f"{rec['ms_per_decision']:.1f} ms per decision ({rec['windows']} windows side by "
-          f"side, {rec['seconds']:.1f} s, {torch.get_num_threads()} torch thread(s))")
+    for name in (MPC, HYBRID):
+        if name not in results:
+            continue
+        rec = results[name][0]
+        sees = ("every vehicle" if rec["sees"] == "all"
+                else f"the vehicles within {rec['sees']:g} m")
+        weight = f", weight {rec['weight']:g} of the learned Q-values" if name == HYBRID else ""
+        print(f"\n{name}: horizon {rec['horizon']}, predictor {rec['predictor']}, sees "
+              f"{sees}{weight}; {rec['ms_per_decision']:.1f} ms per decision "
+              f"({rec['windows']} windows side by side, {rec['seconds']:.1f} s, "
+              f"{torch.get_num_threads()} torch thread(s))")
 
 
 def _print_table(results: dict[str, tuple[dict, Any]], nhat: int) -> None:
@@ -177,7 +186,8 @@ def parser() -> argparse.ArgumentParser:
                     help="what to evaluate, may be repeated: learned (default), the "
                          "random, greedy and oracle baselines, all (these four), the "
                          "kmeans and junctions heuristics, planner (see --horizon), mpc "
-                         "(see --mpc-horizon, --predictor, --sees)")
+                         "(see --mpc-horizon, --predictor, --sees), hybrid (the mpc's "
+                         "scores plus the learned Q-values, see --hybrid-weight)")
     ap.add_argument("--horizon", type=int, default=10,
                     help="the planner's horizon in steps (default 10; 1 = the oracle)")
     ap.add_argument("--mpc-horizon", type=int, default=5,
@@ -189,6 +199,9 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--sees", default="all", metavar="all|R",
                     help="the vehicles the mpc sees: all (centralised, default) or those "
                          "within R metres of some UABS")
+    ap.add_argument("--hybrid-weight", type=float, default=1.0, metavar="λ",
+                    help="the hybrid's weight of the learned Q-values beside the mpc's "
+                         "scores (default 1; 0 = the mpc); choose it on --split eval")
     ap.add_argument("--split", choices=("test", "eval"), default="test",
                     help="test traces (default; never seen by training or selection) or "
                          "eval, the validation traces training evaluated on")
@@ -209,6 +222,8 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--horizon must be >= 1, got {args.horizon}")
     if args.mpc_horizon < 1:
         ap.error(f"--mpc-horizon must be >= 1, got {args.mpc_horizon}")
+    if not (math.isfinite(args.hybrid_weight) and args.hybrid_weight >= 0):
+        ap.error(f"--hybrid-weight must be a number >= 0, got {args.hybrid_weight}")
     try:
         args.sees = parse_sees(args.sees)
     except ValueError as e:
@@ -268,7 +283,7 @@ def _evaluate_and_write(ev: Evaluation, args: argparse.Namespace, out: Path,
     t0 = time.perf_counter()
     results = evaluate_policies(ev, policies, horizon=args.horizon,
                                 mpc_horizon=args.mpc_horizon, predictor=args.predictor,
-                                sees=args.sees)
+                                sees=args.sees, hybrid_weight=args.hybrid_weight)
     n = ev.evaluator.env.base_env.n_envs
     tc = getattr(ev.cfg.traces, args.split)
     print(f"split: {args.split} (traces.{args.split}: SUMO seeds {tc.first_seed}.."

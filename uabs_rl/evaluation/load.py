@@ -17,9 +17,10 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
+import torch
 from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
-from tensordict.nn import TensorDictModuleBase
+from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 
 from uabs_rl.algorithms import Dims, algorithm_class
 from uabs_rl.config import (
@@ -35,7 +36,8 @@ from uabs_rl.env.params import EnvParams, validate_world
 from uabs_rl.env.uabs_env import N_ACTIONS
 from uabs_rl.evaluation.baselines import BASELINES, MPC, PLANNER, baseline_policy
 from uabs_rl.evaluation.evaluator import Evaluator, greedy_policy, make_eval_env
-from uabs_rl.evaluation.planner import gap_share, junction_sites
+from uabs_rl.evaluation.hybrid import HYBRID, HybridScore
+from uabs_rl.evaluation.planner import PlannerScore, gap_share, junction_sites
 from uabs_rl.evaluation.predict import make_predictor
 from uabs_rl.evaluation.stats import paired_difference
 from uabs_rl.paths import safe_component
@@ -264,18 +266,28 @@ def default_out_dir(path: Path, overrides: list[str] | None = None) -> Path:
 
 def evaluate_policies(ev: Evaluation, policies: tuple[str, ...], seed: int = 0,
                       horizon: int = 1, mpc_horizon: int = 5, predictor: str = "cv",
-                      sees: str | float = "all") -> dict[str, tuple[dict[str, Any], Any]]:
+                      sees: str | float = "all", hybrid_weight: float = 1.0
+                      ) -> dict[str, tuple[dict[str, Any], Any]]:
     """Records and rollouts of each policy on the same held-out windows and masks
-    (``horizon``: the planner's; ``mpc_horizon``, ``predictor`` and ``sees``: the mpc's).
-    The planner's and the mpc's records hold their ``horizon`` and ``seconds``, the wall
-    time of the rollout of all the windows side by side (the mpc's also its
-    ``predictor`` and ``sees``); every record holds ``ms_per_decision``, that time per
-    step of one window (the whole fleet's decision, amortised over the windows)."""
+    (``horizon``: the planner's; ``mpc_horizon``, ``predictor`` and ``sees``: the mpc's
+    and the hybrid's; ``hybrid_weight``: the hybrid's λ, :mod:`uabs_rl.evaluation.hybrid`).
+    The planner's, the mpc's and the hybrid's records hold their ``horizon`` and
+    ``seconds``, the wall time of the rollout of all the windows side by side (the mpc's
+    and the hybrid's also their ``predictor`` and ``sees``, the hybrid's its ``weight``);
+    every record holds ``ms_per_decision``, that time per step of one window (the whole
+    fleet's decision, amortised over the windows)."""
     results = {}
     env = ev.evaluator.env
     for name in policies:
         if name == "learned":
             policy = ev.greedy
+        elif name == HYBRID:
+            gen = torch.Generator(device=env.base_env.device)
+            gen.manual_seed(seed)  # the mpc's tie-break draws, as baseline_policy seeds them
+            planner = PlannerScore(env.base_env, mpc_horizon, gen,
+                                   predictor=make_predictor(predictor, sees))
+            policy = TensorDictSequential(
+                HybridScore(planner, ev.greedy[0].module, hybrid_weight), make_selector(env))
         else:
             sites = junction_sites(ev.cfg, env.base_env) if name == "junctions" else None
             policy = baseline_policy(name, env, make_selector(env), seed,
@@ -290,8 +302,10 @@ def evaluate_policies(ev: Evaluation, policies: tuple[str, ...], seed: int = 0,
         rec["ms_per_decision"] = 1000 * sec / (rec["windows"] * ev.evaluator.params.episode_steps)
         if name == PLANNER:
             rec.update(horizon=horizon, seconds=sec)
-        elif name == MPC:
+        elif name in (MPC, HYBRID):
             rec.update(horizon=mpc_horizon, seconds=sec, predictor=predictor, sees=sees)
+            if name == HYBRID:
+                rec["weight"] = hybrid_weight
     return results
 
 

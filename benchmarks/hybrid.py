@@ -1,0 +1,148 @@
+"""The hybrid policy (mpc scores + λ · learned Q-values, ``uabs-eval --policy hybrid``)
+against the deployable planner (mpc) and the learned policy, with λ chosen on
+validation traces and every reported figure on test traces.
+
+    python benchmarks/hybrid.py outputs/runs/<population> --weights 0 0.25 0.5 1 2 \
+        --out docs/results/planning_vs_learning/hybrid
+
+1. Validation: each member's ``best.pt`` flies the hybrid at every λ of ``--weights`` on
+   the validation split (``--split eval``: the traces training selected its checkpoint
+   on; ``--eval-windows`` windows, default every one); λ* maximises the served fraction's
+   mean over members and windows.
+2. Test: on every test window, each member's learned policy and hybrid at λ*, beside
+   greedy and the mpc under the same masks (greedy and the mpc are deterministic on these
+   windows: flown once). Per member, the mean over windows of the paired differences
+   hybrid − mpc and learned − mpc; their mean over members with a Student-t 95 % CI over
+   members (:func:`uabs_rl.evaluation.stats.paired_over_seeds`).
+
+Prints a markdown table and writes ``hybrid.json`` (every per-window value, the
+validation sweep, λ*) and ``log.txt`` (what it printed) into ``--out``. ``--mpc-horizon``,
+``--predictor`` and ``--sees`` set the planner of both the mpc and the hybrid
+(``uabs-eval``'s options); extra ``key=value`` overrides evaluate under other world
+settings, as ``uabs-eval`` takes them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from uabs_rl.evaluation.load import evaluate_policies, load_evaluation
+from uabs_rl.evaluation.predict import parse_sees
+from uabs_rl.evaluation.stats import paired_over_seeds, t_interval
+
+METRICS = {"served": "served_fractions", "pg": "pgs"}
+
+
+def members(root: Path) -> list[Path]:
+    found = sorted(root.glob("seed=*"), key=lambda p: int(p.name.split("=")[1]))
+    return found or [root]
+
+
+def flown(run: Path, policies: tuple[str, ...], split: str, windows: int | None,
+          args: argparse.Namespace, weight: float = 0.0) -> dict[str, dict]:
+    """Each policy's record on ``split`` (every window, or ``windows``)."""
+    ev = load_evaluation(run, "best", windows, split, args.overrides)
+    out = evaluate_policies(ev, policies, mpc_horizon=args.mpc_horizon,
+                            predictor=args.predictor, sees=args.sees, hybrid_weight=weight)
+    recs = {name: rec for name, (rec, _) in out.items()}
+    for name, rec in recs.items():  # the masks' guarantees, checked for every rollout
+        unsafe = rec["collisions"] + rec["proximity"] + rec["fallbacks"]
+        if unsafe:
+            sys.exit(f"{run} {name} on {split}: {rec['collisions']} collisions, "
+                     f"{rec['proximity']} proximity events, {rec['fallbacks']} fallbacks")
+    return recs
+
+
+def pct(x: float) -> str:
+    return f"{100 * x:.2f}"
+
+
+def ci(d: dict) -> str:
+    return f"{100 * d['diff']:+.2f} [{100 * d['ci_low']:+.2f}, {100 * d['ci_high']:+.2f}]"
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("run", type=Path, help="a run folder or a population's folder")
+    ap.add_argument("overrides", nargs="*", help="world overrides, as uabs-eval takes them")
+    ap.add_argument("--weights", type=float, nargs="+", default=[0.0, 0.25, 0.5, 1.0, 2.0])
+    ap.add_argument("--mpc-horizon", type=int, default=5)
+    ap.add_argument("--predictor", default="cv")
+    ap.add_argument("--sees", default="all")
+    ap.add_argument("--eval-windows", type=int, help="validation windows (default: all)")
+    ap.add_argument("--out", type=Path, required=True)
+    args = ap.parse_args(argv)
+    args.sees = parse_sees(args.sees)
+    if any(not w >= 0 for w in args.weights):
+        ap.error("--weights must be >= 0")
+    runs = members(args.run)
+    args.out.mkdir(parents=True, exist_ok=True)
+    log = open(args.out / "log.txt", "w")
+
+    def say(line: str = "") -> None:
+        print(line, flush=True)
+        log.write(line + "\n")
+
+    say(f"$ python benchmarks/hybrid.py {' '.join(sys.argv[1:] if argv is None else argv)}")
+    t0 = time.perf_counter()
+    # 1. validation: lambda* over the members' mean served fraction
+    sweep = {}
+    for w in args.weights:
+        per = [float(np.nanmean(flown(r, ("hybrid",), "eval", args.eval_windows, args, w)
+                                ["hybrid"]["served_fractions"])) for r in runs]
+        sweep[w] = per
+        say(f"validation  λ = {w:g}: served {pct(float(np.mean(per)))} % (members: "
+            f"{', '.join(pct(x) for x in per)})")
+    best = max(args.weights, key=lambda w: np.mean(sweep[w]))
+    say(f"λ* = {best:g} (chosen on validation)")
+    # 2. test
+    fixed = flown(runs[0], ("greedy", "mpc"), "test", None, args)
+    per_member = [flown(r, ("learned", "hybrid"), "test", None, args, best) for r in runs]
+    rows, out = [], {"weights": sweep, "best_weight": best, "members": [str(r) for r in runs],
+                     "mpc_horizon": args.mpc_horizon, "predictor": args.predictor,
+                     "sees": args.sees, "overrides": args.overrides, "policies": {}}
+    for name in ("greedy", "mpc"):
+        rec = fixed[name]
+        out["policies"][name] = {k: rec[v] for k, v in METRICS.items()} | {
+            "ms_per_decision": rec["ms_per_decision"]}
+        rows.append((name, *(t_interval(rec[v]) for v in METRICS.values()),
+                     None, None, rec["ms_per_decision"]))
+    for name in ("learned", "hybrid"):
+        recs = [m[name] for m in per_member]
+        out["policies"][name] = {k: [r[v] for r in recs] for k, v in METRICS.items()} | {
+            "ms_per_decision": [r["ms_per_decision"] for r in recs]}
+        seed_means = {k: [float(np.nanmean(r[v])) for r in recs] for k, v in METRICS.items()}
+        diffs = {k: paired_over_seeds([r[v] for r in recs], [fixed["mpc"][v]] * len(recs))
+                 for k, v in METRICS.items()}
+        out["policies"][name]["minus_mpc"] = diffs
+        rows.append((name, t_interval(seed_means["served"]), t_interval(seed_means["pg"]),
+                     diffs["served"], diffs["pg"],
+                     float(np.mean([r["ms_per_decision"] for r in recs]))))
+    n = len(runs)
+    say("")
+    say(f"test split, every window; {n} member(s); mpc H = {args.mpc_horizon} "
+        f"({args.predictor}, sees {args.sees}); hybrid λ* = {best:g}")
+    say("| policy | served % [95 % CI] | P_g % [95 % CI] | − mpc, served pt | − mpc, P_g pt "
+        "| ms per decision |")
+    say("|---|---|---|---|---|---|")
+    for name, served, pg, ds, dp, ms in rows:
+        cell = lambda t: f"{pct(t[0])} [{pct(t[1])}, {pct(t[2])}]"  # noqa: E731
+        say(f"| {name} | {cell(served)} | {cell(pg)} | {ci(ds) if ds else '—'} | "
+            f"{ci(dp) if dp else '—'} | {ms:.2f} |")
+    say("")
+    say("greedy and mpc: CI over the windows; learned and hybrid: over the members' "
+        "means; − mpc: each member's mean paired difference over the windows, Student-t "
+        f"over {n} members" if n > 1 else "over the windows of the one member")
+    say(f"{time.perf_counter() - t0:.0f} s")
+    (args.out / "hybrid.json").write_text(json.dumps(out, indent=1))
+    log.close()
+
+
+if __name__ == "__main__":
+    main()
