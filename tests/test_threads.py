@@ -182,3 +182,22 @@ def test_a_run_logs_its_threads_and_why(trace_cache, caplog, monkeypatch):
     assert caplog.messages[-1].startswith("threads: 3 (train.threads; ")
     gov = setup_threads(smoke(trace_cache))
     assert gov.n == 1 and "one thread below 10M" in caplog.messages[-1]
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs /proc")
+def test_a_finished_child_and_a_grandchild_count_as_this_process():
+    """torch.compile's workers start compilers that run a second or two and exit between
+    two of the governor's looks: their CPU time is this process's, not other processes'
+    (else a compile in training reads as a busy machine and the count drops)."""
+    import subprocess
+    import sys
+
+    from uabs_rl.training.threads import _children_cpu
+
+    burn = "import time\nt = time.process_time()\nwhile time.process_time() - t < 0.5: pass"
+    before = _children_cpu()
+    subprocess.run([sys.executable, "-c", burn], check=True)  # a child, finished
+    middle = _children_cpu()
+    subprocess.run(["sh", "-c", f"{sys.executable} -c '{burn}'"], check=True)  # a grandchild
+    after = _children_cpu()
+    assert middle - before >= 0.45 and after - middle >= 0.45, (before, middle, after)

@@ -220,8 +220,13 @@ class ThreadGovernor:
 
 
 def _children_cpu(pid: int | None = None) -> float:
-    """CPU seconds of the running descendants of ``pid`` (this process), from /proc
-    (0 where /proc lists no children)."""
+    """CPU seconds of the descendants of ``pid`` (this process), running or finished:
+    each running descendant's own time and that of its children it has waited for,
+    and this process's waited-for children's (``/proc/<pid>/stat`` utime, stime,
+    cutime, cstime; 0 where /proc lists none). torch.compile's compile workers are
+    children that start compilers as children of their own, each running a second or
+    two between two looks: counted only while running, a compile would read as other
+    processes keeping the CPUs busy."""
     root = os.getpid() if pid is None else pid
     total, todo = 0, [root]
     while todo:
@@ -231,12 +236,12 @@ def _children_cpu(pid: int | None = None) -> float:
                 todo += [int(c) for c in task.read_text().split()]
             except OSError:
                 continue
-        if parent != root:
-            try:  # utime and stime: fields 14 and 15, after the command in parentheses
-                fields = Path(f"/proc/{parent}/stat").read_text().rsplit(")", 1)[1].split()
-                total += int(fields[11]) + int(fields[12])
-            except (OSError, IndexError, ValueError):
-                continue
+        try:  # utime, stime, cutime, cstime: fields 14-17, after the command in parentheses
+            fields = Path(f"/proc/{parent}/stat").read_text().rsplit(")", 1)[1].split()
+            own, waited = int(fields[11]) + int(fields[12]), int(fields[13]) + int(fields[14])
+        except (OSError, IndexError, ValueError):
+            continue
+        total += waited if parent == root else own + waited
     return total / TICKS
 
 
