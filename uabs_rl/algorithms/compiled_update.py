@@ -131,6 +131,8 @@ class UpdateProgram:
                       for o in self.optims for g in o.param_groups for _ in g["params"]]
         self.rates = [float(g["lr"]) for o in self.optims for g in o.param_groups
                       for _ in g["params"]]
+        self.owner = [i for i, o in enumerate(self.optims) for g in o.param_groups
+                      for _ in g["params"]]
         self.clip = clip
 
         def loss_of(values: list[torch.Tensor], batch: dict[str, torch.Tensor]):
@@ -176,16 +178,20 @@ class UpdateProgram:
 
     def corrections(self, steps: list[torch.Tensor]) -> list[tuple[torch.Tensor, torch.Tensor]]:
         """Each parameter's Adam step size lr / (1 − β1^t) and sqrt(1 − β2^t) at this
-        update's step t, as 0-d float64 tensors (computed here, once per update: written
-        in the program, Inductor would compute the powers again for every 8 elements of
-        the parameter, a third of the update's time)."""
-        out, memo = [], {}
-        for step, lr, (beta1, beta2, _) in zip(steps, self.rates, self.hyper, strict=True):
-            key = (float(step) + 1, lr, beta1, beta2)
+        update's step t, as 0-d float64 tensors on its device (computed here, once per
+        update: written in the program, Inductor would compute the powers again for every
+        8 elements of the parameter, a third of the update's time). An optimiser steps
+        all its parameters together, so t is read once per optimiser."""
+        out, memo, counts = [], {}, {}
+        for step, owner, lr, (beta1, beta2, _) in zip(steps, self.owner, self.rates,
+                                                       self.hyper, strict=True):
+            if owner not in counts:
+                counts[owner] = float(step) + 1
+            key = (counts[owner], lr, beta1, beta2, step.device)
             if key not in memo:
                 t = key[0]
-                memo[key] = (torch.tensor(lr / (1 - beta1 ** t), dtype=torch.float64),
-                             torch.tensor(math.sqrt(1 - beta2 ** t), dtype=torch.float64))
+                memo[key] = tuple(torch.tensor(x, dtype=torch.float64, device=step.device)
+                                  for x in (lr / (1 - beta1 ** t), math.sqrt(1 - beta2 ** t)))
             out.append(memo[key])
         return out
 
@@ -213,12 +219,12 @@ def adam_(p: torch.Tensor, g: torch.Tensor, m: torch.Tensor, v: torch.Tensor,
           step: torch.Tensor, beta1: float, beta2: float, eps: float,
           step_size: torch.Tensor, bias2_sqrt: torch.Tensor) -> None:
     """One Adam step of ``p`` in place (moments ``m``, ``v`` and ``step`` too), as
-    ``torch.optim.Adam(fused=True)``'s CPU kernel computes it: m = β1 m + (1 − β1) g,
+    ``torch.optim.Adam(fused=True)``'s CPU kernel computes it: m = lerp(m, g, 1 − β1),
     v = β2 v + (1 − β2) g², p −= step_size · m / (sqrt(v) / bias2_sqrt + eps), with
     step_size = lr / (1 − β1^t) and bias2_sqrt = sqrt(1 − β2^t) in float64 at the
     incremented step t (:meth:`UpdateProgram.corrections`)."""
     step.add_(1)
-    m.mul_(beta1).add_(g, alpha=1 - beta1)
+    m.lerp_(g, 1 - beta1)
     v.mul_(beta2).addcmul_(g, g, value=1 - beta2)
     denom = v.sqrt() / bias2_sqrt.float() + eps
     p.sub_(step_size.float() * m / denom)
