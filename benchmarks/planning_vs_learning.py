@@ -5,12 +5,14 @@ with Student-t 95 % CIs over the windows and the compute per decision.
 
     python benchmarks/planning_vs_learning.py --out docs/results/planning_vs_learning
     python benchmarks/planning_vs_learning.py --modes rank --fleets 3 6 --sees all 100
+    python benchmarks/planning_vs_learning.py --predictors cv road --horizons 1 5 10
 
 Writes ``table.csv`` (per policy and setting: served fraction and P_g(N̂_s) with their
 intervals over windows, paired differences against greedy, ms per decision for the
 whole fleet, amortised over the windows run side by side), ``per_window.json`` and
-``prediction_error.csv`` (the constant-velocity predictor's error k steps ahead on the
-same windows). One process, one torch thread. No trained checkpoint is read.
+``prediction_error.csv`` (each predictor's error k steps ahead on the same windows;
+``--predictors``: constant velocity, ``road`` along the SUMO network's lanes). One
+process, one torch thread. No trained checkpoint is read.
 """
 
 from __future__ import annotations
@@ -26,22 +28,24 @@ import torch
 from uabs_rl.config import compose
 from uabs_rl.evaluation.baselines import baseline_policy
 from uabs_rl.evaluation.evaluator import Evaluator, make_eval_env
-from uabs_rl.evaluation.predict import ConstantVelocity, make_predictor, prediction_error
+from uabs_rl.evaluation.predict import Within, make_predictor, prediction_error
 from uabs_rl.evaluation.stats import paired_difference, t_interval
 from uabs_rl.safety.make import make_selector
 
 
 def evaluate(mode: str, m: int, horizons: list[int], ceiling: list[int], sees: list[str],
-             log) -> tuple[list[dict], list[dict]]:
+             log, predictors: tuple[str, ...] = ("cv",)) -> tuple[list[dict], list[dict]]:
     cfg = compose("config", [f"masking={mode}", f"scenario.n_uabs={m}"])
     env = make_eval_env(cfg, split="test", compile=False)
     ev = Evaluator(env, cfg.train.eval_seed)
+    made = {pred: make_predictor(pred, "all", cfg.scenario) for pred in predictors}
     runs = [("greedy", 1, None, "all"), ("oracle", 1, None, "all")]
-    runs += [("mpc", h, "cv", s) for s in sees for h in horizons]
+    runs += [("mpc", h, pred, s) for pred in predictors for s in sees for h in horizons]
     runs += [("planner", h, "true", "all") for h in ceiling]
     rows, greedy = [], None
     for name, h, pred, s in runs:
-        predictor = make_predictor(pred, s) if name == "mpc" else None
+        predictor = ((made[pred] if s == "all" else Within(made[pred], float(s)))
+                     if name == "mpc" else None)
         policy = baseline_policy(name, env, make_selector(env), 0, horizon=h,
                                  predictor=predictor)
         t0 = time.perf_counter()
@@ -74,10 +78,11 @@ def evaluate(mode: str, m: int, horizons: list[int], ceiling: list[int], sees: l
             f"proximity {row['proximity']:.0f}, {row['ms_per_decision']:.2f} ms/decision")
     env.set_seed(cfg.train.eval_seed)
     env.reset()
-    errs = [{"mode": mode, "n_uabs": m, "predictor": "cv", "k": k, **e}
-            for k, e in prediction_error(env.base_env, ConstantVelocity(), (1, 2, 5, 10)).items()]
+    errs = [{"mode": mode, "n_uabs": m, "predictor": pred, "k": k, **e}
+            for pred, predictor in made.items()
+            for k, e in prediction_error(env.base_env, predictor, (1, 2, 5, 10)).items()]
     for e in errs:
-        log(f"{mode} M={m} constant velocity, {e['k']} steps ahead: mean error "
+        log(f"{mode} M={m} predictor {e['predictor']}, {e['k']} steps ahead: mean error "
             f"{e['mean_m']:.2f} m, rmse {e['rmse_m']:.2f} m over {e['n']} vehicle-steps")
     return rows, errs
 
@@ -90,6 +95,8 @@ def main() -> None:
     ap.add_argument("--ceiling", type=int, nargs="+", default=[5],
                     help="the clairvoyant planner's horizons")
     ap.add_argument("--sees", nargs="+", default=["all"], help="all or radii in metres")
+    ap.add_argument("--predictors", nargs="+", default=["cv"], choices=("cv", "road"),
+                    help="the mpc's predictors (default cv)")
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
     torch.set_num_threads(1)
@@ -103,7 +110,8 @@ def main() -> None:
     rows, errs = [], []
     for mode in args.modes:
         for m in args.fleets:
-            r, e = evaluate(mode, m, args.horizons, args.ceiling, args.sees, log)
+            r, e = evaluate(mode, m, args.horizons, args.ceiling, args.sees, log,
+                            tuple(args.predictors))
             rows += r
             errs += e
     log(f"total {time.perf_counter() - t0:.0f} s (1 torch thread)")

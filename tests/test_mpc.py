@@ -73,28 +73,34 @@ class Replay(Predictor):
                 **schedule(env, horizon)}
 
 
+def poisoned(predict, env: UABSEnv, horizon: int) -> dict[str, torch.Tensor]:
+    """``predict(env, horizon)`` with every trace row after each env's step t (to its
+    window's end) replaced by garbage while it predicts (the env steps on the true
+    traces)."""
+    st, pos, present = env.state, env.veh_pos, env.veh_present
+    t = int(st["t"][0])
+    assert (st["t"] == t).all()  # the windows run in lock step: no window's rows are
+    # another's future
+    gen = torch.Generator().manual_seed(t)
+    kept = []
+    for sim, start in zip(st["sim"].tolist(), st["start"].tolist(), strict=True):
+        sl = slice(start + t + 1, start + env.params.episode_steps + 1)
+        kept.append((sim, sl, pos[sim, sl].clone(), present[sim, sl].clone()))
+        n = pos[sim, sl].shape
+        pos[sim, sl] = 1e4 * torch.rand(n, generator=gen) - 5e3
+        present[sim, sl] = torch.rand(n[:1] + n[2:], generator=gen) < 0.5
+    try:
+        return predict(env, horizon)
+    finally:
+        for sim, sl, p, q in kept:
+            pos[sim, sl], present[sim, sl] = p, q
+
+
 class Poisoned(ConstantVelocity):
-    """Constant velocity with every trace row after each env's step t (to its window's
-    end) replaced by garbage while it predicts (the env steps on the true traces)."""
+    """Constant velocity reading garbage after step t (:func:`poisoned`)."""
 
     def __call__(self, env: UABSEnv, horizon: int) -> dict[str, torch.Tensor]:
-        st, pos, present = env.state, env.veh_pos, env.veh_present
-        t = int(st["t"][0])
-        assert (st["t"] == t).all()  # the windows run in lock step: no window's rows are
-        # another's future
-        gen = torch.Generator().manual_seed(t)
-        kept = []
-        for sim, start in zip(st["sim"].tolist(), st["start"].tolist(), strict=True):
-            sl = slice(start + t + 1, start + env.params.episode_steps + 1)
-            kept.append((sim, sl, pos[sim, sl].clone(), present[sim, sl].clone()))
-            n = pos[sim, sl].shape
-            pos[sim, sl] = 1e4 * torch.rand(n, generator=gen) - 5e3
-            present[sim, sl] = torch.rand(n[:1] + n[2:], generator=gen) < 0.5
-        try:
-            return super().__call__(env, horizon)
-        finally:
-            for sim, sl, p, q in kept:
-                pos[sim, sl], present[sim, sl] = p, q
+        return poisoned(super().__call__, env, horizon)
 
 
 @pytest.mark.parametrize("overrides", [("masking=flat",), ("masking=rank",)])
@@ -216,8 +222,8 @@ def test_within_sees_only_the_vehicles_near_a_uabs_and_options(trace_cache):
     for bad in ("-1", "far", "nan", "inf"):
         with pytest.raises(ValueError, match="--sees must be 'all' or a distance"):
             parse_sees(bad)
-    with pytest.raises(ValueError, match="unknown predictor 'road'"):
-        make_predictor("road")
+    with pytest.raises(ValueError, match="unknown predictor 'bus'"):
+        make_predictor("bus")
 
 
 @pytest.fixture(scope="module")

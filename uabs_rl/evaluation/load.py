@@ -285,14 +285,17 @@ def evaluate_policies(ev: Evaluation, policies: tuple[str, ...], seed: int = 0,
             gen = torch.Generator(device=env.base_env.device)
             gen.manual_seed(seed)  # the mpc's tie-break draws, as baseline_policy seeds them
             planner = PlannerScore(env.base_env, mpc_horizon, gen,
-                                   predictor=make_predictor(predictor, sees))
+                                   predictor=make_predictor(predictor, sees, ev.cfg.scenario,
+                                                            env.base_env.device))
             policy = TensorDictSequential(
                 HybridScore(planner, ev.greedy[0].module, hybrid_weight), make_selector(env))
         else:
             sites = junction_sites(ev.cfg, env.base_env) if name == "junctions" else None
             policy = baseline_policy(name, env, make_selector(env), seed,
                                      horizon=mpc_horizon if name == MPC else horizon,
-                                     sites=sites, predictor=make_predictor(predictor, sees)
+                                     sites=sites,
+                                     predictor=make_predictor(predictor, sees, ev.cfg.scenario,
+                                                              env.base_env.device)
                                      if name == MPC else None)
         t0 = time.perf_counter()
         results[name] = ev.evaluator.evaluate(policy, ev.episode, ev.env_steps)

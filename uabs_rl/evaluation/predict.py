@@ -15,11 +15,14 @@ A predictor turns what the controller knows at step t into the world the planner
   seen first now stands still; presence stays as now (no arrival is foreseen). It reads
   the traces at steps t and t − 1 of the window only (tested: a future replaced by
   garbage gives the same actions).
+* :class:`~uabs_rl.evaluation.roads.RoadAware`: each moving vehicle along its lane of the
+  scenario's SUMO network and the straightest successors after it, at its current speed
+  (the map and the same two positions; no route).
 * :class:`Within`: any predictor restricted to what the UABS see, the vehicles within
   ``radius`` metres (planar) of some UABS at step t; the others are absent to the plan.
 
-The deployable planner is ``uabs-eval --policy mpc --predictor cv`` (optionally
-``--sees R``). :func:`prediction_error` measures a predictor's error k steps ahead.
+The deployable planner is ``uabs-eval --policy mpc --predictor cv`` (or ``road``;
+optionally ``--sees R``). :func:`prediction_error` measures a predictor's error k steps ahead.
 """
 
 from __future__ import annotations
@@ -31,7 +34,10 @@ import torch
 from uabs_rl.env.service import vehicles_at
 from uabs_rl.env.uabs_env import UABSEnv
 
-PREDICTORS = ("cv", "true")  # --predictor: constant velocity (default), the true future
+# --predictor: constant velocity (default), along the roads (the scenario's SUMO network,
+# uabs_rl.evaluation.roads), the true future
+PREDICTORS = ("cv", "road", "true")
+REACH_M = 400.0  # how far along the roads the road-aware predictor looks (H · speed)
 
 
 def schedule(env: UABSEnv, horizon: int) -> dict[str, torch.Tensor]:
@@ -106,13 +112,21 @@ class Within(Predictor):
         return w
 
 
-def make_predictor(name: str = "cv", sees: str | float = "all") -> Predictor:
+def make_predictor(name: str = "cv", sees: str | float = "all", scenario=None,
+                   device: torch.device | str = "cpu") -> Predictor:
     """The predictor ``name`` (one of PREDICTORS) seeing every vehicle (``sees="all"``)
-    or those within ``sees`` metres of some UABS."""
+    or those within ``sees`` metres of some UABS. ``road`` reads ``scenario``'s SUMO
+    network (:mod:`uabs_rl.evaluation.roads`), onto ``device``."""
     if name == "cv":
         pred: Predictor = ConstantVelocity()
     elif name == "true":
         pred = TrueFuture()
+    elif name == "road":
+        from uabs_rl.evaluation.roads import RoadAware, load_network
+
+        if scenario is None:
+            raise ValueError("the road-aware predictor needs the scenario (its network)")
+        pred = RoadAware(load_network(scenario, REACH_M, device))
     else:
         raise ValueError(f"unknown predictor {name!r}: choose from {PREDICTORS}")
     if str(sees) == "all":
