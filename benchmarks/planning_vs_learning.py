@@ -6,6 +6,7 @@ with Student-t 95 % CIs over the windows and the compute per decision.
     python benchmarks/planning_vs_learning.py --out docs/results/planning_vs_learning
     python benchmarks/planning_vs_learning.py --modes rank --fleets 3 6 --sees all 100
     python benchmarks/planning_vs_learning.py --predictors cv road --horizons 1 5 10
+    python benchmarks/planning_vs_learning.py --paired docs/results/planning_vs_learning/road
 
 Writes ``table.csv`` (per policy and setting: served fraction and P_g(N̂_s) with their
 intervals over windows, paired differences against greedy, ms per decision for the
@@ -13,6 +14,12 @@ whole fleet, amortised over the windows run side by side), ``per_window.json`` a
 ``prediction_error.csv`` (each predictor's error k steps ahead on the same windows;
 ``--predictors``: constant velocity, ``road`` along the SUMO network's lanes). One
 process, one torch thread. No trained checkpoint is read.
+
+At the end (or alone, ``--paired DIR`` on a folder it wrote) it prints the paired
+differences over the same windows that say what prediction costs and what the road
+network adds: each mpc against the clairvoyant planner at the same horizon, the road
+predictor against constant velocity at the same horizon and visibility, and each
+horizon against the shorter ones (above 1) of the same policy.
 """
 
 from __future__ import annotations
@@ -87,6 +94,37 @@ def evaluate(mode: str, m: int, horizons: list[int], ceiling: list[int], sees: l
     return rows, errs
 
 
+def paired(rows: list[dict], log) -> None:
+    """mpc − planner and mpc (road) − mpc (cv), paired over windows (module docstring)."""
+    by = {(r["mode"], r["n_uabs"], r["policy"]): r for r in rows}
+
+    def line(a: dict, b: dict, what: str) -> None:
+        parts = []
+        for metric, key in (("served", "served_fractions"), ("P_g", "pgs")):
+            d = paired_difference(a[key], b[key])
+            parts.append(f"{metric} {100 * d['diff']:+.2f} [{100 * d['ci_low']:+.2f}, "
+                         f"{100 * d['ci_high']:+.2f}]")
+        log(f"{a['mode']} M={a['n_uabs']} {what}: {', '.join(parts)} points")
+
+    for (mode, m, label), r in by.items():
+        name, h = (label.split()[0], label.split()[1][2:]) if " H=" in label else (label, "")
+        if name in ("mpc", "planner"):  # a longer horizon against each shorter one > 1
+            for (mode2, m2, label2), shorter in by.items():
+                h2 = label2.split()[1][2:] if label2.startswith(name + " H=") else ""
+                if ((mode2, m2) == (mode, m) and h2 and 1 < int(h2) < int(h)
+                        and label2 == label.replace(f"H={h} ", f"H={h2} ")):
+                    line(r, shorter, f"{label} - {label2}")
+        if name != "mpc":
+            continue
+        ceiling = by.get((mode, m, f"planner H={h} (clairvoyant)"))
+        if ceiling is not None:
+            line(r, ceiling, f"{label} - planner H={h}")
+        if "(road" in label:
+            cv = by.get((mode, m, label.replace("(road", "(cv")))
+            if cv is not None:
+                line(r, cv, f"{label} - {cv['policy']}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--modes", nargs="+", default=["rank"])
@@ -98,7 +136,12 @@ def main() -> None:
     ap.add_argument("--predictors", nargs="+", default=["cv"], choices=("cv", "road"),
                     help="the mpc's predictors (default cv)")
     ap.add_argument("--out", type=Path)
+    ap.add_argument("--paired", type=Path, metavar="DIR",
+                    help="only print the paired differences of a folder this script wrote")
     args = ap.parse_args()
+    if args.paired is not None:
+        paired(json.loads((args.paired / "per_window.json").read_text()), print)
+        return
     torch.set_num_threads(1)
     lines: list[str] = []
 
@@ -114,6 +157,7 @@ def main() -> None:
                             tuple(args.predictors))
             rows += r
             errs += e
+    paired(rows, log)
     log(f"total {time.perf_counter() - t0:.0f} s (1 torch thread)")
     if args.out is None:
         return
