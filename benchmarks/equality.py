@@ -1,6 +1,7 @@
 """The equality set: ten short trainings whose ``metrics.jsonl`` files a change that
 claims to keep behaviour must leave byte for byte as they were.
 
+    python benchmarks/equality.py --check benchmarks/equality_record.json  # the committed record
     python benchmarks/equality.py --record /tmp/eq_before.json   # before the change
     python benchmarks/equality.py --check /tmp/eq_before.json    # after: exit 1 if any differs
     python benchmarks/equality.py --check /tmp/eq_before.json --set train.compile_update=false
@@ -11,7 +12,11 @@ of the paper's defaults (``train.episodes=40``: the main job's network, compiled
 and update). Each run is ``uabs-train`` in its own process with ``train.threads=1`` (the
 thread count enters float rounding, and on a busy machine the governor would change it
 mid-run), into a fresh folder under ``--out`` (a temporary one by default). The record is
-the md5 of every metrics file; ``--check`` prints each run as ``same`` or ``DIFFERS``.
+the md5 of every metrics file, with the CPU and the torch version it was recorded on
+(float rounding depends on both: compare records from the same kind of machine);
+``--check`` prints each run as ``same`` or ``DIFFERS``. ``benchmarks/equality_record.json``
+is the record of the compiled default (recorded twice, identical), on the machine it
+names.
 ``--set`` appends overrides to every run (a path kept beside a new default: the eager
 update after ``train.compile_update`` became the default).
 About 3 minutes on 2 cores.
@@ -58,6 +63,22 @@ def train(name: str, overrides: list[str], out: Path, extra: list[str]) -> dict[
             for f in files}
 
 
+def machine() -> dict[str, str]:
+    """What the metrics' float rounding depends on, stored beside the md5s."""
+    import platform
+
+    import torch
+
+    cpu = platform.processor() or platform.machine()
+    cpuinfo = Path("/proc/cpuinfo")
+    if cpuinfo.exists():
+        names = [ln.split(":", 1)[1].strip() for ln in cpuinfo.read_text().splitlines()
+                 if ln.startswith("model name")]
+        cpu = names[0] if names else cpu
+    return {"_cpu": cpu, "_torch": torch.__version__,
+            "_capability": torch.backends.cpu.get_cpu_capability()}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     what = ap.add_mutually_exclusive_group(required=True)
@@ -70,6 +91,12 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     out = args.out or Path(tempfile.mkdtemp(prefix="uabs_equality_"))
     expected = json.loads(args.check.read_text()) if args.check else None
+    here = machine()
+    if expected is not None:
+        other = {k: (expected[k], v) for k, v in here.items() if k in expected and expected[k] != v}
+        if other:
+            print(f"warning: recorded on another machine or torch ({other}): "
+                  "float rounding may differ without any change of behaviour")
     md5: dict[str, str] = {}
     t0 = time.perf_counter()
     for name in args.only or RUNS:
@@ -81,7 +108,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{key:<32} {h}{verdict}", flush=True)
     print(f"{len(md5)} metrics files in {time.perf_counter() - t0:.0f} s, under {out}")
     if args.record:
-        args.record.write_text(json.dumps(md5, indent=1, sort_keys=True) + "\n")
+        args.record.write_text(json.dumps({**here, **md5}, indent=1, sort_keys=True) + "\n")
         return 0
     differ = [k for k, h in md5.items() if expected.get(k) != h]
     print("identical" if not differ else f"{len(differ)} of {len(md5)} differ: {differ}")
