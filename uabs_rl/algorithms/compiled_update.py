@@ -116,7 +116,15 @@ class UpdateProgram:
                  optims: Sequence[torch.optim.Adam], clip: Clip | None = None,
                  device: torch.device | str = "cpu"):
         self.optims = list(optims)
-        self.params = [p for o in self.optims for g in o.param_groups for p in g["params"]]
+        # per parameter, in the optimisers' order: it, its (β1, β2, eps), lr, optimiser
+        self.params, self.hyper, self.rates, self.owner = [], [], [], []
+        for i, o in enumerate(self.optims):
+            for g in o.param_groups:
+                for p in g["params"]:
+                    self.params.append(p)
+                    self.hyper.append((*map(float, g["betas"]), float(g["eps"])))
+                    self.rates.append(float(g["lr"]))
+                    self.owner.append(i)
         trained = _Trained(loss_module, modules)
         names = {id(p): n for n, p in trained.named_parameters()}
         missing = [i for i, p in enumerate(self.params) if id(p) not in names]
@@ -127,12 +135,6 @@ class UpdateProgram:
         # the parameters' storage without their autograd identity: the program reads them
         # as plain inputs and writes the new values into them
         self.data = [p.detach() for p in self.params]
-        self.hyper = [(*map(float, g["betas"]), float(g["eps"]))
-                      for o in self.optims for g in o.param_groups for _ in g["params"]]
-        self.rates = [float(g["lr"]) for o in self.optims for g in o.param_groups
-                      for _ in g["params"]]
-        self.owner = [i for i, o in enumerate(self.optims) for g in o.param_groups
-                      for _ in g["params"]]
         self.clip = clip
 
         def loss_of(values: list[torch.Tensor], batch: dict[str, torch.Tensor]):
@@ -214,6 +216,7 @@ class UpdateProgram:
                 return out
             with torch.compiler.set_stance(skip_guard_eval_unsafe=True):
                 return self.compiled(*args)
+
 
 def adam_(p: torch.Tensor, g: torch.Tensor, m: torch.Tensor, v: torch.Tensor,
           step: torch.Tensor, beta1: float, beta2: float, eps: float,

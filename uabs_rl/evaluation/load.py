@@ -17,7 +17,6 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
-import torch
 from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 from tensordict.nn import TensorDictModuleBase, TensorDictSequential
@@ -37,7 +36,7 @@ from uabs_rl.env.uabs_env import N_ACTIONS
 from uabs_rl.evaluation.baselines import BASELINES, MPC, PLANNER, baseline_policy
 from uabs_rl.evaluation.evaluator import Evaluator, greedy_policy, make_eval_env
 from uabs_rl.evaluation.hybrid import HYBRID, HybridScore
-from uabs_rl.evaluation.planner import PlannerScore, gap_share, junction_sites
+from uabs_rl.evaluation.planner import gap_share, junction_sites
 from uabs_rl.evaluation.predict import make_predictor
 from uabs_rl.evaluation.stats import paired_difference
 from uabs_rl.paths import safe_component
@@ -278,25 +277,28 @@ def evaluate_policies(ev: Evaluation, policies: tuple[str, ...], seed: int = 0,
     fleet's decision, amortised over the windows)."""
     results = {}
     env = ev.evaluator.env
+    made = {}  # the mpc's and the hybrid's predictor, made once (road reads the network)
+
+    def mpc_policy() -> TensorDictSequential:
+        if not made:
+            made["predictor"] = make_predictor(predictor, sees, ev.cfg.scenario,
+                                               env.base_env.device)
+        return baseline_policy(MPC, env, make_selector(env), seed, horizon=mpc_horizon,
+                               predictor=made["predictor"])
+
     for name in policies:
         if name == "learned":
             policy = ev.greedy
-        elif name == HYBRID:
-            gen = torch.Generator(device=env.base_env.device)
-            gen.manual_seed(seed)  # the mpc's tie-break draws, as baseline_policy seeds them
-            planner = PlannerScore(env.base_env, mpc_horizon, gen,
-                                   predictor=make_predictor(predictor, sees, ev.cfg.scenario,
-                                                            env.base_env.device))
+        elif name == MPC:
+            policy = mpc_policy()
+        elif name == HYBRID:  # the mpc's scores (same seeded tie-break) + λ Q, its selector
+            score, selector = mpc_policy()
             policy = TensorDictSequential(
-                HybridScore(planner, ev.greedy[0].module, hybrid_weight), make_selector(env))
+                HybridScore(score, ev.greedy[0].module, hybrid_weight), selector)
         else:
             sites = junction_sites(ev.cfg, env.base_env) if name == "junctions" else None
-            policy = baseline_policy(name, env, make_selector(env), seed,
-                                     horizon=mpc_horizon if name == MPC else horizon,
-                                     sites=sites,
-                                     predictor=make_predictor(predictor, sees, ev.cfg.scenario,
-                                                              env.base_env.device)
-                                     if name == MPC else None)
+            policy = baseline_policy(name, env, make_selector(env), seed, horizon=horizon,
+                                     sites=sites)
         t0 = time.perf_counter()
         results[name] = ev.evaluator.evaluate(policy, ev.episode, ev.env_steps)
         sec = time.perf_counter() - t0

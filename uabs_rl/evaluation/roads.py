@@ -113,8 +113,8 @@ class RoadNetwork:
         self.seg_lane = t[:, 6].long()
         # straight-on chains, padded with their last point (and length)
         chains = []
-        for lane in lanes:
-            pts = list(shapes[self.index[lane.getID()]])
+        for lane, shape in zip(lanes, shapes, strict=True):
+            pts = list(shape)
             length, cur, seen = lane.getLength(), lane, {lane.getID()}
             while length < reach_m:
                 nxt = straightest(cur, net)
