@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from uabs_rl.evaluation.load import evaluate_policies, load_evaluation
+from uabs_rl.evaluation.load import Evaluation, evaluate_policies, load_evaluation
 from uabs_rl.evaluation.predict import parse_sees
 from uabs_rl.evaluation.stats import paired_over_seeds, t_interval
 
@@ -44,10 +44,17 @@ def members(root: Path) -> list[Path]:
     return found or [root]
 
 
+LOADED: dict[tuple, Evaluation] = {}  # each member's best.pt, env and traces, per split
+
+
 def flown(run: Path, policies: tuple[str, ...], split: str, windows: int | None,
           args: argparse.Namespace, weight: float = 0.0) -> dict[str, dict]:
-    """Each policy's record on ``split`` (every window, or ``windows``)."""
-    ev = load_evaluation(run, "best", windows, split, args.overrides)
+    """Each policy's record on ``split`` (every window, or ``windows``); a member and
+    split are loaded once, for every λ."""
+    key = (run, split, windows)
+    if key not in LOADED:
+        LOADED[key] = load_evaluation(run, "best", windows, split, args.overrides)
+    ev = LOADED[key]
     out = evaluate_policies(ev, policies, mpc_horizon=args.mpc_horizon,
                             predictor=args.predictor, sees=args.sees, hybrid_weight=weight)
     recs = {name: rec for name, (rec, _) in out.items()}
