@@ -62,11 +62,12 @@ def test_smoke_run_per_masking_mode(trace_cache, tmp_path, mode):
                                   ["algo=qmix", "masking=flat"],
                                   ["algo=qmix", "masking=rank", "train.population=2"],
                                   ["algo.replay=prioritized", "masking=rank"],
-                                  ["algo=qmix", "algo.replay=prioritized", "masking=flat"]])
+                                  ["algo=qmix", "algo.replay=prioritized", "masking=flat"],
+                                  ["algo=dqfd", "masking=rank", "train.population=2"]])
 def test_each_learner_trains_end_to_end_without_a_collision_or_fallback(trace_cache, tmp_path,
                                                                        args):
-    """VDN, QMIX and prioritized replay through uabs-train's path (single runs and
-    populations), evaluated by uabs-eval from the checkpoint."""
+    """VDN, QMIX, the teacher-guided 3DQN and prioritized replay through uabs-train's path
+    (single runs and populations), evaluated by uabs-eval from the checkpoint."""
     run(smoke(trace_cache, *args, "train.trajectory_images=false", "train.logger=none"),
         tmp_path)
     dirs = sorted(tmp_path.glob("seed=*")) or [tmp_path]
@@ -223,12 +224,14 @@ def test_ctrl_c_finishes_the_round_saves_last_and_stops(trace_cache, tmp_path, m
 @pytest.mark.parametrize("extra", [["algo=vdn"], ["algo=vdn", "train.population=2"],
                                    ["algo=qmix", "algo.replay=prioritized",
                                     "train.population=2"],
-                                   ["algo.replay=prioritized"]])
+                                   ["algo.replay=prioritized"],
+                                   ["algo=dqfd", "algo.teacher_horizon=3"]])
 def test_a_run_of_each_learner_stopped_and_resumed_equals_the_uninterrupted_run(
         trace_cache, tmp_path, monkeypatch, extra):
-    """VDN, QMIX and prioritized replay stopped by Ctrl-C after episode 2 and resumed:
-    every record and the final networks (mixers included) as in the run that was never
-    stopped (its replay of whole steps and its priorities included)."""
+    """VDN, QMIX, the teacher-guided 3DQN and prioritized replay stopped by Ctrl-C after
+    episode 2 and resumed: every record and the final networks (mixers included) as in
+    the run that was never stopped (its replay of whole steps, its priorities and its
+    teacher's labels included)."""
     args = ["train.checkpoint_buffer=true", "train.logger=none",
             "train.trajectory_images=false", "train.eval_every=2", "train.threads=1", *extra]
     run(smoke(trace_cache, *args), tmp_path / "ref")

@@ -106,6 +106,9 @@ class Algorithm(ABC):
     policy: nn.Module
     buffer: object  # TransitionReplay
     updates: int  # gradient steps so far (every member steps together)
+    # a learner that imitates a planner: the horizon of the clairvoyant planner that
+    # labels its training states (uabs_rl.training.teacher; algo=dqfd); None: no teacher
+    teacher_horizon: int | None = None
 
     def __init__(self, algo: AlgoConfig, dims: Dims, seeds: list[int],
                  device: torch.device):

@@ -102,13 +102,17 @@ class DQN3Loss(LossModule):
     def agent_values(self, b: TensorDict) -> tuple[torch.Tensor, torch.Tensor]:
         """Q(o, a) (with gradient) and Q_target(o', argmax_{a' ∈ mask'} Q(o', a')) (without),
         per transition: the fields' shape without the feature dim."""
-        obs, next_obs = b.get("obs"), b.get("next_obs")
-        q_taken = self.value_network(obs).gather(-1, b.get("action")[..., None]).squeeze(-1)
-        with torch.no_grad():  # o' outside the graph: the backward pass covers o only
-            best = self.value_network(next_obs).masked_fill(
-                ~b.get("next_mask"), -torch.inf).argmax(-1, keepdim=True)
-            q_next = self.target_network(next_obs).gather(-1, best).squeeze(-1)
-        return q_taken, q_next
+        q_taken = self.value_network(b.get("obs")).gather(
+            -1, b.get("action")[..., None]).squeeze(-1)
+        return q_taken, self.next_values(b)
+
+    @torch.no_grad()  # o' outside the graph: the backward pass covers o only
+    def next_values(self, b: TensorDict) -> torch.Tensor:
+        """Q_target(o', argmax_{a' ∈ mask'} Q(o', a')) per transition, without gradient."""
+        next_obs = b.get("next_obs")
+        best = self.value_network(next_obs).masked_fill(
+            ~b.get("next_mask"), -torch.inf).argmax(-1, keepdim=True)
+        return self.target_network(next_obs).gather(-1, best).squeeze(-1)
 
     def target_state(self, member: int | None = None) -> dict[str, torch.Tensor]:
         """The target network's state dict, or member ``member``'s of a population."""
@@ -200,7 +204,8 @@ class DQN3(Algorithm):
                                        dims.n_agents, self.seeds, self.sample_size(),
                                        unit=self.unit, device=device,
                                        priority_alpha=algo.priority_alpha if prioritized
-                                       else None, priority_beta=algo.priority_beta)
+                                       else None, priority_beta=algo.priority_beta,
+                                       extra=self.extra_fields())
 
     @classmethod
     def check_config(cls, algo: AlgoConfig) -> None:
@@ -213,6 +218,11 @@ class DQN3(Algorithm):
         """A module of each member built right after its network, from the same seeded
         draws (QMIX's mixer); the 3DQN has none."""
         return None
+
+    def extra_fields(self) -> dict[str, tuple[tuple[int, ...], torch.dtype]]:
+        """The learner's own per-agent replay fields beside the transitions' (``algo=dqfd``'s
+        teacher labels); the 3DQN has none."""
+        return {}
 
     def make_loss(self, gamma: float) -> LossModule:
         """The loss module on ``self.policy`` (``algo.loss`` picks the implementation)."""

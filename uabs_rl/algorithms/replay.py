@@ -49,15 +49,21 @@ FIELDS = ("obs", "action", "mask", "reward", "next_obs", "next_mask", "terminate
 UNITS = ("agent", "step")
 
 
+# a learner's own per-agent fields beside FIELDS: name -> (shape, dtype)
+ExtraFields = Mapping[str, tuple[tuple[int, ...], torch.dtype]]
+
+
 def storage(lead: tuple[int, ...], capacity: int, obs_dim: int, n_actions: int,
-            device: torch.device) -> dict[str, torch.Tensor]:
-    """Zeroed tensors for every field of :data:`FIELDS`, shaped ``[*lead, capacity, ...]``."""
+            device: torch.device, extra: ExtraFields | None = None) -> dict[str, torch.Tensor]:
+    """Zeroed tensors for every field of :data:`FIELDS` and of ``extra`` (a learner's
+    own, such as ``algo=dqfd``'s teacher labels), shaped ``[*lead, capacity, ...]``."""
     shapes = {"obs": ((obs_dim,), torch.float32), "action": ((), torch.long),
               "mask": ((n_actions,), torch.bool), "reward": ((), torch.float32),
               "next_obs": ((obs_dim,), torch.float32),
-              "next_mask": ((n_actions,), torch.bool), "terminated": ((), torch.bool)}
-    return {k: torch.zeros(*lead, capacity, *shapes[k][0], dtype=shapes[k][1], device=device)
-            for k in FIELDS}
+              "next_mask": ((n_actions,), torch.bool), "terminated": ((), torch.bool),
+              **(extra or {})}
+    return {k: torch.zeros(*lead, capacity, *shape, dtype=dtype, device=device)
+            for k, (shape, dtype) in shapes.items()}
 
 
 def transition_bytes(obs_dim: int, n_actions: int) -> int:
@@ -150,7 +156,7 @@ class TransitionReplay:
     def __init__(self, capacity: int, obs_dim: int, n_actions: int, n_agents: int,
                  seeds: list[int], batch_size: int, unit: str = "agent",
                  device: str | torch.device = "cpu", priority_alpha: float | None = None,
-                 priority_beta: float = 0.4):
+                 priority_beta: float = 0.4, extra: ExtraFields | None = None):
         if unit not in UNITS:
             raise ValueError(f"unit must be one of {UNITS}, got {unit!r}")
         dev = torch.device(device)
@@ -159,7 +165,8 @@ class TransitionReplay:
         self.slots = math.ceil(capacity / n_agents)  # S, env-step slots per member
         self.members = len(seeds)
         # [P, S, M, ...]: the agents of a step as the last lead dim
-        self.data = storage((self.members, self.slots), n_agents, obs_dim, n_actions, dev)
+        self.data = storage((self.members, self.slots), n_agents, obs_dim, n_actions, dev,
+                            extra)
         # what a sample indexes: per agent transition the same memory as [P, S·M, ...];
         # and member 0's alone (a single run's sample: one index_select per field)
         self.fields = (self.data if unit == "step" else
@@ -278,7 +285,11 @@ class TransitionReplay:
             raise ValueError(f"the saved buffer holds {held} steps of "
                              f"{state['data']['obs'].shape[1]} agents, more than "
                              f"algo.buffer_size={self.capacity} or another fleet")
-        for k in FIELDS:
+        missing = sorted(set(self.data) - set(state["data"]))
+        if missing:
+            raise ValueError(f"the saved buffer holds no {', '.join(missing)} (saved by "
+                             f"another learner): resume it with that learner's algo=")
+        for k in self.data:
             self.data[k][p, :held] = state["data"][k].to(self.data[k].device)
         self.written = int(state["written"])
         self.generators[p].set_state(state["generator"])

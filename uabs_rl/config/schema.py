@@ -194,7 +194,7 @@ class AlgoConfig:
     """3DQN: shared dueling double DQN (docs/model.md §7). Defaults follow the authors' single-UABS
     3DQN where the paper is silent (see docs/configuration.md, "Learning hyper-parameters")."""
 
-    name: str = "dqn3"  # the learner: a key of uabs_rl.algorithms.ALGORITHMS (dqn3, vdn, qmix)
+    name: str = "dqn3"  # the learner: a key of uabs_rl.algorithms.ALGORITHMS (dqn3, vdn, qmix, ...)
     hidden: list[int] = field(default_factory=lambda: [256, 256])  # MLP trunk widths
     lr: float = 1e-4  # Adam learning rate
     gamma: float = 0.8  # discount γ
@@ -230,8 +230,25 @@ class QmixConfig(AlgoConfig):
     mixing_embed_dim: int = 32  # width of the mixing network (its hypernetworks)
 
 
+@dataclass
+class DqfdConfig(AlgoConfig):
+    """The teacher-guided 3DQN's own settings (``algo=dqfd``: conf/algo/dqfd.yaml;
+    uabs_rl/algorithms/dqfd.py). At every training step a privileged teacher, the
+    clairvoyant receding-horizon planner, labels the states the learner's own ε-greedy
+    policy visits (DAgger); the loss adds to the 3DQN's TD loss a large-margin term
+    (DQfD) that pulls the teacher's move above every other legal move by a margin."""
+
+    name: str = "dqfd"
+    teacher_horizon: int = 5  # the teacher planner's horizon H (uabs-eval --horizon)
+    # J_E = max_{a legal} [Q(o, a) + margin · (a != a_E)] − Q(o, a_E), in the reward's
+    # units: about the gap between a trained network's two best moves (5.8, measured on
+    # experiment=lookahead_motion)
+    teacher_margin: float = 5.0
+    imitation_weight: float = 1.0  # λ_E: the loss is TD + λ_E · J_E (0: the 3DQN's loss)
+
+
 # the learners with settings of their own, by algo.name; the others take AlgoConfig
-LEARNER_SCHEMAS: dict[str, type[AlgoConfig]] = {"qmix": QmixConfig}
+LEARNER_SCHEMAS: dict[str, type[AlgoConfig]] = {"qmix": QmixConfig, "dqfd": DqfdConfig}
 
 
 def algo_schema(name: object) -> type[AlgoConfig]:
@@ -369,3 +386,5 @@ RANGES.update({
 })
 RANGES[TracesAppConfig] = RANGES[RunConfig]
 RANGES[QmixConfig] = {**RANGES[AlgoConfig], "mixing_embed_dim": _r(1, 65_536)}
+RANGES[DqfdConfig] = {**RANGES[AlgoConfig], "teacher_horizon": _r(1, 1_000_000),
+                      "teacher_margin": _r(0, 1e9), "imitation_weight": _r(0, 1e9)}

@@ -165,6 +165,14 @@ class PlannerScore(TensorDictModuleBase):
         self.in_keys, self.out_keys = [POSITION, MASK, BEAM_PRIORITY], [ACTION_VALUE]
 
     def forward(self, td: TensorDictBase) -> TensorDictBase:
+        score = self.scores(td)
+        jitter = torch.rand(score.shape, generator=self.generator, device=score.device)
+        td.set(ACTION_VALUE, score + JITTER * jitter)
+        return td
+
+    @torch.no_grad()
+    def scores(self, td: TensorDictBase) -> torch.Tensor:
+        """[E, M, 4] each move's score (the class docstring), before the tie-break."""
         env, p = self.env, self.env.params
         w = self.world()
         cand = td.get(POSITION)[:, :, None, :] + env.math.moves  # [E, M, 4, 2]
@@ -172,9 +180,7 @@ class PlannerScore(TensorDictModuleBase):
                             p.n_beams)
         if self.horizon > 1:
             score = score + self.future(td, w, first=score)
-        jitter = torch.rand(score.shape, generator=self.generator, device=score.device)
-        td.set(ACTION_VALUE, score + JITTER * jitter)
-        return td
+        return score
 
     # ------------------------------------------------------------------ the plan
     def world(self) -> dict[str, torch.Tensor]:

@@ -33,6 +33,7 @@ from uabs_rl.training.members import Checkpoints, Member, member_dir, member_see
 from uabs_rl.training.rollout import Collector, UpdateSchedule, episode_records, epsilon
 from uabs_rl.training.runlog import check_logger
 from uabs_rl.training.startup import validate_run
+from uabs_rl.training.teacher import Teacher
 from uabs_rl.training.threads import setup_threads
 
 log = logging.getLogger(__name__)
@@ -199,8 +200,11 @@ class Experiment:
         self.gen = make_generator(seed, dev)
         selector = make_selector(env, cfg.algo.eps_start, self.gen,
                                  compile=tr.compile)
+        horizon = self.learner.teacher_horizon  # a learner that imitates a planner
         self.collector = Collector(env, self.qnet, selector, self.buffer, members=self.n,
-                                   n_step=cfg.algo.n_step, gamma=cfg.algo.gamma)
+                                   n_step=cfg.algo.n_step, gamma=cfg.algo.gamma,
+                                   teacher=None if horizon is None else
+                                   Teacher(env.base_env, horizon))
         self.updates = UpdateSchedule(self.learner, cfg.algo)
         self.evaluator = Evaluator(eval_env, tr.eval_seed)
         self.greedy = greedy_policy(self.qnet, eval_env, cfg, compile=tr.compile,

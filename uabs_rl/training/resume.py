@@ -137,12 +137,20 @@ def typed_settings(overrides: list[str]) -> tuple[dict[str, Any], set[str]]:
     comp = _composer()
     base = _flat_config(comp([]))
     typed = _flat_config(comp(overrides)) if overrides else base
+
+    def name(o: str) -> str:
+        return o.split("=", 1)[0].lstrip("+~").split("@", 1)[0].replace("/", ".")
+
+    # a setting is composed with the group choices typed beside it: a learner's own
+    # setting (algo.teacher_horizon) exists only under its group (algo=dqfd)
+    groups = [o for o in overrides if "." not in name(o)]
+    grouped = _flat_config(comp(groups)) if groups else base
     touched: set[str] = set()
     for o in overrides:
-        alone = _flat_config(comp([o]))
-        touched |= {k for k in alone if alone[k] != base.get(k)}
-        name = o.split("=", 1)[0].lstrip("+~").split("@", 1)[0].replace("/", ".")
-        touched |= {k for k in typed if k == name or k.startswith(name + ".")}
+        ref, alone = ((base, _flat_config(comp([o]))) if o in groups
+                      else (grouped, _flat_config(comp([*groups, o]))))
+        touched |= {k for k in alone if alone[k] != ref.get(k)}
+        touched |= {k for k in typed if k == name(o) or k.startswith(name(o) + ".")}
     return typed, touched
 
 

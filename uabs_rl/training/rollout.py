@@ -18,6 +18,7 @@ from uabs_rl.config import AlgoConfig
 from uabs_rl.env.uabs_env import ACTION, DIAG, DIAG_ENTRIES, MASK, OBS, REWARD
 from uabs_rl.safety.modules import DirectEnv, MaskedActionSelector
 from uabs_rl.safety.rules import ACTION_VALUE
+from uabs_rl.training.teacher import Teacher
 
 
 def epsilon(algo: AlgoConfig, env_steps: int, total_steps: int) -> float:
@@ -53,8 +54,11 @@ class Collector:
 
     def __init__(self, env: TransformedEnv, qnet: nn.Module, selector: MaskedActionSelector,
                  buffer: TransitionReplay, members: int = 1,
-                 n_step: int = 1, gamma: float = 1.0):
+                 n_step: int = 1, gamma: float = 1.0, teacher: Teacher | None = None):
         self.env, self.qnet, self.selector, self.buffer = env, qnet, selector, buffer
+        # a learner that imitates a planner (algo=dqfd): each transition also holds the
+        # teacher's move for the state the ε-greedy policy reached ("teacher" [E, M])
+        self.teacher = teacher
         self.direct = DirectEnv(env)  # env.reset / env.step without TensorDicts
         self.params = env.base_env.params
         self.n_envs = env.base_env.n_envs
@@ -101,11 +105,14 @@ class Collector:
             if defer and t >= n:  # s_t's target mask completes transition t - n
                 self._push(self._transition(record, pushed), self.selector.target_mask(td))
                 pushed += 1
+            scores = self.teacher.scores(td) if self.teacher is not None else None
             self.selector(td)
             nxt = self.direct.step(td)
             record.append({"obs": td.get(OBS), "action": td.get(ACTION), "mask": td.get(MASK),
                            "reward": nxt.get(REWARD).squeeze(-1), "next_obs": nxt.get(OBS),
                            "terminated": nxt.get(("agents", "terminated")).squeeze(-1)})
+            if scores is not None:  # the best move the mask that applied allows
+                record[-1]["teacher"] = Teacher.label(scores, td.get(MASK))
             if not defer and t >= n - 1:
                 self._push(self._transition(record, pushed), nxt.get(MASK))
                 pushed += 1
