@@ -15,6 +15,9 @@ validation traces and every reported figure on test traces.
    hybrid − mpc and learned − mpc; their mean over members with a Student-t 95 % CI over
    members (:func:`uabs_rl.evaluation.stats.paired_over_seeds`).
 
+``--compare A B`` reads two such folders (two populations flown by it) and prints
+learned(A) − learned(B) with Welch's interval over their members' means.
+
 Prints a markdown table and writes ``hybrid.json`` (every per-window value, the
 validation sweep, λ*) and ``log.txt`` (what it printed) into ``--out``. ``--mpc-horizon``,
 ``--predictor`` and ``--sees`` set the planner of both the mpc and the hybrid
@@ -34,7 +37,7 @@ import numpy as np
 
 from uabs_rl.evaluation.load import Evaluation, evaluate_policies, load_evaluation
 from uabs_rl.evaluation.predict import parse_sees
-from uabs_rl.evaluation.stats import paired_over_seeds, t_interval
+from uabs_rl.evaluation.stats import paired_over_seeds, t_interval, welch_difference
 
 METRICS = {"served": "served_fractions", "pg": "pgs"}
 
@@ -74,17 +77,37 @@ def ci(d: dict) -> str:
     return f"{100 * d['diff']:+.2f} [{100 * d['ci_low']:+.2f}, {100 * d['ci_high']:+.2f}]"
 
 
+def compare(a: Path, b: Path) -> None:
+    """Two learned policies (two populations, each flown by this benchmark into ``a`` and
+    ``b``) on the same test windows: the difference of their means over members with
+    Welch's 95 % interval (independent groups of seeds), served fraction and P_g."""
+    ra, rb = (json.loads((d / "hybrid.json").read_text())["policies"]["learned"]
+              for d in (a, b))
+    print(f"learned({a}) − learned({b}), test windows, Welch over the members' means:")
+    for k in METRICS:
+        ma, mb = ([float(np.nanmean(w)) for w in r[k]] for r in (ra, rb))
+        d = welch_difference(ma, mb)
+        print(f"  {k}: {100 * d['diff']:+.2f} [{100 * d['ci_low']:+.2f}, "
+              f"{100 * d['ci_high']:+.2f}] pt ({d['n_a']} and {d['n_b']} members)")
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("run", type=Path, help="a run folder or a population's folder")
+    ap.add_argument("run", type=Path, nargs="?", help="a run folder or a population's folder")
     ap.add_argument("overrides", nargs="*", help="world overrides, as uabs-eval takes them")
     ap.add_argument("--weights", type=float, nargs="+", default=[0.0, 0.25, 0.5, 1.0, 2.0])
     ap.add_argument("--mpc-horizon", type=int, default=5)
     ap.add_argument("--predictor", default="cv")
     ap.add_argument("--sees", default="all")
     ap.add_argument("--eval-windows", type=int, help="validation windows (default: all)")
-    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--out", type=Path)
+    ap.add_argument("--compare", type=Path, nargs=2, metavar=("A", "B"),
+                    help="print learned(A) − learned(B) from two --out folders, nothing flown")
     args = ap.parse_args(argv)
+    if args.compare:
+        return compare(*args.compare)
+    if args.run is None or args.out is None:
+        ap.error("give a run folder and --out (or --compare A B)")
     args.sees = parse_sees(args.sees)
     if any(not w >= 0 for w in args.weights):
         ap.error("--weights must be >= 0")
