@@ -81,8 +81,13 @@ def compare(a: Path, b: Path) -> None:
     """Two learned policies (two populations, each flown by this benchmark into ``a`` and
     ``b``) on the same test windows: the difference of their means over members with
     Welch's 95 % interval (independent groups of seeds), served fraction and P_g."""
-    ra, rb = (json.loads((d / "hybrid.json").read_text())["policies"]["learned"]
-              for d in (a, b))
+    ja, jb = (json.loads((d / "hybrid.json").read_text()) for d in (a, b))
+    same = ("mpc_horizon", "predictor", "sees", "overrides")
+    if any(ja[k] != jb[k] for k in same) or (
+            ja["policies"]["mpc"]["served"] != jb["policies"]["mpc"]["served"]):
+        sys.exit(f"{a} and {b} were flown under other settings or windows "
+                 f"({', '.join(same)}, the test windows): not comparable")
+    ra, rb = ja["policies"]["learned"], jb["policies"]["learned"]
     print(f"learned({a}) − learned({b}), test windows, Welch over the members' means:")
     for k in METRICS:
         ma, mb = ([float(np.nanmean(w)) for w in r[k]] for r in (ra, rb))

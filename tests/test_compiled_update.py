@@ -34,13 +34,15 @@ UPDATES = 100
 
 
 def learner(name: str, members: int, replay: str = "uniform", grad_clip: float | None = None):
-    """A small learner (3 agents) whose replay holds 400 random env steps per member."""
+    """A small learner (3 agents) whose replay holds 400 random env steps per member
+    (``dqfd``: with random teacher labels, some missing)."""
     algo = algo_schema(name)(name=name, replay=replay, hidden=[32, 32], target_update=20,
                              grad_clip=grad_clip)
     m = make_algorithm(algo, Dims(18, 4, 3), list(range(members)), torch.device("cpu"))
     g = torch.Generator().manual_seed(1)
     n = 400 * members
-    m.buffer.extend({
+    labels = {"teacher": torch.randint(-1, 4, (n, 3), generator=g)} if name == "dqfd" else {}
+    m.buffer.extend({**labels,
         "obs": torch.randn(n, 3, 18, generator=g),
         "action": torch.randint(0, 4, (n, 3), generator=g),
         "mask": torch.ones(n, 3, 4, dtype=torch.bool), "reward": torch.randn(n, 3, generator=g),
@@ -88,7 +90,7 @@ def test_compiled_3dqn_update_tracks_the_eager_one():
 @pytest.mark.slow
 @pytest.mark.parametrize("name, members, replay, grad_clip", [
     ("dqn3", 3, "uniform", None), ("dqn3", 1, "prioritized", None), ("vdn", 2, "uniform", None),
-    ("qmix", 1, "uniform", None), ("qmix", 2, "uniform", None),
+    ("qmix", 1, "uniform", None), ("qmix", 2, "uniform", None), ("dqfd", 2, "uniform", None),
     # a bound the random batches' gradients exceed, so every update is clipped
     ("dqn3", 1, "uniform", 0.05), ("qmix", 2, "uniform", 0.05)])
 def test_compiled_update_tracks_the_eager_one(name, members, replay, grad_clip):

@@ -11,13 +11,14 @@ import pytest
 import torch
 from tensordict import TensorDict
 
+from tests.conftest import compose_cfg
 from tests.test_planner import eval_env
 from tests.test_train import records, smoke
 from uabs_rl.algorithms import Dims, make_algorithm
 from uabs_rl.algorithms.dqfd import TEACHER, margin_loss
 from uabs_rl.algorithms.replay import TransitionReplay
 from uabs_rl.config import ConfigError, DqfdConfig
-from uabs_rl.env.uabs_env import ACTION, MASK
+from uabs_rl.env.uabs_env import ACTION, MASK, OBS
 from uabs_rl.evaluation.planner import JITTER, PlannerScore
 from uabs_rl.safety.make import make_selector
 from uabs_rl.safety.rules import ACTION_VALUE
@@ -47,10 +48,33 @@ def test_the_label_is_the_move_the_clairvoyant_planner_flies(trace_cache, mode):
         td.set(ACTION_VALUE, scores)  # the selector flies the teacher's own moves
         selector(td)
         label = Teacher.label(scores, td.get(MASK))
-        allowed = td.get(MASK).any(-1)
-        assert torch.equal(label[allowed], td.get(ACTION)[allowed])
-        assert (label[~allowed] == NO_LABEL).all()
+        assert td.get(MASK).any(-1).all()  # the selector leaves every agent a move
+        assert torch.equal(label, td.get(ACTION))
         td = env.step(td)["next"]
+
+
+@pytest.mark.parametrize("mode", ["flat", "rank"])  # rank's transitions wait a step
+def test_each_stored_transition_holds_the_label_of_its_own_state(trace_cache, tmp_path, mode):
+    """A teacher whose scores are a function of the observation: every stored transition
+    (n-step returns, rank's deferred push) holds the label of its own observation under
+    its own applied mask, not a neighbour's."""
+    from uabs_rl.training.experiment import Experiment
+
+    class ObsTeacher:
+        def scores(self, td):
+            return td.get(OBS)[..., :4].clone()
+
+    exp = Experiment(smoke(trace_cache, "algo=dqfd", f"masking={mode}", "algo.n_step=3",
+                           "algo.learning_starts=100000", "algo.buffer_size=100000",
+                           "train.logger=none"), tmp_path)
+    exp.collector.teacher = ObsTeacher()
+    exp.collect()
+    steps = exp.params.episode_steps
+    d = {k: v[0, :steps] for k, v in exp.buffer.data.items()}
+    want = d["obs"][..., :4].masked_fill(~d["mask"], -torch.inf).argmax(-1)
+    assert torch.equal(d[TEACHER], want)
+    assert len(set(d[TEACHER].flatten().tolist())) > 1  # not one label everywhere
+    assert not torch.equal(d[TEACHER], d["action"])  # ε-greedy strays from the teacher
 
 
 def test_a_move_with_no_legal_option_gets_no_label():
@@ -133,3 +157,11 @@ def test_a_buffer_without_labels_is_refused():
     labelled = TransitionReplay(40, 3, 4, 2, [0], 4, extra={TEACHER: ((), torch.long)})
     with pytest.raises(ValueError, match="teacher"):
         labelled.load_state_dict(plain.state_dict())
+
+
+def test_a_family_of_cities_is_refused(trace_cache):
+    """The teacher plans over one area; a family's rows each have their own."""
+    cfg = compose_cfg("config", ["experiment=generalist", "algo=dqfd",
+                                 f"traces.cache_dir={trace_cache}"])
+    with pytest.raises(ConfigError, match=r"^family must be empty with algo=dqfd"):
+        validate_run(cfg)

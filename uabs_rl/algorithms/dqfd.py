@@ -14,9 +14,10 @@ y the 3DQN's double-DQN target, a_E the teacher's label, ℓ = ``algo.teacher_ma
 zero exactly when the teacher's move beats every other legal move by ℓ, so the greedy
 policy is the teacher's wherever it holds, and the TD loss keeps the values consistent
 with the rewards (where the teacher is wrong for the agent's own view, the values may
-still disagree with it). With λ_E = 0 the learner is the 3DQN, transition for
-transition: the teacher draws no random numbers (``tests/test_dqfd.py`` checks the
-metrics are the 3DQN's).
+still disagree with it). With λ_E = 0 and eager updates the learner is the
+3DQN, transition for transition: the teacher draws no random numbers
+(``tests/test_dqfd.py`` checks the metrics are the 3DQN's); the compiled update of this
+loss is another program, equal to float rounding.
 
 The student flies on its observation alone: the checkpoint is a 3DQN's (the same
 network under ``learner.qnet``), so ``uabs-eval`` and every benchmark take it as any run.

@@ -287,8 +287,9 @@ class TransitionReplay:
                              f"algo.buffer_size={self.capacity} or another fleet")
         missing = sorted(set(self.data) - set(state["data"]))
         if missing:
-            raise ValueError(f"the saved buffer holds no {', '.join(missing)} (saved by "
-                             f"another learner): resume it with that learner's algo=")
+            raise ValueError(f"the saved buffer holds no {', '.join(missing)}: it was "
+                             f"written by another learner, whose buffer this one cannot "
+                             f"continue")
         for k in self.data:
             self.data[k][p, :held] = state["data"][k].to(self.data[k].device)
         self.written = int(state["written"])

@@ -401,7 +401,12 @@ def _algo_checks(cfg: RunConfig) -> list[tuple[bool, str, str, Any]]:
             a.teacher_horizon),
            (a.teacher_margin >= 0, "algo.teacher_margin", "must be >= 0", a.teacher_margin),
            (a.imitation_weight >= 0, "algo.imitation_weight", "must be >= 0",
-            a.imitation_weight)] if isinstance(a, DqfdConfig) else []),
+            a.imitation_weight),
+           # the teacher plans in one area (the planner's lattice and bounds): a family's
+           # rows each have their own
+           (not cfg.family, "family", "must be empty with algo=dqfd (its teacher, the "
+            "planner, plans over one city's area); train on one scenario",
+            f"{len(cfg.family)} cities")] if isinstance(a, DqfdConfig) else []),
         (t.population == 1 or a.loss == LossKind.fused, "algo.loss",
          "must be fused when train.population > 1 (torchrl is the solo reference loss)",
          str(a.loss)),

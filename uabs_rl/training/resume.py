@@ -131,9 +131,11 @@ def _composer():
 
 def typed_settings(overrides: list[str]) -> tuple[dict[str, Any], set[str]]:
     """What the command line sets: the flat config it composes to, and the keys its
-    overrides touch (those they change from the defaults, and every key under a group or
-    key they name, so ``masking=rank`` speaks for all of ``masking`` even where rank is
-    the default)."""
+    overrides touch (those they change, and every key under a group or key they name, so
+    ``masking=rank`` speaks for all of ``masking`` even where rank is the default). A
+    group choice is compared with the defaults; a setting with the group choices typed
+    beside it (``algo=dqfd algo.teacher_horizon=3``: a learner's own setting exists under
+    its group only)."""
     comp = _composer()
     base = _flat_config(comp([]))
     typed = _flat_config(comp(overrides)) if overrides else base

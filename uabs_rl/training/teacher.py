@@ -22,7 +22,11 @@ import torch
 from uabs_rl.env.uabs_env import UABSEnv
 from uabs_rl.evaluation.planner import PlannerScore
 
-NO_LABEL = -1  # an agent with no legal move (the selector's fallback flies it): no label
+# an agent whose applied mask allows no move gets no label. The masked selector never
+# leaves one so (an agent with no legal move flies the fallback move, and its applied
+# mask is that move alone): in training a forced move is labelled with itself, adds
+# nothing to the margin term and counts in its mean
+NO_LABEL = -1
 
 
 class Teacher:
