@@ -203,13 +203,16 @@ def filled_learner(overrides: list[str]):
     learner = make_algorithm(cfg.algo, Dims(d, N_ACTIONS, m), seeds, torch.device("cpu"))
     g = torch.Generator().manual_seed(0)
     n = len(seeds) * max(400, cfg.algo.batch_size)
-    learner.buffer.extend({
+    steps = {
         "obs": torch.randn(n, m, d, generator=g),
         "action": torch.randint(0, N_ACTIONS, (n, m), generator=g),
         "mask": torch.ones(n, m, N_ACTIONS, dtype=torch.bool),
         "reward": torch.randn(n, m, generator=g), "next_obs": torch.randn(n, m, d, generator=g),
         "next_mask": torch.rand(n, m, N_ACTIONS, generator=g) < 0.7,
-        "terminated": torch.rand(n, m, generator=g) < 0.05})
+        "terminated": torch.rand(n, m, generator=g) < 0.05}
+    for k in learner.buffer.data.keys() - steps.keys():  # a learner's own (dqfd's labels)
+        steps[k] = torch.randint(0, N_ACTIONS, (n, m), generator=g)
+    learner.buffer.extend(steps)
     return learner, cfg
 
 
