@@ -67,10 +67,9 @@ def collect(env, net: torch.nn.Module, horizon: int):
         td.set(ACTION_VALUE, net(td.get(OBS)))
         selector(td)
         mask = td.get(MASK)
-        legal = scores.masked_fill(~mask, -torch.inf)
         obs.append(td.get(OBS))
         masks.append(mask)
-        best.append((legal == legal.amax(-1, keepdim=True)) & mask)
+        best.append(Teacher.best_moves(scores, mask))
         td = env.step(td)["next"]
     return tuple(torch.stack(x, 1) for x in (obs, masks, best))
 

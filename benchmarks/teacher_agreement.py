@@ -56,8 +56,7 @@ def agreement(run: Path, horizon: int, split: str) -> tuple[float, int]:
         scores = teacher.scores(td)
         ev.greedy(td)  # the network's values, then the masked selector
         mask = td.get(MASK)
-        legal = scores.masked_fill(~mask, -torch.inf)
-        best = (legal == legal.amax(-1, keepdim=True)) & mask
+        best = Teacher.best_moves(scores, mask)
         ok = mask.sum(-1) > 1
         same += int((best.gather(-1, td.get(ACTION)[..., None]).squeeze(-1) & ok).sum())
         chosen += int(ok.sum())

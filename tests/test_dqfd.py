@@ -77,10 +77,14 @@ def test_each_stored_transition_holds_the_label_of_its_own_state(trace_cache, tm
     assert not torch.equal(d[TEACHER], d["action"])  # ε-greedy strays from the teacher
 
 
-def test_a_move_with_no_legal_option_gets_no_label():
+def test_no_legal_move_gets_no_label_and_the_best_set_keeps_ties():
     scores = torch.tensor([[[3.0, 1.0, 2.0, 0.0], [1.0, 2.0, 3.0, 4.0]]])
     mask = torch.tensor([[[False, True, True, False], [False, False, False, False]]])
     assert Teacher.label(scores, mask).tolist() == [[2, NO_LABEL]]
+    tied = torch.tensor([[[2.0, 1.0, 2.0, 5.0]]])  # the best, 5, is not allowed
+    allowed = torch.tensor([[[True, True, True, False]]])
+    assert Teacher.best_moves(tied, allowed).tolist() == [[[True, False, True, False]]]
+    assert not Teacher.best_moves(scores, mask)[0, 1].any()
 
 
 def test_margin_loss_by_hand():

@@ -43,6 +43,13 @@ class Teacher:
         return self.planner.scores(td)
 
     @staticmethod
+    def best_moves(scores: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """[E, M, 4] True for every move of best score among those ``mask`` allows (ties
+        kept): what the agreement benchmarks count a policy's move against."""
+        legal = scores.masked_fill(~mask, -torch.inf)
+        return (legal == legal.amax(-1, keepdim=True)) & mask
+
+    @staticmethod
     def label(scores: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         """[E, M] the best-scored move among those ``mask [E, M, 4]`` allows (the mask
         that applied to the chosen moves), :data:`NO_LABEL` where none is allowed."""
