@@ -105,6 +105,11 @@ def measure(overrides: list[str], n_episodes: int) -> None:
     while len(tr.buffer) < cfg.algo.learning_starts:
         tr.collect()
         tr.threads.check()
+    # then warm up: the first updates compile the update program (seconds, once a run;
+    # the whole-run figures of docs/performance.md include it, a step's shares must not)
+    for _ in range(2):
+        tr.collect()
+        tr.threads.check()
     SPENT.clear()
     start_updates, t0 = tr.learner.updates, time.perf_counter()
     for _ in range(n_episodes // cfg.train.n_envs):
