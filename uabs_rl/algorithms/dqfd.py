@@ -67,10 +67,7 @@ class DQfDLoss(DQN3Loss):
     def forward(self, b: TensorDict) -> TensorDict:
         q = self.value_network(b.get("obs"))
         q_taken = q.gather(-1, b.get("action")[..., None]).squeeze(-1)
-        q_next = self.next_values(b)
-        with torch.no_grad():
-            y = b.get("reward") + self.gamma * (~b.get("terminated")).float() * q_next
-        out = self.outputs(q_taken, y, b, q_taken.detach().mean(-1))
+        out = self.td_outputs(q_taken, self.next_values(b), b)
         label, legal = b.get(TEACHER), b.get("mask")
         j_e = margin_loss(q, label, legal, self.margin)
         out.set("loss", out.get("loss") + self.weight * j_e)

@@ -82,7 +82,12 @@ class DQN3Loss(LossModule):
         self.gamma = gamma
 
     def forward(self, b: TensorDict) -> TensorDict:
-        q_taken, q_next = self.agent_values(b)
+        return self.td_outputs(*self.agent_values(b), b)
+
+    def td_outputs(self, q_taken: torch.Tensor, q_next: torch.Tensor,
+                   b: TensorDict) -> TensorDict:
+        """:meth:`outputs` of the TD loss of ``q_taken`` against the target
+        r + γ (1 − terminated) ``q_next``."""
         with torch.no_grad():
             y = b.get("reward") + self.gamma * (~b.get("terminated")).float() * q_next
         return self.outputs(q_taken, y, b, q_taken.detach().mean(-1))
