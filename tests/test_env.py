@@ -302,6 +302,17 @@ def test_lookahead_observation_scores_each_candidate_move(small_traces_cfg):
     assert torch.allclose(obs[0, 0, -8:], look / ObsConfig().priority_scale)
 
 
+def observed_at(env: UABSEnv, uabs: list[float], t: int) -> dict[str, torch.Tensor]:
+    """The state of ``env`` (one env, one UABS) after observing step ``t`` of its window
+    starting at 0 with the UABS at ``uabs``."""
+    env.reset()
+    st = env.state
+    st["pos"][:] = torch.tensor([[uabs]])
+    st["start"][:], st["t"][:] = 0, t
+    env.math.observe(st, env.veh_pos, env.veh_present, env.rng)
+    return st
+
+
 def test_motion_observation_scores_moves_at_extrapolated_positions(small_traces_cfg):
     """obs.motion: a vehicle that moved 40 m east in the last step is scored
     where it will be if it keeps moving (40 m east of the UABS: only the move right
@@ -320,11 +331,7 @@ def test_motion_observation_scores_moves_at_extrapolated_positions(small_traces_
     env = UABSEnv(sc, ChannelConfig(), traces, n_envs=1, seed=0,
                   obs=ObsConfig(lookahead=True, motion=True))
     assert env.params.obs_dim == 3 + 2 + 9 + 8 + 4
-    env.reset()
-    st = env.state
-    st["pos"][:] = torch.tensor([[[105.0, 85.0]]])
-    st["start"][:], st["t"][:] = 0, 5
-    env.math.observe(st, env.veh_pos, env.veh_present, env.rng)
+    st = observed_at(env, [105.0, 85.0], 5)
     p = max(1.0, float(st["priority"][0, 0]))
     # up, right, down, left (then 2 steps each); then the extrapolated up, right, down, left
     assert st["look"][0, 0].tolist() == [p, p, p, p, 0.0, 0.0, 0.0, 0.0, 0.0, p, 0.0, 0.0]
@@ -332,3 +339,71 @@ def test_motion_observation_scores_moves_at_extrapolated_positions(small_traces_
     env.math.observe(st, env.veh_pos, env.veh_present, env.rng)
     look = st["look"][0, 0]
     assert torch.equal(look[8:], look[:4])
+
+
+def test_motion_steps_score_k_moves_at_k_steps_ahead(small_traces_cfg):
+    """obs.motion_steps = 3: a vehicle moving 20 m east per step, under the UABS now, is
+    under its footprints after k moves right at its position extrapolated k steps
+    (20k m east), and nowhere else; a vehicle standing there is under none of them (the
+    k moves right leave it 20k m behind)."""
+    from uabs_rl.traces.cache import TraceSet
+
+    steps = 30
+    pos = torch.zeros(1, steps, 1, 2)
+    pos[..., 1] = 85.0
+    pos[0, :, 0, 0] = 5.0 + 20.0 * torch.arange(steps)  # at t = 5: 105 m, moving 20 m/s
+    traces = TraceSet(pos, torch.ones(1, steps, 1, dtype=torch.bool), {"split": "x", "dt": 1.0})
+    sc = scenario(small_traces_cfg, n_uabs=1)
+    obs = ObsConfig(lookahead=True, motion=True, motion_steps=3)
+    env = UABSEnv(sc, ChannelConfig(), traces, n_envs=1, seed=0, obs=obs)
+    assert env.params.obs_dim == 3 + 2 + 9 + 8 + 4 + 2 * 4
+    st = observed_at(env, [105.0, 85.0], 5)
+    p = max(1.0, float(st["priority"][0, 0]))
+    # k = 2 then k = 3: up, right, down, left
+    assert st["look"][0, 0, 12:].tolist() == [0.0, p, 0.0, 0.0] * 2
+    obs_vec = env.math.observation(st["pos"], st["t"], st["b"], st["look"])
+    assert torch.equal(obs_vec[0, 0, -8:], st["look"][0, 0, 12:] / obs.priority_scale)
+    pos[0, :, 0, 0] = 105.0  # the same vehicle standing still
+    still = TraceSet(pos, torch.ones(1, steps, 1, dtype=torch.bool), {"split": "x", "dt": 1.0})
+    env = UABSEnv(sc, ChannelConfig(), still, n_envs=1, seed=0, obs=obs)
+    st = observed_at(env, [105.0, 85.0], 5)
+    assert st["look"][0, 0, 12:].tolist() == [0.0] * 8
+
+
+def test_motion_steps_see_what_the_mpc_predicts(small_traces_cfg, train):
+    """The k-step scores are the move scores at the vehicles the mpc's constant-velocity
+    predictor puts k steps ahead (the same extrapolation, bit for bit), on SUMO traces
+    at every step of an episode; motion_steps = 1 is obs.motion's observation."""
+    from uabs_rl.evaluation.predict import ConstantVelocity
+
+    sc = scenario(small_traces_cfg, n_uabs=2)
+    k_max = 4
+    env = UABSEnv(sc, ChannelConfig(), train, n_envs=3, seed=1,
+                  obs=ObsConfig(lookahead=True, motion=True, motion_steps=k_max))
+    one = UABSEnv(sc, ChannelConfig(), train, n_envs=3, seed=1,
+                  obs=ObsConfig(lookahead=True, motion=True))
+    td, td1 = env.reset(), one.reset()
+    for _ in range(EP - 1):
+        assert torch.equal(td[("agents", "observation")][..., :-4 * (k_max - 1)],
+                           td1[("agents", "observation")])
+        st = env.state
+        veh = ConstantVelocity()(env, k_max)["veh"]  # [H, E, 2, V]
+        present = service.vehicles_at(st, env.veh_pos, env.veh_present)[1]
+        for k in range(2, k_max + 1):
+            cand = st["pos"][:, :, None, :] + k * env.math.moves
+            want = service.move_scores(cand, veh[k - 1], present, st["priority"],
+                                       env.params.r_b, env.params.n_beams)
+            assert torch.equal(st["look"][..., 12 + 4 * (k - 2): 16 + 4 * (k - 2)], want)
+        td1.set(ACTION, random_legal(td).get(ACTION).clone())
+        td = env.step(td)["next"]
+        td1 = one.step(td1)["next"]
+    assert not (env.state["look"][..., 12:] == 0).all()  # something was scored
+
+
+@pytest.mark.parametrize("obs,why", [
+    (ObsConfig(lookahead=True, motion_steps=3), "must be 1 unless obs.motion=true"),
+    (ObsConfig(frame="egocentric", motion=True, motion_steps=2), "with obs.frame=fleet"),
+    (ObsConfig(lookahead=True, motion=True, motion_steps=0), "must be in \\[1, 1000\\]")])
+def test_motion_steps_refused_where_they_mean_nothing(small_traces_cfg, train, obs, why):
+    with pytest.raises(ConfigError, match=f"obs.motion_steps .*{why}"):
+        UABSEnv(scenario(small_traces_cfg), ChannelConfig(), train, n_envs=1, seed=0, obs=obs)

@@ -70,6 +70,9 @@ def validate_obs(obs: ObsConfig) -> None:
          "obs.frame=egocentric (its local map holds the lookahead scores)", obs.lookahead),
         (obs.lookahead or ego or not obs.motion, "obs.motion", "needs obs.lookahead=true "
          "or obs.frame=egocentric (it extends their scores)", obs.motion),
+        (obs.motion_steps == 1 or (obs.motion and not ego), "obs.motion_steps",
+         "must be 1 unless obs.motion=true with obs.frame=fleet (it extends the fleet "
+         "frame's motion scores)", obs.motion_steps),
         (obs.map_radius >= 0, "obs.map_radius", "must be >= 0 (lattice steps)",
          obs.map_radius),
         (obs.neighbours >= 0, "obs.neighbours", "must be >= 0", obs.neighbours),

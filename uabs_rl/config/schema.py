@@ -138,6 +138,11 @@ class ObsConfig:
     # x_{t-1}), past positions only): an estimate of what the oracle baseline sees
     # (fleet: the 4 moves; egocentric: the whole local map)
     motion: bool = False
+    # fleet frame with motion, beyond the paper: also, for k = 2 .. motion_steps, the
+    # priority the footprints would cover k moves along each direction at the vehicles'
+    # positions extrapolated k steps (x_t + k (x_t - x_{t-1})), 4 numbers per k: where
+    # the traffic will be over the horizon the mpc plans (1 = the 4 one-step scores only)
+    motion_steps: int = 1
     # egocentric: the priority the footprints would cover at each lattice point within
     # this many steps in x and y of the UABS, (2r + 1)^2 numbers
     map_radius: int = 2
@@ -360,6 +365,7 @@ RANGES.update({
         "lambda_s": _r(0, 1e6), "lambda_c": _r(0, 1e6),
         "collision_distance": _pos(10_000, "m"), "safety_distance": _r(0, 1e5, "m")},
     ObsConfig: {"priority_scale": _pos(1e6), "map_radius": _r(0, 100, "lattice steps"),
+                "motion_steps": _r(1, 1000, "steps"),
                 "neighbours": _r(0, 1000), "neighbour_range": _pos(1e6, "lattice steps"),
                 "edge_range": _pos(1e6, "lattice steps")},
     ChannelConfig: {

@@ -54,6 +54,7 @@ class EnvParams:
     obs_scale: float
     lookahead_obs: bool
     motion_obs: bool
+    motion_steps: int
     egocentric: bool
     map_radius: int
     neighbours: int
@@ -95,6 +96,7 @@ class EnvParams:
             collision_distance=scenario.collision_distance, d_th=float(d_th),
             lattice=scenario.lattice, safe_start=scenario.safe_start,
             obs_scale=obs.priority_scale, lookahead_obs=obs.lookahead, motion_obs=obs.motion,
+            motion_steps=obs.motion_steps,
             egocentric=obs.frame == ObsFrame.egocentric, map_radius=obs.map_radius,
             neighbours=obs.neighbours, neighbour_range=obs.neighbour_range,
             edge_range=obs.edge_range,
@@ -120,8 +122,12 @@ class EnvParams:
     @property
     def n_lookahead(self) -> int:
         """Priority scores per agent: egocentric, the local map's (2r + 1)^2 lattice
-        points (twice with ``motion_obs``); else 4 moves and 4 double moves (and 4 moves
-        at the extrapolated vehicle positions with ``motion_obs``), or none."""
+        points (twice with ``motion_obs``); else 4 moves and 4 double moves (and, with
+        ``motion_obs``, 4 moves at the vehicle positions extrapolated one step, then 4 per
+        k = 2 .. ``motion_steps``: k moves along each direction at those extrapolated k
+        steps), or none."""
         if self.egocentric:
             return (2 * self.map_radius + 1) ** 2 * (1 + self.motion_obs)
-        return (8 + 4 * self.motion_obs) if self.lookahead_obs else 0
+        if not self.lookahead_obs:
+            return 0
+        return 8 + 4 * self.motion_obs * self.motion_steps

@@ -22,14 +22,22 @@ def vehicles_at(st: dict[str, torch.Tensor], veh_pos: torch.Tensor,
 
 
 def extrapolated(st: dict[str, torch.Tensor], veh: torch.Tensor, present: torch.Tensor,
-                 veh_pos: torch.Tensor, veh_present: torch.Tensor) -> torch.Tensor:
-    """Vehicle positions [E, 2, V] one step ahead of ``veh`` (those at step ``st["t"]``),
-    extrapolated from their last move: x_t + (x_t − x_{t−1}); a vehicle not present at
-    t − 1 (or at the window's first step) stays where it is. Past positions only."""
+                 veh_pos: torch.Tensor, veh_present: torch.Tensor,
+                 steps: int = 1) -> list[torch.Tensor]:
+    """Vehicle positions [E, 2, V] k = 1 .. ``steps`` steps ahead of ``veh`` (those at
+    step ``st["t"]``), extrapolated from their last move: x_t + k (x_t − x_{t−1}); a
+    vehicle not present at t − 1 (or at the window's first step) stays where it is. Past
+    positions only. k = 1 is computed as 2 x_t − x_{t−1}, k > 1 as the mpc's
+    constant-velocity predictor computes it
+    (:class:`~uabs_rl.evaluation.predict.ConstantVelocity`)."""
     prev, prev_present = vehicles_at(dict(st, t=(st["t"] - 1).clamp_min(0)), veh_pos,
                                      veh_present)
     moving = (present & prev_present)[:, None, :]
-    return torch.where(moving, 2 * veh - prev, veh)
+    out = [torch.where(moving, 2 * veh - prev, veh)]
+    if steps > 1:
+        v = torch.where(moving, veh - prev, 0.0)
+        out += [veh + k * v for k in range(2, steps + 1)]
+    return out
 
 
 def beam_sums(inside: torch.Tensor, beam: torch.Tensor, priority: torch.Tensor,

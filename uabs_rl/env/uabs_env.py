@@ -98,11 +98,16 @@ class StepMath:
             look = service.move_scores(cand, veh, present, st["priority"], self.p.r_b,
                                        self.p.n_beams)
             if self.p.motion_obs:
-                ahead = service.extrapolated(st, veh, present, veh_pos, veh_present)
+                ahead = service.extrapolated(st, veh, present, veh_pos, veh_present,
+                                             self.p.motion_steps)
                 moved = cand if self.p.egocentric else st["pos"][:, :, None, :] + self.moves
-                look = torch.cat([look, service.move_scores(
-                    moved, ahead, present, st["priority"], self.p.r_b, self.p.n_beams)],
-                    dim=-1)
+                scores = [look, service.move_scores(
+                    moved, ahead[0], present, st["priority"], self.p.r_b, self.p.n_beams)]
+                for k in range(2, self.p.motion_steps + 1):  # k moves on, k steps ahead
+                    scores.append(service.move_scores(
+                        st["pos"][:, :, None, :] + k * self.moves, ahead[k - 1], present,
+                        st["priority"], self.p.r_b, self.p.n_beams))
+                look = torch.cat(scores, dim=-1)
             st["look"] = look
         return served, present
 
