@@ -7,6 +7,7 @@ with Student-t 95 % CIs over the windows and the compute per decision.
     python benchmarks/planning_vs_learning.py --modes rank --fleets 3 6 --sees all 100
     python benchmarks/planning_vs_learning.py --predictors cv road --horizons 1 5 10
     python benchmarks/planning_vs_learning.py --paired docs/results/planning_vs_learning/road
+    python benchmarks/planning_vs_learning.py --horizons 5 --uncoordinated
 
 Writes ``table.csv`` (per policy and setting: served fraction and P_g(N̂_s) with their
 intervals over windows, paired differences against greedy, ms per decision for the
@@ -20,6 +21,11 @@ differences over the same windows that say what prediction costs and what the ro
 network adds: each mpc against the clairvoyant planner at the same horizon, the road
 predictor against constant velocity at the same horizon and visibility, and each
 horizon against the shorter ones (above 1) of the same policy.
+
+``--uncoordinated`` adds each mpc (constant velocity, seeing every vehicle) and each
+clairvoyant planner with its UABS planning alone (``PlannerScore(coordinated=False)``:
+no other plan takes vehicles out of a path's gains), paired with the coordinated one:
+what coordinating the fleet's plans is worth.
 """
 
 from __future__ import annotations
@@ -41,26 +47,32 @@ from uabs_rl.safety.make import make_selector
 
 
 def evaluate(mode: str, m: int, horizons: list[int], ceiling: list[int], sees: list[str],
-             log, predictors: tuple[str, ...] = ("cv",)) -> tuple[list[dict], list[dict]]:
+             log, predictors: tuple[str, ...] = ("cv",),
+             uncoordinated: bool = False) -> tuple[list[dict], list[dict]]:
     cfg = compose("config", [f"masking={mode}", f"scenario.n_uabs={m}"])
     env = make_eval_env(cfg, split="test", compile=False)
     ev = Evaluator(env, cfg.train.eval_seed)
     made = {pred: make_predictor(pred, "all", cfg.scenario) for pred in predictors}
-    runs = [("greedy", 1, None, "all"), ("oracle", 1, None, "all")]
-    runs += [("mpc", h, pred, s) for pred in predictors for s in sees for h in horizons]
-    runs += [("planner", h, "true", "all") for h in ceiling]
+    runs = [("greedy", 1, None, "all", True), ("oracle", 1, None, "all", True)]
+    runs += [("mpc", h, pred, s, True) for pred in predictors for s in sees for h in horizons]
+    runs += [("planner", h, "true", "all", True) for h in ceiling]
+    if uncoordinated:
+        runs += [("mpc", h, "cv", "all", False) for h in horizons if h > 1]
+        runs += [("planner", h, "true", "all", False) for h in ceiling if h > 1]
     rows, greedy = [], None
-    for name, h, pred, s in runs:
-        predictor = ((made[pred] if s == "all" else Within(made[pred], float(s)))
+    for name, h, pred, s, coordinated in runs:
+        predictor = ((made.get(pred) or make_predictor(pred, "all", cfg.scenario)
+                      if s == "all" else Within(made[pred], float(s)))
                      if name == "mpc" else None)
         policy = baseline_policy(name, env, make_selector(env), 0, horizon=h,
-                                 predictor=predictor)
+                                 predictor=predictor, coordinated=coordinated)
         t0 = time.perf_counter()
         rec, _ = ev.evaluate(policy)
         sec = time.perf_counter() - t0
+        alone = "" if coordinated else ", uncoordinated"
         label = (name if name in ("greedy", "oracle") else
-                 f"mpc H={h} ({pred}{'' if s == 'all' else f', sees {s} m'})"
-                 if name == "mpc" else f"planner H={h} (clairvoyant)")
+                 f"mpc H={h} ({pred}{'' if s == 'all' else f', sees {s} m'}{alone})"
+                 if name == "mpc" else f"planner H={h} (clairvoyant{alone})")
         row = {"mode": mode, "n_uabs": m, "policy": label, "horizon": h,
                "predictor": pred or "", "sees": s, "windows": rec["windows"],
                "ms_per_decision": 1000 * sec / (rec["windows"] * cfg.scenario.episode_steps),
@@ -114,6 +126,11 @@ def paired(rows: list[dict], log) -> None:
                 if ((mode2, m2) == (mode, m) and h2 and 1 < int(h2) < int(h)
                         and label2 == label.replace(f"H={h} ", f"H={h2} ")):
                     line(r, shorter, f"{label} - {label2}")
+        if ", uncoordinated)" in label:
+            together = by.get((mode, m, label.replace(", uncoordinated)", ")")))
+            if together is not None:
+                line(r, together, f"{label} - {together['policy']}")
+            continue
         if name != "mpc":
             continue
         ceiling = by.get((mode, m, f"planner H={h} (clairvoyant)"))
@@ -135,6 +152,8 @@ def main() -> None:
     ap.add_argument("--sees", nargs="+", default=["all"], help="all or radii in metres")
     ap.add_argument("--predictors", nargs="+", default=["cv"], choices=("cv", "road"),
                     help="the mpc's predictors (default cv)")
+    ap.add_argument("--uncoordinated", action="store_true",
+                    help="also each mpc (cv) and planner with its UABS planning alone")
     ap.add_argument("--out", type=Path)
     ap.add_argument("--paired", type=Path, metavar="DIR",
                     help="only print the paired differences of a folder this script wrote")
@@ -154,7 +173,7 @@ def main() -> None:
     for mode in args.modes:
         for m in args.fleets:
             r, e = evaluate(mode, m, args.horizons, args.ceiling, args.sees, log,
-                            tuple(args.predictors))
+                            tuple(args.predictors), args.uncoordinated)
             rows += r
             errs += e
     paired(rows, log)

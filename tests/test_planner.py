@@ -207,3 +207,29 @@ def test_uabs_eval_horizon_must_be_positive(capsys):
         eval_main(["nowhere", "--policy", "planner", "--horizon", "0"])
     assert e.value.code == 2
     assert "--horizon must be >= 1, got 0" in capsys.readouterr().err
+
+
+def test_an_uncoordinated_planner_plans_each_uabs_alone(trace_cache):
+    """coordinated=False: a UABS's scores do not depend on where the others are (no
+    other plan takes its vehicles), while the coordinated planner's do (the others'
+    plans cover vehicles it would serve)."""
+    from uabs_rl.evaluation.planner import PlannerScore
+
+    cfg, env = eval_env(trace_cache, "masking=rank")
+    base = env.base_env
+    td, select = env.reset(), make_selector(env)
+    for _ in range(5):  # a few steps in, so that vehicles are about
+        td = env.step(select(td))["next"]
+    pos = td.get(POSITION).clone()
+    moved = pos.clone()
+    moved[:, 1:] = pos[:, :1]  # every other UABS where UABS 0 is
+    scores = {}
+    for coordinated in (True, False):
+        for name, where in (("as flown", pos), ("moved", moved)):
+            td.set(POSITION, where)
+            planner = PlannerScore(base, 4, torch.Generator().manual_seed(0),
+                                   coordinated=coordinated)
+            scores[coordinated, name] = planner.scores(td)[:, 0]
+    td.set(POSITION, pos)
+    assert torch.equal(scores[False, "as flown"], scores[False, "moved"])
+    assert not torch.equal(scores[True, "as flown"], scores[True, "moved"])

@@ -58,12 +58,13 @@ class CoverageScore(TensorDictModuleBase):
 def baseline_policy(name: str, env: TransformedEnv, selector: MaskedActionSelector,
                     seed: int = 0, horizon: int = 1,
                     sites: torch.Tensor | None = None,
-                    predictor=None) -> TensorDictModuleBase:
+                    predictor=None, coordinated: bool = True) -> TensorDictModuleBase:
     """The baseline ``name`` (one of BASELINES, HEURISTICS, PLANNER or MPC) as a policy
     for ``env`` (a transformed UABS env). ``horizon``: the planner's and the mpc's;
     ``sites [M, 2]``: the junctions heuristic's sites
     (:func:`uabs_rl.evaluation.planner.junction_sites`); ``predictor``: the mpc's
-    (:mod:`uabs_rl.evaluation.predict`, default constant velocity seeing every vehicle)."""
+    (:mod:`uabs_rl.evaluation.predict`, default constant velocity seeing every vehicle);
+    ``coordinated=False``: the planner's and the mpc's UABS plan alone (PlannerScore)."""
     from uabs_rl.evaluation.planner import ClusterScore, PlannerScore, SiteScore
     from uabs_rl.evaluation.predict import ConstantVelocity
 
@@ -80,9 +81,9 @@ def baseline_policy(name: str, env: TransformedEnv, selector: MaskedActionSelect
         return selector
     base = env.base_env
     if name == PLANNER:
-        score = PlannerScore(base, horizon, gen)
+        score = PlannerScore(base, horizon, gen, coordinated=coordinated)
     elif name == MPC:
-        score = PlannerScore(base, horizon, gen,
+        score = PlannerScore(base, horizon, gen, coordinated=coordinated,
                              predictor=predictor if predictor is not None else ConstantVelocity())
     elif name == "kmeans":
         score = ClusterScore(base, gen)

@@ -144,6 +144,10 @@ class PlannerScore(TensorDictModuleBase):
     UABS given all the others' plans. Each path search is a beam search over lattice
     moves, ``beam`` paths per first move, one per position (the best so far).
 
+    With ``coordinated=False`` each UABS plans alone: no other plan takes vehicles out of
+    its paths' gains or keeps its path from theirs, and one pass is made (a diagnostic of
+    what coordination is worth: ``benchmarks/planning_vs_learning.py --uncoordinated``).
+
     Only the first move is flown, through the masked selector; the plan is made again at
     the next step. With ``horizon = 1`` the scores are the oracle's, bit for bit, and
     the seeded tie-break draws the same numbers, so the actions are the oracle's (with
@@ -151,7 +155,8 @@ class PlannerScore(TensorDictModuleBase):
     """
 
     def __init__(self, env: UABSEnv, horizon: int, generator: torch.Generator,
-                 beam: int = 16, rounds: int = 2, predictor: Predictor | None = None):
+                 beam: int = 16, rounds: int = 2, predictor: Predictor | None = None,
+                 coordinated: bool = True):
         super().__init__()
         if horizon < 1:
             raise ValueError(f"horizon must be >= 1, got {horizon}")
@@ -160,7 +165,8 @@ class PlannerScore(TensorDictModuleBase):
                               f"({env.params.episode_steps} steps): choose at most "
                               f"{env.params.episode_steps}.")
         self.env, self.horizon, self.generator = env, horizon, generator
-        self.beam, self.rounds = beam, rounds
+        self.beam, self.rounds = beam, rounds if coordinated else 1
+        self.coordinated = coordinated
         self.predictor = predictor if predictor is not None else TrueFuture()
         self.in_keys, self.out_keys = [POSITION, MASK, BEAM_PRIORITY], [ACTION_VALUE]
 
@@ -227,12 +233,13 @@ class PlannerScore(TensorDictModuleBase):
         out = torch.zeros(e, m, 4, device=pos.device)
         for r in range(self.rounds * m):
             u = order[:, r % m]
-            others = planned.clone()
+            others = planned.clone() if self.coordinated else torch.zeros_like(planned)
             others[rows, u] = False
             own = cover[rows, u]  # [E, H, V]; the others cover where covers > own
             look = None if table is None else Lookup(pos[rows, u], step,
                                                     [t[rows, u] for t in table])
-            value, path = self.search(pos[rows, u], plan, others, covers > own, w, look)
+            taken = covers > own if self.coordinated else torch.zeros_like(own)
+            value, path = self.search(pos[rows, u], plan, others, taken, w, look)
             out[rows, u] = value
             total = value + first[rows, u]
             best = total.masked_fill(~allowed[rows, u], -math.inf).argmax(-1)  # [E]
