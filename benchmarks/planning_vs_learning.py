@@ -8,6 +8,7 @@ with Student-t 95 % CIs over the windows and the compute per decision.
     python benchmarks/planning_vs_learning.py --predictors cv road --horizons 1 5 10
     python benchmarks/planning_vs_learning.py --paired docs/results/planning_vs_learning/road
     python benchmarks/planning_vs_learning.py --horizons 5 --uncoordinated
+    python benchmarks/planning_vs_learning.py --paired DIR --learned HYBRID_DIR
 
 Writes ``table.csv`` (per policy and setting: served fraction and P_g(N̂_s) with their
 intervals over windows, paired differences against greedy, ms per decision for the
@@ -23,9 +24,16 @@ predictor against constant velocity at the same horizon and visibility, and each
 horizon against the shorter ones (above 1) of the same policy.
 
 ``--uncoordinated`` adds each mpc (constant velocity, seeing every vehicle) and each
-clairvoyant planner with its UABS planning alone (``PlannerScore(coordinated=False)``:
-no other plan takes vehicles out of a path's gains), paired with the coordinated one:
-what coordinating the fleet's plans is worth.
+clairvoyant planner of horizon above 1 with its UABS planning alone
+(``PlannerScore(coordinated=False)``: no other plan takes vehicles out of a path's
+gains), paired with the coordinated one (run too if ``--predictors`` or ``--sees`` left
+it out): what coordinating the fleet's plans is worth.
+
+``--paired DIR --learned HYBRID_DIR`` pairs a population's learned policy, as
+``benchmarks/hybrid.py`` flew it on the test windows into ``HYBRID_DIR``, with every
+policy of ``DIR`` flown on the same windows under the same masks and fleet (found by
+the mpc's per-window values, which must be equal in both): learned − policy, each
+member's mean paired difference over the windows, Student-t over the members.
 """
 
 from __future__ import annotations
@@ -33,6 +41,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -42,7 +51,7 @@ from uabs_rl.config import compose
 from uabs_rl.evaluation.baselines import baseline_policy
 from uabs_rl.evaluation.evaluator import Evaluator, make_eval_env
 from uabs_rl.evaluation.predict import Within, make_predictor, prediction_error
-from uabs_rl.evaluation.stats import paired_difference, t_interval
+from uabs_rl.evaluation.stats import paired_difference, paired_over_seeds, t_interval
 from uabs_rl.safety.make import make_selector
 
 
@@ -56,9 +65,11 @@ def evaluate(mode: str, m: int, horizons: list[int], ceiling: list[int], sees: l
     runs = [("greedy", 1, None, "all", True), ("oracle", 1, None, "all", True)]
     runs += [("mpc", h, pred, s, True) for pred in predictors for s in sees for h in horizons]
     runs += [("planner", h, "true", "all", True) for h in ceiling]
-    if uncoordinated:
-        runs += [("mpc", h, "cv", "all", False) for h in horizons if h > 1]
-        runs += [("planner", h, "true", "all", False) for h in ceiling if h > 1]
+    if uncoordinated:  # each beside its coordinated self (added if not asked for)
+        for name, pred, hs in (("mpc", "cv", horizons), ("planner", "true", ceiling)):
+            together = [(name, h, pred, "all", True) for h in hs if h > 1]
+            runs += [r for r in together if r not in runs]
+            runs += [(name, h, pred, "all", False) for h in hs if h > 1]
     rows, greedy = [], None
     for name, h, pred, s, coordinated in runs:
         predictor = ((made.get(pred) or make_predictor(pred, "all", cfg.scenario)
@@ -142,6 +153,30 @@ def paired(rows: list[dict], log) -> None:
                 line(r, cv, f"{label} - {cv['policy']}")
 
 
+def paired_learned(rows: list[dict], hybrid_dir: Path, log) -> None:
+    """learned − every policy of ``rows`` on the same windows (module docstring)."""
+    flown = json.loads((hybrid_dir / "hybrid.json").read_text())["policies"]
+    mpc = [r for r in rows if r["policy"] == "mpc H=5 (cv)"
+           and r["served_fractions"] == flown["mpc"]["served"]
+           and r["pgs"] == flown["mpc"]["pg"]]
+    if not mpc:
+        sys.exit(f"{hybrid_dir}'s mpc is none of this folder's mpc H=5 (cv) rows: other "
+                 f"windows, masks or fleet; nothing to pair")
+    mode, m = mpc[0]["mode"], mpc[0]["n_uabs"]
+    learned = flown["learned"]
+    for r in rows:
+        if (r["mode"], r["n_uabs"]) != (mode, m):
+            continue
+        parts = []
+        for metric, key, mine in (("served", "served_fractions", "served"),
+                                  ("P_g", "pgs", "pg")):
+            d = paired_over_seeds(learned[mine], [r[key]] * len(learned[mine]))
+            parts.append(f"{metric} {100 * d['diff']:+.2f} [{100 * d['ci_low']:+.2f}, "
+                         f"{100 * d['ci_high']:+.2f}]")
+        log(f"{mode} M={m} learned ({len(learned['served'])} members) - {r['policy']}: "
+            f"{', '.join(parts)} points")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--modes", nargs="+", default=["rank"])
@@ -157,9 +192,17 @@ def main() -> None:
     ap.add_argument("--out", type=Path)
     ap.add_argument("--paired", type=Path, metavar="DIR",
                     help="only print the paired differences of a folder this script wrote")
+    ap.add_argument("--learned", type=Path, metavar="HYBRID_DIR",
+                    help="with --paired: also learned − each policy, from a folder "
+                         "benchmarks/hybrid.py wrote")
     args = ap.parse_args()
+    if args.learned is not None and args.paired is None:
+        ap.error("--learned goes with --paired DIR")
     if args.paired is not None:
-        paired(json.loads((args.paired / "per_window.json").read_text()), print)
+        rows = json.loads((args.paired / "per_window.json").read_text())
+        paired(rows, print)
+        if args.learned is not None:
+            paired_learned(rows, args.learned, print)
         return
     torch.set_num_threads(1)
     lines: list[str] = []

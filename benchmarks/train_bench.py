@@ -5,8 +5,11 @@
     python benchmarks/train_bench.py train.population=3   # 3 seeds in one process
 
 Trains ``--episodes`` episodes with the paper's defaults (overrides as for uabs-train),
-then prints episodes per minute, the projected time of the full protocol (1000 episodes
-of 80 steps, one update per step) and the share of the time spent in the environment
+after filling the replay to ``algo.learning_starts`` and two warm-up rounds (the first
+updates compile the update program, seconds once a run: the figures exclude it, the
+whole-run figures of docs/performance.md include it), then prints episodes per minute,
+the projected time of the full protocol (1000 episodes of 80 steps, one update per
+step) and the share of the time spent in the environment
 (the direct step and the masking rule, see ``DirectEnv``), action selection (Q forward
 + masked selector), replay (push + sample) and the update (loss, backward, Adam).
 Evaluation is excluded.
@@ -137,7 +140,7 @@ def measure(overrides: list[str], n_episodes: int) -> None:
     print(f"projected full protocol ({cfg.train.episodes} episodes x "
           f"{cfg.scenario.episode_steps} steps, {cfg.train.episodes * cfg.scenario.episode_steps} "
           f"updates): {full / 60:.1f} min (+ {cfg.train.episodes // cfg.train.eval_every} "
-          f"evaluations)")
+          f"evaluations and the compile)")
     other = wall - sum(SPENT.values())
     for name in ("env", "action selection", "replay", "update"):
         print(f"  {name:>17}: {SPENT[name]:6.2f} s  {100 * SPENT[name] / wall:5.1f} %")

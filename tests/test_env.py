@@ -342,16 +342,18 @@ def test_motion_observation_scores_moves_at_extrapolated_positions(small_traces_
 
 
 def test_motion_steps_score_k_moves_at_k_steps_ahead(small_traces_cfg):
-    """obs.motion_steps = 3: a vehicle moving 20 m east per step, under the UABS now, is
-    under its footprints after k moves right at its position extrapolated k steps
-    (20k m east), and nowhere else; a vehicle standing there is under none of them (the
-    k moves right leave it 20k m behind)."""
+    """obs.motion_steps = 3: a vehicle 60 m west of the UABS, moving 40 m east per step,
+    is under its footprints after k moves right at its position extrapolated k steps
+    (45 + 40k m against 105 + 20k m: 20 m off, then 0), and nowhere else (extrapolated
+    k − 1 steps it would be under the left moves' footprints at k = 2 and under none at
+    k = 3); a vehicle standing under the UABS is under none of them (the k moves leave it
+    20k m behind)."""
     from uabs_rl.traces.cache import TraceSet
 
     steps = 30
     pos = torch.zeros(1, steps, 1, 2)
     pos[..., 1] = 85.0
-    pos[0, :, 0, 0] = 5.0 + 20.0 * torch.arange(steps)  # at t = 5: 105 m, moving 20 m/s
+    pos[0, :, 0, 0] = 45.0 + 40.0 * (torch.arange(steps) - 5)  # at t = 5: 45 m, 40 m/s
     traces = TraceSet(pos, torch.ones(1, steps, 1, dtype=torch.bool), {"split": "x", "dt": 1.0})
     sc = scenario(small_traces_cfg, n_uabs=1)
     obs = ObsConfig(lookahead=True, motion=True, motion_steps=3)
