@@ -45,13 +45,9 @@ from uabs_rl.evaluation.stats import (
     stratified_bootstrap,
     welch_difference,
 )
+from uabs_rl.runs.layout import RunFolder
 
 METRIC = "served_fractions"  # per window
-
-
-def members(root: Path) -> list[Path]:
-    found = sorted(root.glob("seed=*"), key=lambda p: int(p.name.split("=")[1]))
-    return found or [root]
 
 
 def overrides(at: str) -> list[str]:
@@ -189,8 +185,8 @@ def main(argv: list[str] | None = None) -> None:
     if set(given) - set(args.at):
         raise SystemExit(f"--mpc-from names pairs not in --at: {sorted(set(given) - set(args.at))}")
     recorded = {at: mpc_from(Path(path), at, args.mpc) for at, path in given.items()}
-    runs = members(args.runs)
-    other = members(args.beside) if args.beside else []
+    runs = RunFolder(args.runs).members()
+    other = RunFolder(args.beside).members() if args.beside else []
     rows = []
     print(f"{len(runs)} seeds of {args.runs}" + (f"; beside: {len(other)} seeds of "
                                                  f"{args.beside}" if other else ""),

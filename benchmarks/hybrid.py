@@ -38,13 +38,9 @@ import numpy as np
 from uabs_rl.evaluation.load import Evaluation, evaluate_policies, load_evaluation
 from uabs_rl.evaluation.predict import parse_sees
 from uabs_rl.evaluation.stats import paired_over_seeds, t_interval, welch_difference
+from uabs_rl.runs.layout import RunFolder
 
 METRICS = {"served": "served_fractions", "pg": "pgs"}
-
-
-def members(root: Path) -> list[Path]:
-    found = sorted(root.glob("seed=*"), key=lambda p: int(p.name.split("=")[1]))
-    return found or [root]
 
 
 LOADED: dict[tuple, Evaluation] = {}  # each member's best.pt, env and traces, per split
@@ -116,7 +112,7 @@ def main(argv: list[str] | None = None) -> None:
     args.sees = parse_sees(args.sees)
     if any(not w >= 0 for w in args.weights):
         ap.error("--weights must be >= 0")
-    runs = members(args.run)
+    runs = RunFolder(args.run).members()
     args.out.mkdir(parents=True, exist_ok=True)
     log = open(args.out / "log.txt", "w")
 

@@ -24,7 +24,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from hybrid import members  # a sibling script
 
 from uabs_rl.env.service import vehicles_at
 from uabs_rl.evaluation.baselines import MPC, baseline_policy
@@ -32,6 +31,7 @@ from uabs_rl.evaluation.load import load_evaluation
 from uabs_rl.evaluation.planner import footprint
 from uabs_rl.evaluation.predict import ConstantVelocity
 from uabs_rl.evaluation.stats import t_interval
+from uabs_rl.runs.layout import RunFolder
 from uabs_rl.safety.make import make_selector
 
 
@@ -63,7 +63,7 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(1)
     t0 = time.perf_counter()
-    runs = members(args.run)
+    runs = RunFolder(args.run).members()
     rows = []
     first = load_evaluation(runs[0], "best", None, "test")
     env = first.evaluator.env

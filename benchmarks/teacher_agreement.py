@@ -25,13 +25,9 @@ import torch
 from uabs_rl.env.uabs_env import ACTION, MASK, window_count
 from uabs_rl.evaluation.load import find_checkpoint, load_evaluation
 from uabs_rl.runs.checkpoint import config_from_checkpoint, load_checkpoint
+from uabs_rl.runs.layout import RunFolder
 from uabs_rl.traces.build import get_traces
 from uabs_rl.training.teacher import Teacher
-
-
-def members(root: Path) -> list[Path]:
-    found = sorted(root.glob("seed=*"), key=lambda p: int(p.name.split("=")[1]))
-    return found or [root]
 
 
 def every_window(run: Path, split: str) -> int:
@@ -73,7 +69,7 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_num_threads(1)
     for root in args.runs:
         shares = []
-        for run in members(root):
+        for run in RunFolder(root).members():
             share, n = agreement(run, args.horizon, args.split)
             shares.append(share)
             print(f"{run}: {100 * share:.1f} % of {n} decisions", flush=True)

@@ -154,3 +154,15 @@ def test_bad_population_settings_name_the_key(trace_cache, override, key):
         validate_run(cfg)
     with pytest.raises(ConfigError):
         Experiment(cfg, Path("unused"))
+
+
+def test_run_folder_members_by_seed_or_the_run_alone(tmp_path):
+    """The runs a benchmark flies: a population's members in seed order (10 after 2),
+    a single run as itself."""
+    from uabs_rl.runs.layout import RunFolder
+
+    for s in (10, 2, 0):
+        (tmp_path / "pop" / f"seed={s}").mkdir(parents=True)
+    assert RunFolder(tmp_path / "pop").members() == [
+        tmp_path / "pop" / f"seed={s}" for s in (0, 2, 10)]
+    assert RunFolder(tmp_path / "pop" / "seed=2").members() == [tmp_path / "pop" / "seed=2"]

@@ -99,6 +99,13 @@ class RunFolder:
         """Named as a population's member (``seed=<s>``)."""
         return self.path.name.startswith(MEMBER_PREFIX)
 
+    def members(self) -> list[Path]:
+        """A population's member folders by seed (``seed=<s>``), or this folder alone
+        when it holds none (a single run): the runs a benchmark flies."""
+        found = sorted(self.path.glob(f"{MEMBER_PREFIX}*"),
+                       key=lambda p: int(p.name[len(MEMBER_PREFIX):]))
+        return found or [self.path]
+
     def member_checkpoints(self, name: str = "last") -> list[Path]:
         """Every member's ``checkpoints/<name>.pt`` that exists, by path."""
         return sorted(self.path.glob(f"{MEMBER_PREFIX}*/{CHECKPOINTS}/{name}.pt"))
