@@ -155,12 +155,15 @@ def paired(rows: list[dict], log) -> None:
 
 def paired_learned(rows: list[dict], hybrid_dir: Path, log) -> None:
     """learned − every policy of ``rows`` on the same windows (module docstring)."""
-    flown = json.loads((hybrid_dir / "hybrid.json").read_text())["policies"]
-    mpc = [r for r in rows if r["policy"] == "mpc H=5 (cv)"
+    record = json.loads((hybrid_dir / "hybrid.json").read_text())
+    flown = record["policies"]
+    sees = "" if record["sees"] == "all" else f", sees {record['sees']:g} m"
+    label = f"mpc H={record['mpc_horizon']} ({record['predictor']}{sees})"  # as evaluate's
+    mpc = [r for r in rows if r["policy"] == label
            and r["served_fractions"] == flown["mpc"]["served"]
            and r["pgs"] == flown["mpc"]["pg"]]
     if not mpc:
-        sys.exit(f"{hybrid_dir}'s mpc is none of this folder's mpc H=5 (cv) rows: other "
+        sys.exit(f"{hybrid_dir}'s mpc is none of this folder's {label} rows: other "
                  f"windows, masks or fleet; nothing to pair")
     mode, m = mpc[0]["mode"], mpc[0]["n_uabs"]
     learned = flown["learned"]

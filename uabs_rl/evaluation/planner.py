@@ -233,14 +233,15 @@ class PlannerScore(TensorDictModuleBase):
         out = torch.zeros(e, m, 4, device=pos.device)
         for r in range(self.rounds * m):
             u = order[:, r % m]
-            others = planned.clone() if self.coordinated else torch.zeros_like(planned)
+            others = planned.clone()
             others[rows, u] = False
             own = cover[rows, u]  # [E, H, V]; the others cover where covers > own
             look = None if table is None else Lookup(pos[rows, u], step,
                                                     [t[rows, u] for t in table])
-            taken = covers > own if self.coordinated else torch.zeros_like(own)
-            value, path = self.search(pos[rows, u], plan, others, taken, w, look)
+            value, path = self.search(pos[rows, u], plan, others, covers > own, w, look)
             out[rows, u] = value
+            if not self.coordinated:  # no plan is kept: the next UABS plans alone too
+                continue
             total = value + first[rows, u]
             best = total.masked_fill(~allowed[rows, u], -math.inf).argmax(-1)  # [E]
             plan[rows, u] = path[rows, best]
