@@ -10,8 +10,9 @@ updates compile the update program, seconds once a run: the figures exclude it, 
 whole-run figures of docs/performance.md include it), then prints episodes per minute,
 the projected time of the full protocol (1000 episodes of 80 steps, one update per
 step) and the share of the time spent in the environment
-(the direct step and the masking rule, see ``DirectEnv``), action selection (Q forward
-+ masked selector), replay (push + sample) and the update (loss, backward, Adam).
+(the direct step and the masking rule, see ``DirectEnv``), action selection (Q forward,
+the target mask where the rule needs the Q-values, the masked selector:
+``MaskedActionSelector.act``), replay (push + sample) and the update (loss, backward, Adam).
 Evaluation is excluded.
 With ``train.population=P`` the figures are per member: a member's episodes per minute
 and ms per member env step, so they compare with a solo run's directly.
@@ -73,22 +74,12 @@ def timed(name: str):
     SPENT[name] += time.perf_counter() - t0
 
 
-IN_UPDATE = [False]
-
-
-def wrap(obj, attr: str, name: str, outside_update: bool = False) -> None:
+def wrap(obj, attr: str, name: str) -> None:
     fn = getattr(obj, attr)
 
     def inner(*a, **k):
-        if outside_update and IN_UPDATE[0]:
-            return fn(*a, **k)
         with timed(name):
-            if name == "update":
-                IN_UPDATE[0] = True
-            try:
-                return fn(*a, **k)
-            finally:
-                IN_UPDATE[0] = IN_UPDATE[0] and name != "update"
+            return fn(*a, **k)
     setattr(obj, attr, inner)
 
 
@@ -99,8 +90,7 @@ def measure(overrides: list[str], n_episodes: int) -> None:
     tr = Experiment(cfg, tempfile.mkdtemp(prefix="uabs_bench_"))
     wrap(tr.collector.direct, "step", "env")
     wrap(tr.collector.direct, "reset", "env")
-    wrap(tr.qnet, "forward", "action selection", outside_update=True)
-    wrap(tr.collector.selector, "forward", "action selection")
+    wrap(tr.collector.selector, "act", "action selection")  # Q-values, target mask, choice
     wrap(tr.buffer, "extend", "replay")
     wrap(tr.buffer, "sample", "replay")
     wrap(tr.learner, "update", "update")

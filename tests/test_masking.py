@@ -322,6 +322,41 @@ def test_compiled_env_and_selector_match_eager(small_traces_cfg, train):
     assert (out[False] == out[True]).all()
 
 
+@pytest.mark.parametrize("mode,recoverable,next_mask", [("rank", True, "greedy"),
+                                                         ("flat", False, "greedy"),
+                                                         ("penalty", True, "greedy")])
+def test_compiled_act_equals_the_eager_decision(small_traces_cfg, train, mode, recoverable,
+                                                next_mask):
+    """MaskedActionSelector.act, the training loop's decision: compiled as one program
+    (Q forward, the target mask, the ε-greedy choice), it gives the eager sequence's
+    Q-values, target masks, actions, applied masks and fallback flags bit for bit over
+    an episode of DirectEnv steps (flat literal masks: fallbacks happen)."""
+    from uabs_rl.algorithms.model import DuelingQNet
+
+    mk = MaskingConfig(mode=mode, recoverable=recoverable, rank_next_mask=next_mask)
+    envs = [make_env(scenario(small_traces_cfg), ChannelConfig(), mk, train, n_envs=4,
+                     seed=0, spec_mask=False) for _ in range(2)]
+    sels = [make_selector(env, eps=0.3, generator=torch.Generator().manual_seed(0),
+                          compile=comp) for env, comp in zip(envs, (False, True), strict=True)]
+    p = envs[0].base_env.params
+    torch.manual_seed(0)
+    qnet = DuelingQNet(p.obs_dim, 4, [16, 16])
+    directs = [DirectEnv(env) for env in envs]
+    tds = [d.reset() for d in directs]
+    target = sels[0].rule.target_needs_q
+    for _ in range(p.episode_steps):
+        masks = [sel.act(qnet, td, target=target) for sel, td in zip(sels, tds, strict=True)]
+        assert (masks[0] is None) == (masks[1] is None) == (not target)
+        if target:
+            assert torch.equal(masks[0], masks[1])
+        for key in (ACTION_VALUE, ACTION, MASK, FALLBACK):
+            assert torch.equal(tds[0].get(key), tds[1].get(key)), key
+        tds = [d.step(td) for d, td in zip(directs, tds, strict=True)]
+    assert tds[0].get((DIAG, "ep_return")).abs().sum() > 0
+    if mode == "flat":
+        assert tds[0].get((DIAG, "ep_fallbacks")).sum() > 0
+
+
 def assert_same_entries(td, out):
     """A TensorDict and a DirectEnv output hold the same keys and equal tensors."""
     keys = set(td.keys(include_nested=True, leaves_only=True))

@@ -13,14 +13,17 @@ Nothing here tells masking modes apart.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
+from torch import nn
 from torchrl.envs import TransformedEnv
 from torchrl.envs.transforms import Transform
 
 from uabs_rl.env._compile import compiled_or_eager
-from uabs_rl.env.uabs_env import ACTION, FALLBACK, MASK, Outputs
+from uabs_rl.env.uabs_env import ACTION, FALLBACK, MASK, OBS, Outputs
 from uabs_rl.safety.rules import ACTION_VALUE, MaskingRule, uniforms
 
 
@@ -107,9 +110,11 @@ class MaskedActionSelector(TensorDictModuleBase):
         self.in_keys = [ACTION_VALUE, MASK, *rule.choice_keys]
         self.out_keys = [("agents", "action"), MASK, FALLBACK]
         self.register_buffer("eps", torch.tensor(float(eps)))
+        self.compile = compile
         self._choose = compiled_or_eager(rule.choose, "the action selection",
                                           rule.moves.device) if compile \
             else rule.choose
+        self._acts: dict[tuple[int, bool], Callable] = {}  # compiled act programs
 
     def forward(self, td: TensorDictBase | Outputs) -> TensorDictBase | Outputs:
         mask = td.get(MASK)
@@ -125,6 +130,50 @@ class MaskedActionSelector(TensorDictModuleBase):
         td.set(MASK, mask)
         td.set(FALLBACK, fallback)
         return td
+
+    def act(self, qnet: nn.Module, td: TensorDictBase | Outputs,
+            target: bool = False) -> torch.Tensor | None:
+        """The training loop's decision at ``td``: the Q-values of ``qnet`` (written under
+        ``("agents", "action_value")``), then, with ``target``, the rule's target mask at
+        this state (returned; None otherwise), then the ε-greedy choice (:meth:`forward`).
+        Compiled (``compile``), the three are one program: the network's forward, the
+        greedy choice the target mask needs and the ε-greedy one with one call."""
+        if not self.compile:
+            with torch.no_grad():
+                td.set(ACTION_VALUE, qnet(td.get(OBS)))
+            mask = self.target_mask(td) if target else None
+            self(td)
+            return mask
+        key = (id(qnet), target)
+        if key not in self._acts:
+            self._acts[key] = compiled_or_eager(self._act_program(qnet, target),
+                                                "the action selection", self.rule.moves.device)
+        mask = td.get(MASK)
+        u = uniforms(mask.shape[:-1], self.generator, mask.device)
+        q, target_mask, action, applied, fallback = self._acts[key](
+            td.get(OBS), mask, *(td.get(k) for k in self.rule.choice_keys), self.eps, u)
+        if fallback is None:
+            fallback = td.get(FALLBACK, None)
+            if fallback is None:
+                fallback = torch.zeros(mask.shape[:-1], dtype=torch.bool, device=mask.device)
+        td.set(ACTION_VALUE, q)
+        td.set(("agents", "action"), action)
+        td.set(MASK, applied)
+        td.set(FALLBACK, fallback)
+        return target_mask
+
+    def _act_program(self, qnet: nn.Module, target: bool) -> Callable:
+        rule = self.rule
+
+        def program(obs, mask, *extra):
+            *extra, eps, u = extra
+            with torch.no_grad():
+                q = qnet(obs)
+                target_mask = rule.target_mask_of(q, mask, *extra) if target else None
+                action, applied, fallback = rule.choose(q, mask, *extra, eps=eps, u=u)
+            return q, target_mask, action, applied, fallback
+
+        return program
 
     def target_mask(self, td: TensorDictBase | Outputs) -> torch.Tensor:
         """The rule's double-DQN target mask at ``td`` (s' with its Q-values), computed

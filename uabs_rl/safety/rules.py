@@ -279,6 +279,12 @@ class MaskingRule(nn.Module):
         :meth:`choose` or a compiled copy of it."""
         return td.get(MASK)
 
+    def target_mask_of(self, q: torch.Tensor, mask: torch.Tensor,
+                       *extra: torch.Tensor) -> torch.Tensor:
+        """:meth:`target_mask` from tensors: the online Q-values ``q``, the env's mask
+        and the :attr:`choice_keys` entries at s'."""
+        return mask
+
 
 RULES: dict[MaskingMode, type[MaskingRule]] = {}
 # the paper's ranking of its modes, worst to best: collisions under penalty only, and
@@ -395,6 +401,11 @@ class RankRule(MaskingRule):
             td.get(ACTION_VALUE), td.get(MASK), *(td.get(k) for k in self.choice_keys),
             eps=0.0, u=None)
         return applied
+
+    def target_mask_of(self, q, mask, *extra):
+        if not self.target_needs_q:
+            return mask
+        return self.choose(q, mask, *extra, eps=0.0, u=None)[1]
 
 
 def make_rule(masking: MaskingConfig, params: EnvParams) -> MaskingRule:

@@ -17,7 +17,6 @@ from uabs_rl.algorithms.replay import TransitionReplay
 from uabs_rl.config import AlgoConfig
 from uabs_rl.env.uabs_env import ACTION, DIAG, DIAG_ENTRIES, MASK, OBS, REWARD
 from uabs_rl.safety.modules import DirectEnv, MaskedActionSelector
-from uabs_rl.safety.rules import ACTION_VALUE
 from uabs_rl.training.teacher import Teacher
 
 
@@ -100,13 +99,14 @@ class Collector:
         for t in range(steps):
             eps = eps_at(self.env_steps)
             self.selector.eps.fill_(eps)
-            with torch.no_grad():
-                td.set(ACTION_VALUE, self.qnet(td.get(OBS)))
-            if defer and t >= n:  # s_t's target mask completes transition t - n
-                self._push(self._transition(record, pushed), self.selector.target_mask(td))
-                pushed += 1
+            # the teacher labels the state before the selector writes the mask that applied
             scores = self.teacher.scores(td) if self.teacher is not None else None
-            self.selector(td)
+            # Q-values, the target mask at s_t (when a transition waits for it) and the
+            # ε-greedy choice
+            target_mask = self.selector.act(self.qnet, td, target=defer and t >= n)
+            if target_mask is not None:  # s_t's target mask completes transition t - n
+                self._push(self._transition(record, pushed), target_mask)
+                pushed += 1
             nxt = self.direct.step(td)
             record.append({"obs": td.get(OBS), "action": td.get(ACTION), "mask": td.get(MASK),
                            "reward": nxt.get(REWARD).squeeze(-1), "next_obs": nxt.get(OBS),
