@@ -327,15 +327,17 @@ def test_compiled_env_and_selector_match_eager(small_traces_cfg, train):
                                                          ("penalty", True, "greedy")])
 def test_compiled_act_equals_the_eager_decision(small_traces_cfg, train, mode, recoverable,
                                                 next_mask):
-    """MaskedActionSelector.act, the training loop's decision: compiled as one program
-    (Q forward, the target mask, the ε-greedy choice), it gives the eager sequence's
-    Q-values, target masks, actions, applied masks and fallback flags bit for bit over
-    an episode of DirectEnv steps (flat literal masks: fallbacks happen)."""
+    """The training loop's decision and step, compiled as train.compile compiles them:
+    MaskedActionSelector.act as one program (Q forward, the target mask, the ε-greedy
+    choice) and DirectEnv's step as one (the step math and the rule's write). They give
+    the eager sequence's Q-values, target masks, actions, applied masks, fallback flags
+    and every env output bit for bit over an episode (flat literal masks: fallbacks
+    happen)."""
     from uabs_rl.algorithms.model import DuelingQNet
 
     mk = MaskingConfig(mode=mode, recoverable=recoverable, rank_next_mask=next_mask)
     envs = [make_env(scenario(small_traces_cfg), ChannelConfig(), mk, train, n_envs=4,
-                     seed=0, spec_mask=False) for _ in range(2)]
+                     seed=0, spec_mask=False, compile=comp) for comp in (False, True)]
     sels = [make_selector(env, eps=0.3, generator=torch.Generator().manual_seed(0),
                           compile=comp) for env, comp in zip(envs, (False, True), strict=True)]
     p = envs[0].base_env.params
@@ -352,6 +354,9 @@ def test_compiled_act_equals_the_eager_decision(small_traces_cfg, train, mode, r
         for key in (ACTION_VALUE, ACTION, MASK, FALLBACK):
             assert torch.equal(tds[0].get(key), tds[1].get(key)), key
         tds = [d.step(td) for d, td in zip(directs, tds, strict=True)]
+        assert set(tds[0]) == set(tds[1])
+        for key, value in tds[0].items():
+            assert torch.equal(value, tds[1][key]), key
     assert tds[0].get((DIAG, "ep_return")).abs().sum() > 0
     if mode == "flat":
         assert tds[0].get((DIAG, "ep_fallbacks")).sum() > 0
