@@ -288,8 +288,9 @@ class TrainConfig:
     # held-out trajectory picture at each evaluation
     trajectory_images: bool = setting(Role.runtime, True)
     progress: bool = setting(Role.runtime, True)  # progress bar
-    # torch.compile the env step and the action selection: ~2x faster training, ~20 s to
-    # compile (eager if compilation fails)
+    # torch.compile the env step (with the masking rule) and the decision (Q forward,
+    # target mask, masked choice): ~2x faster training, ~20 s to compile (eager if
+    # compilation fails)
     compile: bool = setting(Role.runtime, True)
     # run each update (loss, gradient, Adam) as one compiled program, any learner, solo or
     # population (uabs_rl/algorithms/compiled_update.py): results equal to the eager
