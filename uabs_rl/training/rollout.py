@@ -78,8 +78,9 @@ class Collector:
         return tr
 
     def _push(self, tr: dict[str, torch.Tensor], next_mask: torch.Tensor) -> None:
-        self.buffer.extend(TensorDict({**tr, "next_mask": next_mask},
-                                      batch_size=tr["obs"].shape[:2]))
+        # a plain mapping: building a TensorDict per step (its checks) cost more than the
+        # buffer's copies
+        self.buffer.extend({**tr, "next_mask": next_mask})
 
     def round(self, eps_at: Callable[[int], float],
               optimise: Callable[[int], Iterator[tuple[torch.Tensor, torch.Tensor]]]):
