@@ -137,6 +137,13 @@ class MaskedActionSelector(TensorDictModuleBase):
         action, mask, fallback = self._choose(
             td.get(ACTION_VALUE, None), mask, *(td.get(k) for k in self.rule.choice_keys),
             eps=self.eps, u=u)
+        return self._write(td, action, mask, fallback)
+
+    @staticmethod
+    def _write(td, action: torch.Tensor, mask: torch.Tensor,
+               fallback: torch.Tensor | None) -> TensorDictBase | Outputs:
+        """The choice into ``td``: the action, the mask that applied and the fallback
+        flags (the rule's; else those ``td`` holds; else none)."""
         if fallback is None:
             fallback = td.get(FALLBACK, None)
             if fallback is None:
@@ -167,14 +174,7 @@ class MaskedActionSelector(TensorDictModuleBase):
         u = uniforms(mask.shape[:-1], self.generator, mask.device)
         q, target_mask, action, applied, fallback = self._acts[key](
             td.get(OBS), mask, *(td.get(k) for k in self.rule.choice_keys), self.eps, u)
-        if fallback is None:
-            fallback = td.get(FALLBACK, None)
-            if fallback is None:
-                fallback = torch.zeros(mask.shape[:-1], dtype=torch.bool, device=mask.device)
-        td.set(ACTION_VALUE, q)
-        td.set(("agents", "action"), action)
-        td.set(MASK, applied)
-        td.set(FALLBACK, fallback)
+        self._write(td.set(ACTION_VALUE, q), action, applied, fallback)
         return target_mask
 
     def _act_program(self, qnet: nn.Module, target: bool) -> Callable:

@@ -277,12 +277,16 @@ class MaskingRule(nn.Module):
         """The mask the double-DQN target maximises over at s' (``td`` = the outputs at
         s' with the online Q-values under ``("agents", "action_value")``). ``choose`` is
         :meth:`choose` or a compiled copy of it."""
-        return td.get(MASK)
+        if not self.target_needs_q:
+            return td.get(MASK)
+        return self.target_mask_of(td.get(ACTION_VALUE), td.get(MASK),
+                                   *(td.get(k) for k in self.choice_keys), choose=choose)
 
-    def target_mask_of(self, q: torch.Tensor, mask: torch.Tensor,
-                       *extra: torch.Tensor) -> torch.Tensor:
+    def target_mask_of(self, q: torch.Tensor, mask: torch.Tensor, *extra: torch.Tensor,
+                       choose=None) -> torch.Tensor:
         """:meth:`target_mask` from tensors: the online Q-values ``q``, the env's mask
-        and the :attr:`choice_keys` entries at s'."""
+        and the :attr:`choice_keys` entries at s' (what a rule whose target mask needs
+        the Q-values overrides)."""
         return mask
 
 
@@ -394,18 +398,11 @@ class RankRule(MaskingRule):
                                            self.moves, self.d_th, eps, u)
         return rank_select(q, mask, pos, order, colliders, self.moves, self.d_th, eps, u)
 
-    def target_mask(self, td: TensorDictBase | Outputs, choose=None) -> torch.Tensor:
+    def target_mask_of(self, q, mask, *extra, choose=None):
         if not self.target_needs_q:  # boundary
-            return td.get(MASK)
-        _, applied, _ = (choose or self.choose)(
-            td.get(ACTION_VALUE), td.get(MASK), *(td.get(k) for k in self.choice_keys),
-            eps=0.0, u=None)
-        return applied
-
-    def target_mask_of(self, q, mask, *extra):
-        if not self.target_needs_q:
             return mask
-        return self.choose(q, mask, *extra, eps=0.0, u=None)[1]
+        _, applied, _ = (choose or self.choose)(q, mask, *extra, eps=0.0, u=None)
+        return applied
 
 
 def make_rule(masking: MaskingConfig, params: EnvParams) -> MaskingRule:
