@@ -11,6 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from tensordict import TensorDict
 
+from tests.test_algorithms import learner_config
 from uabs_rl.config import ChannelConfig, ConfigError, MaskingConfig, MaskingMode, ScenarioConfig
 from uabs_rl.env.params import EnvParams
 from uabs_rl.env.uabs_env import ACTION, BEAM_PRIORITY, DIAG, FALLBACK, MASK, POSITION, StepMath
@@ -415,7 +416,6 @@ def test_every_learners_policy_acts_only_within_the_mask(small_traces_cfg, train
     that applied to it, and the collision masks keep every pair apart."""
     from tensordict.nn import TensorDictModule, TensorDictSequential
 
-    from tests.test_algorithms import learner_config
     from uabs_rl.algorithms import Dims, make_algorithm
     from uabs_rl.env.uabs_env import N_ACTIONS, OBS
 
