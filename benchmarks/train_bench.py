@@ -9,10 +9,10 @@ after filling the replay to ``algo.learning_starts`` and two warm-up rounds (the
 updates compile the update program, seconds once a run: the figures exclude it, the
 whole-run figures of docs/performance.md include it), then prints episodes per minute,
 the projected time of the full protocol (1000 episodes of 80 steps, one update per
-step) and the share of the time spent in the environment
-(the direct step and the masking rule, see ``DirectEnv``), action selection (Q forward,
-the target mask where the rule needs the Q-values, the masked selector:
-``MaskedActionSelector.act``), replay (push + sample) and the update (loss, backward, Adam).
+step) and the share of the time spent in the decision and env step (the Q forward, the
+target mask where the rule needs the Q-values, the masked choice, the direct step and the
+masking rule's write: ``DirectEnv.act_and_step``, one compiled program with
+``train.compile``), replay (push + sample) and the update (loss, backward, Adam).
 Evaluation is excluded.
 With ``train.population=P`` the figures are per member: a member's episodes per minute
 and ms per member env step, so they compare with a solo run's directly.
@@ -88,9 +88,9 @@ def measure(overrides: list[str], n_episodes: int) -> None:
     cfg = compose("config", ["train.progress=false", "train.logger=none", *overrides])
     _, why = resolve_threads(cfg)  # the run sets its threads (and governor) as uabs-train
     tr = Experiment(cfg, tempfile.mkdtemp(prefix="uabs_bench_"))
-    wrap(tr.collector.direct, "step", "env")
-    wrap(tr.collector.direct, "reset", "env")
-    wrap(tr.collector.selector, "act", "action selection")  # Q-values, target mask, choice
+    # the decision (Q-values, target mask, choice) and the env step: one compiled program
+    wrap(tr.collector.direct, "act_and_step", "decision + env step")
+    wrap(tr.collector.direct, "reset", "decision + env step")
     wrap(tr.buffer, "extend", "replay")
     wrap(tr.buffer, "sample", "replay")
     wrap(tr.learner, "update", "update")
@@ -132,7 +132,7 @@ def measure(overrides: list[str], n_episodes: int) -> None:
           f"updates): {full / 60:.1f} min (+ {cfg.train.episodes // cfg.train.eval_every} "
           f"evaluations and the compile)")
     other = wall - sum(SPENT.values())
-    for name in ("env", "action selection", "replay", "update"):
+    for name in ("decision + env step", "replay", "update"):
         print(f"  {name:>17}: {SPENT[name]:6.2f} s  {100 * SPENT[name] / wall:5.1f} %")
     print(f"  {'other (loop)':>17}: {other:6.2f} s  {100 * other / wall:5.1f} %")
     print(update_line(tr.learner, SPENT["update"], updates, wall))

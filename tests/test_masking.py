@@ -14,7 +14,16 @@ from tensordict import TensorDict
 from tests.test_algorithms import learner_config
 from uabs_rl.config import ChannelConfig, ConfigError, MaskingConfig, MaskingMode, ScenarioConfig
 from uabs_rl.env.params import EnvParams
-from uabs_rl.env.uabs_env import ACTION, BEAM_PRIORITY, DIAG, FALLBACK, MASK, POSITION, StepMath
+from uabs_rl.env.uabs_env import (
+    ACTION,
+    BEAM_PRIORITY,
+    DIAG,
+    FALLBACK,
+    MASK,
+    POSITION,
+    REWARD,
+    StepMath,
+)
 from uabs_rl.safety.make import make_env, make_selector
 from uabs_rl.safety.modules import DirectEnv
 from uabs_rl.safety.rules import (
@@ -330,17 +339,19 @@ def test_compiled_act_equals_the_eager_decision(small_traces_cfg, train, mode, r
                                                 next_mask):
     """The training loop's decision and step, compiled as train.compile compiles them:
     MaskedActionSelector.act as one program (Q forward, the target mask, the ε-greedy
-    choice) and DirectEnv's step as one (the step math and the rule's write). They give
-    the eager sequence's Q-values, target masks, actions, applied masks, fallback flags
-    and every env output bit for bit over an episode (flat literal masks: fallbacks
+    choice) and DirectEnv's step as one (the step math and the rule's write), and both as
+    one program (DirectEnv.act_and_step, what the training loop calls). They give the
+    eager sequence's Q-values, target masks, actions, applied masks, fallback flags and
+    every env output bit for bit over an episode (flat literal masks: fallbacks
     happen)."""
     from uabs_rl.algorithms.model import DuelingQNet
 
     mk = MaskingConfig(mode=mode, recoverable=recoverable, rank_next_mask=next_mask)
+    compiled = (False, True, True)  # eager; two compiled programs; one
     envs = [make_env(scenario(small_traces_cfg), ChannelConfig(), mk, train, n_envs=4,
-                     seed=0, spec_mask=False, compile=comp) for comp in (False, True)]
+                     seed=0, spec_mask=False, compile=comp) for comp in compiled]
     sels = [make_selector(env, eps=0.3, generator=torch.Generator().manual_seed(0),
-                          compile=comp) for env, comp in zip(envs, (False, True), strict=True)]
+                          compile=comp) for env, comp in zip(envs, compiled, strict=True)]
     p = envs[0].base_env.params
     torch.manual_seed(0)
     qnet = DuelingQNet(p.obs_dim, 4, [16, 16])
@@ -348,19 +359,66 @@ def test_compiled_act_equals_the_eager_decision(small_traces_cfg, train, mode, r
     tds = [d.reset() for d in directs]
     target = sels[0].rule.target_needs_q
     for _ in range(p.episode_steps):
-        masks = [sel.act(qnet, td, target=target) for sel, td in zip(sels, tds, strict=True)]
-        assert (masks[0] is None) == (masks[1] is None) == (not target)
-        if target:
-            assert torch.equal(masks[0], masks[1])
+        masks = [sel.act(qnet, td, target=target) for sel, td in
+                 zip(sels[:2], tds[:2], strict=True)]
+        mask, nxt = directs[2].act_and_step(sels[2], qnet, tds[2], target=target)
+        masks.append(mask)
+        assert all((m is None) == (not target) for m in masks)
         for key in (ACTION_VALUE, ACTION, MASK, FALLBACK):
-            assert torch.equal(tds[0].get(key), tds[1].get(key)), key
-        tds = [d.step(td) for d, td in zip(directs, tds, strict=True)]
-        assert set(tds[0]) == set(tds[1])
-        for key, value in tds[0].items():
-            assert torch.equal(value, tds[1][key]), key
+            for td in tds[1:]:
+                assert torch.equal(tds[0].get(key), td.get(key)), key
+        if target:
+            for m in masks[1:]:
+                assert torch.equal(masks[0], m)
+        tds = [d.step(td) for d, td in zip(directs[:2], tds[:2], strict=True)] + [nxt]
+        for td in tds[1:]:
+            assert set(tds[0]) == set(td)
+            for key, value in tds[0].items():
+                assert torch.equal(value, td[key]), key
     assert tds[0].get((DIAG, "ep_return")).abs().sum() > 0
     if mode == "flat":
         assert tds[0].get((DIAG, "ep_fallbacks")).sum() > 0
+
+
+@pytest.mark.parametrize("mode,recoverable,compiled", [("rank", True, True),
+                                                       ("rank", True, False),
+                                                       ("flat", False, False),
+                                                       ("penalty", True, True)])
+def test_evaluator_rollout_equals_torchrl_rollout(small_traces_cfg, train, mode, recoverable,
+                                                  compiled):
+    """Evaluation flies a Q-network's greedy policy through DirectEnv (Evaluator.rollout
+    of a GreedyPolicy): the TensorDict it returns equals env.rollout's of the same
+    modules, entry for entry, shapes and dtypes too, so every record drawn from it is
+    the same (flat literal masks: fallbacks happen)."""
+    from tensordict.nn import TensorDictSequential
+
+    from uabs_rl.algorithms.model import DuelingQNet
+    from uabs_rl.evaluation.evaluator import Evaluator, GreedyPolicy
+
+    mk = MaskingConfig(mode=mode, recoverable=recoverable)
+    out = []
+    for direct in (True, False):
+        env = make_env(scenario(small_traces_cfg), ChannelConfig(), mk, train, n_envs=4,
+                       seed=0, spec_mask=False, compile=compiled)
+        torch.manual_seed(0)
+        qnet = DuelingQNet(env.base_env.params.obs_dim, 4, [16, 16])
+        # ε = 0.3: exploring, literal flat masks meet dead ends (fallbacks)
+        sel = make_selector(env, eps=0.3, generator=torch.Generator().manual_seed(0),
+                            compile=compiled)
+        policy = GreedyPolicy(qnet, sel)
+        if not direct:  # the same modules, as a plain TorchRL policy: env.rollout
+            policy = TensorDictSequential(*policy.module)
+        ev = Evaluator(env, 0)
+        out.append((ev.rollout(policy), ev))
+    (a, ev), (b, _) = out
+    assert a.batch_size == b.batch_size and a["agents"].batch_size == b["agents"].batch_size
+    keys = set(a.keys(True, True))
+    assert keys == set(b.keys(True, True)) and ("next", *REWARD) in keys
+    for k in keys:
+        assert a[k].dtype == b[k].dtype and torch.equal(a[k], b[k]), k
+    assert ev.record(a) == ev.record(b)
+    if mode == "flat":
+        assert a["next", DIAG, "ep_fallbacks"].sum() > 0
 
 
 def assert_same_entries(td, out):

@@ -9,16 +9,17 @@ from collections.abc import Callable
 from typing import Any
 
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictModuleBase, TensorDictSequential
 from torch import nn
 from torchrl.envs import TransformedEnv
 
 from uabs_rl.config import ConfigError, RunConfig
 from uabs_rl.env.channel import coverage_fraction
-from uabs_rl.env.uabs_env import DIAG, OBS, POSITION, window_count
+from uabs_rl.env.uabs_env import AGENTS, DIAG, OBS, POSITION, REWARD, Outputs, window_count
 from uabs_rl.rng import make_generator
 from uabs_rl.safety.make import make_env, make_selector
+from uabs_rl.safety.modules import DirectEnv, MaskedActionSelector, SafetyTransform
 from uabs_rl.safety.rules import ACTION_VALUE
 from uabs_rl.traces.build import get_traces
 from uabs_rl.traces.cache import TraceSet
@@ -26,15 +27,32 @@ from uabs_rl.traces.cache import TraceSet
 log = logging.getLogger(__name__)
 
 
+class GreedyPolicy(TensorDictSequential):
+    """A Q-network's policy: its Q-values under ``("agents", "action_value")``, then a
+    masking rule's selector (a TorchRL policy module like any other). :class:`Evaluator`
+    flies it without TorchRL's per-step TensorDicts (:meth:`Evaluator.rollout`)."""
+
+    def __init__(self, qnet: nn.Module, selector: MaskedActionSelector):
+        super().__init__(TensorDictModule(qnet, in_keys=[OBS], out_keys=[ACTION_VALUE]),
+                         selector)
+
+    @property
+    def qnet(self) -> nn.Module:
+        return self.module[0].module
+
+    @property
+    def selector(self) -> MaskedActionSelector:
+        return self.module[1]
+
+
 def greedy_policy(qnet: nn.Module, env: TransformedEnv, cfg: RunConfig,
-                  compile: bool = False, members: int = 1) -> TensorDictSequential:
+                  compile: bool = False, members: int = 1) -> GreedyPolicy:
     """The greedy learned policy: Q-values, then the masking rule's choice with ε = 0.
     Its generator (one per population member) is seeded with ``train.eval_seed``: no
     draw decides anything when greedy, but evaluation stays off the global RNG."""
     gen = make_generator([cfg.train.eval_seed] * members if members > 1
                          else cfg.train.eval_seed, env.base_env.device)
-    qmod = TensorDictModule(qnet, in_keys=[OBS], out_keys=[ACTION_VALUE])
-    return TensorDictSequential(qmod, make_selector(env, 0.0, gen, compile=compile))
+    return GreedyPolicy(qnet, make_selector(env, 0.0, gen, compile=compile))
 
 
 def make_eval_env(cfg: RunConfig, traces: TraceSet | None = None,
@@ -87,6 +105,25 @@ def eval_window_count(cfg: RunConfig, traces: TraceSet, split: str,
     return n
 
 
+def _stacked(steps: list[Outputs], m: int) -> TensorDict:
+    """Per-step outputs ``[E, ...]`` stacked along time, as the TensorDict ``[E, T]``
+    of ``env.rollout`` (the agents' entries ``[E, T, M]``)."""
+    e = steps[0][OBS].shape[0]
+    shape, device = [e, len(steps)], steps[0][OBS].device
+    groups: dict[str, dict[str, torch.Tensor]] = {}
+    root: dict[str, torch.Tensor] = {}
+    for key in steps[0]:
+        value = torch.stack([s[key] for s in steps], 1)
+        if isinstance(key, tuple):
+            groups.setdefault(key[0], {})[key[1]] = value
+        else:
+            root[key] = value
+    for name, entries in groups.items():
+        root[name] = TensorDict(entries, batch_size=shape + ([m] if name == AGENTS else []),
+                                device=device)
+    return TensorDict(root, batch_size=shape, device=device)
+
+
 def vehicle_windows(base) -> torch.Tensor | None:
     """``[n]`` (CPU) whether each fixed window of the eval-mode env ``base`` holds a
     vehicle at one of its T + 1 steps, or None when every one does (or ``base`` draws
@@ -111,6 +148,7 @@ class Evaluator:
         # called after every step of a rollout but its last when set (uabs-eval: the
         # thread governor's look at the CPUs, training.threads.ThreadGovernor.check)
         self.on_step: Callable[[], object] | None = None
+        self._direct: DirectEnv | None = None  # the env without TensorDicts, once built
         # which fixed windows hold a vehicle at some step; in one without any, the served
         # fraction and P_g are undefined: NaN, left out of the means (None: all hold one)
         self.has_vehicles = vehicle_windows(env.base_env)
@@ -130,11 +168,40 @@ class Evaluator:
 
     @torch.no_grad()
     def rollout(self, policy: TensorDictModuleBase) -> TensorDictBase:
-        """One seeded episode of ``policy`` in every env: ``[E, T]``."""
+        """One seeded episode of ``policy`` in every env: ``[E, T]``, as
+        ``env.rollout`` returns it. A :class:`GreedyPolicy` flies through
+        :meth:`direct_rollout`, every other policy through ``env.rollout``."""
         self.env.set_seed(self.seed)
+        if isinstance(policy, GreedyPolicy) and isinstance(self.env.transform,
+                                                           SafetyTransform):
+            return self.direct_rollout(policy)
         hook = self.on_step
         return self.env.rollout(self.params.episode_steps, policy, break_when_any_done=False,
                                 callback=None if hook is None else lambda env, td: hook())
+
+    def direct_rollout(self, policy: GreedyPolicy) -> TensorDictBase:
+        """``env.rollout`` of ``policy`` from the env's current seed, entry for entry
+        (``tests/test_evaluate.py``), through :class:`~uabs_rl.safety.modules.DirectEnv`
+        and the selector's :meth:`~MaskedActionSelector.act` (compiled: one program per
+        decision and one per env step), without TorchRL's TensorDicts and checks at
+        every step (they cost 2-3 ms a step, most of an evaluation's rollout)."""
+        if self._direct is None:
+            self._direct = DirectEnv(self.env, one_program=False)
+        direct, selector, qnet = self._direct, policy.selector, policy.qnet
+        steps, hook = self.params.episode_steps, self.on_step
+        td, roots, nexts = direct.reset(), [], []
+        for t in range(steps):
+            selector(td.set(ACTION_VALUE, qnet(td.get(OBS))))
+            nxt = direct.step(td)
+            roots.append(td)
+            nexts.append(nxt)
+            if hook is not None and t < steps - 1:
+                hook()
+            # the next root: what TorchRL's step_mdp keeps of the step's outputs
+            td = Outputs({k: v for k, v in nxt.items() if k != REWARD})
+        out = _stacked(roots, self.params.n_uabs)
+        out["next"] = _stacked(nexts, self.params.n_uabs)
+        return out
 
     def record(self, td: TensorDictBase, episode: int = 0, env_steps: int = 0) -> dict[str, Any]:
         """The evaluation record of the rollout ``td`` (or of a block of its envs: a

@@ -67,8 +67,13 @@ class DirectEnv:
     TensorDict), entry for entry equal to ``env.reset()`` and ``env.step(td)["next"]``
     (``tests/test_masking.py``). It runs the env's step math and the rule's :meth:`write`
     and skips what TorchRL does on every call (building nested TensorDicts, shape and
-    done checks, the ``"next"`` entry). The training loop steps through it; evaluation
-    and everything a user calls keep the TorchRL env.
+    done checks, the ``"next"`` entry). The training loop steps through it, and so does
+    the evaluation of a Q-network's greedy policy
+    (:meth:`uabs_rl.evaluation.evaluator.Evaluator.direct_rollout`, which returns what
+    ``env.rollout`` returns); every other policy a user flies keeps the TorchRL env.
+    With ``one_program`` False, a compiled step runs the env's own compiled step math
+    (the program ``env.step`` calls) and the rule's write eagerly, sharing that program
+    with the TorchRL env instead of compiling a second one for its shapes.
 
     Why a second path: measured on the 2-core development CPU
     (``benchmarks/env_bench.py --n-envs 1``, the paper's env), ``env.step`` takes
@@ -76,7 +81,7 @@ class DirectEnv:
     step, would be 8 % of the main job's training step (1.7 ms,
     ``benchmarks/train_bench.py``), above the 5 % that keeping two paths needs."""
 
-    def __init__(self, env: TransformedEnv):
+    def __init__(self, env: TransformedEnv, one_program: bool = True):
         if not isinstance(env.transform, SafetyTransform):
             raise TypeError(f"DirectEnv needs the env of make_env(..., spec_mask=False): a "
                             f"UABSEnv with one SafetyTransform, got {env.transform!r}")
@@ -85,7 +90,8 @@ class DirectEnv:
         # program: a compiled program's call costs about as much as the rule's few eager
         # ops (sort, cdist) it saves calling separately
         self._step = (compiled_or_eager(self._written_step, "the env step", self.base.device)
-                      if self.base.compile_step else None)
+                      if self.base.compile_step and one_program else None)
+        self._decided: dict[tuple[int, int, bool], Callable] = {}  # act_and_step programs
 
     def reset(self) -> Outputs:
         out = self.base.reset_direct()
@@ -102,6 +108,44 @@ class DirectEnv:
             return out
         b = self.base
         return Outputs(self._step(b.state, action, b.veh_pos, b.veh_present, b.rng, fallback))
+
+    def act_and_step(self, selector: MaskedActionSelector, qnet: nn.Module,
+                     td: Outputs | TensorDictBase,
+                     target: bool = False) -> tuple[torch.Tensor | None, Outputs]:
+        """``selector.act(qnet, td, target)`` then :meth:`step`: the training loop's
+        decision at ``td`` (written into it) and the outputs after it, with the target
+        mask ``act`` returns. Compiled (the env's ``compile_step`` and the selector's
+        ``compile``), the two are one program: one call per env step instead of two,
+        each call's fixed cost (entering it, its output wrapping) being of the order of
+        the small ops it runs. Results are those of the two calls, bit for bit
+        (``tests/test_masking.py``)."""
+        if self._step is None or not selector.compile:
+            target_mask = selector.act(qnet, td, target)
+            return target_mask, self.step(td)
+        key = (id(selector), id(qnet), target)
+        if key not in self._decided:
+            self._decided[key] = compiled_or_eager(
+                self._decided_step(selector._act_program(qnet, target)),
+                "the action selection and env step", self.base.device)
+        mask = td.get(MASK)
+        u = uniforms(mask.shape[:-1], selector.generator, mask.device)
+        b = self.base
+        q, target_mask, action, applied, fallback, out = self._decided[key](
+            b.state, b.veh_pos, b.veh_present, b.rng, td.get(FALLBACK, None), td.get(OBS),
+            mask, *(td.get(k) for k in selector.rule.choice_keys), selector.eps, u)
+        selector._write(td.set(ACTION_VALUE, q), action, applied, fallback)
+        return target_mask, Outputs(out)
+
+    def _decided_step(self, act: Callable) -> Callable:
+        def program(state, veh_pos, veh_present, gen, prior_fallback, obs, mask, *extra):
+            q, target_mask, action, applied, fallback = act(obs, mask, *extra)
+            if fallback is None:  # as MaskedActionSelector._write fills it in
+                fallback = prior_fallback if prior_fallback is not None else torch.zeros(
+                    applied.shape[:-1], dtype=torch.bool, device=applied.device)
+            out = self._written_step(state, action, veh_pos, veh_present, gen, fallback)
+            return q, target_mask, action, applied, fallback, out
+
+        return program
 
     def _written_step(self, state, action, veh_pos, veh_present, gen, fallback):
         out = direct_outputs(self.base.math.step(state, action, veh_pos, veh_present, gen,

@@ -104,11 +104,12 @@ class Collector:
             scores = self.teacher.scores(td) if self.teacher is not None else None
             # Q-values, the target mask at s_t (when a transition waits for it) and the
             # ε-greedy choice
-            target_mask = self.selector.act(self.qnet, td, target=defer and t >= n)
+            # and the env step after it
+            target_mask, nxt = self.direct.act_and_step(self.selector, self.qnet, td,
+                                                        target=defer and t >= n)
             if target_mask is not None:  # s_t's target mask completes transition t - n
                 self._push(self._transition(record, pushed), target_mask)
                 pushed += 1
-            nxt = self.direct.step(td)
             record.append({"obs": td.get(OBS), "action": td.get(ACTION), "mask": td.get(MASK),
                            "reward": nxt.get(REWARD).squeeze(-1), "next_obs": nxt.get(OBS),
                            "terminated": nxt.get(("agents", "terminated")).squeeze(-1)})
