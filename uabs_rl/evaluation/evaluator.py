@@ -179,12 +179,14 @@ class Evaluator:
         return self.env.rollout(self.params.episode_steps, policy, break_when_any_done=False,
                                 callback=None if hook is None else lambda env, td: hook())
 
+    @torch.no_grad()
     def direct_rollout(self, policy: GreedyPolicy) -> TensorDictBase:
         """``env.rollout`` of ``policy`` from the env's current seed, entry for entry
-        (``tests/test_evaluate.py``), through :class:`~uabs_rl.safety.modules.DirectEnv`
-        and the selector's :meth:`~MaskedActionSelector.act` (compiled: one program per
-        decision and one per env step), without TorchRL's TensorDicts and checks at
-        every step (they cost 2-3 ms a step, most of an evaluation's rollout)."""
+        (``tests/test_masking.py``): the same modules and the same compiled programs
+        (the selector's choice, the env's step math), stepped through
+        :class:`~uabs_rl.safety.modules.DirectEnv` without TorchRL's TensorDicts and
+        checks at every step (most of an evaluation's rollout time). ``on_step`` is
+        called as ``env.rollout``'s callback would be."""
         if self._direct is None:
             self._direct = DirectEnv(self.env, one_program=False)
         direct, selector, qnet = self._direct, policy.selector, policy.qnet

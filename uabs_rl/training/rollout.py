@@ -102,9 +102,8 @@ class Collector:
             self.selector.eps.fill_(eps)
             # the teacher labels the state before the selector writes the mask that applied
             scores = self.teacher.scores(td) if self.teacher is not None else None
-            # Q-values, the target mask at s_t (when a transition waits for it) and the
-            # ε-greedy choice
-            # and the env step after it
+            # Q-values, the target mask at s_t (when a transition waits for it), the
+            # ε-greedy choice and the env step after it
             target_mask, nxt = self.direct.act_and_step(self.selector, self.qnet, td,
                                                         target=defer and t >= n)
             if target_mask is not None:  # s_t's target mask completes transition t - n
