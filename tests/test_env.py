@@ -196,6 +196,33 @@ def test_pg_curve_of_a_constructed_served_matrix(small_traces_cfg):
     assert service.pg_curve(st["n_windows"], st["ns_hist"])[0].tolist() == [1.0, 0.25]
 
 
+def test_pg_curve_is_its_exact_value_rounded_once_whatever_the_vehicles_order():
+    """P_g is a mean of per-GUE shares with different denominators: summed in float32,
+    the order of the sum (the compiled evaluation's kernels against eager ones) showed in
+    the last bit. Summed in float64 and rounded once, it is the exact fraction rounded
+    to float32, for any order of the vehicles."""
+    from fractions import Fraction
+
+    gen = torch.Generator().manual_seed(0)
+    e, v, n = 6, 300, 10
+    n_windows = torch.randint(0, 9, (e, v), generator=gen)
+    ns_hist = torch.zeros(e, v, n + 1)
+    for w in range(8):  # up to 8 windows, each a served count in 0..n
+        ns = torch.randint(0, n + 1, (e, v, 1), generator=gen)
+        ns_hist.scatter_add_(2, ns, (n_windows > w).float()[..., None])
+    n_windows = n_windows.float()
+    curve = service.pg_curve(n_windows, ns_hist)
+    assert curve.dtype == torch.float32
+    for perm in (torch.randperm(v, generator=gen) for _ in range(5)):
+        assert torch.equal(curve, service.pg_curve(n_windows[:, perm], ns_hist[:, perm]))
+    for i in range(e):
+        counted = [g for g in range(v) if n_windows[i, g] > 0]
+        for k in range(1, n + 1):
+            exact = sum(Fraction(int(ns_hist[i, g, k:].sum()), int(n_windows[i, g]))
+                        for g in counted) / len(counted)
+            assert curve[i, k - 1].item() == torch.tensor(float(exact)).item()
+
+
 def test_episode_ends_at_T_and_tallies(small_traces_cfg, train):
     env = UABSEnv(scenario(small_traces_cfg), ChannelConfig(), train, n_envs=2)
     td = rollout(env, EP, seed=1)

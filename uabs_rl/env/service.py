@@ -73,12 +73,19 @@ def update_service(st: dict[str, torch.Tensor], served: torch.Tensor, present: t
 
 def pg_curve(n_windows: torch.Tensor, ns_hist: torch.Tensor) -> torch.Tensor:
     """P_g(N̂_s) for N̂_s = 1..N, [E, N]: mean over GUEs with a counted window of the
-    share of their windows with N_s ≥ N̂_s."""
+    share of their windows with N_s ≥ N̂_s.
+
+    The sums run in float64 and the result is rounded once to the tallies' dtype: how a
+    kernel orders a float32 sum (eager or compiled, the shape's blocking) would show in
+    the last bit, and the compiled and eager evaluations gave figures 1e-7 apart; a
+    float64 sum's order changes the rounded result only where the exact value lies
+    within ~1e-16 of a float32 rounding boundary."""
     counted = n_windows > 0
-    inv = torch.where(counted, 1.0 / n_windows.clamp_min(1.0), torch.zeros_like(n_windows))
-    per_ns = torch.bmm(inv[:, None, :], ns_hist).squeeze(1)  # [E, N+1] Σ_g share(N_s = j)
+    n = n_windows.double()
+    inv = torch.where(counted, 1.0 / n.clamp_min(1.0), torch.zeros_like(n))
+    per_ns = torch.bmm(inv[:, None, :], ns_hist.double()).squeeze(1)  # [E, N+1] Σ_g share(N_s = j)
     at_least = per_ns.flip(-1).cumsum(-1).flip(-1)[:, 1:]  # Σ_g share(N_s ≥ k), k = 1..N
-    return at_least / counted.sum(-1, keepdim=True).clamp_min(1)
+    return (at_least / counted.sum(-1, keepdim=True).clamp_min(1)).to(n_windows.dtype)
 
 
 # elements of one [E, chunk, V] block of :func:`move_scores` (4 MiB per float32 block)

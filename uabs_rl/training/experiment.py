@@ -191,7 +191,12 @@ class Experiment:
         env = make_env(cfg.scenario, cfg.channel, cfg.masking, train,
                        "train", n_envs=tr.n_envs * self.n, device=dev, seed=seed,
                        compile=tr.compile, spec_mask=False, obs=cfg.obs)
-        eval_env = make_eval_env(cfg, traces.get("eval"), dev, members=self.n)
+        # the periodic evaluation runs eager, as uabs-eval's test rollouts do: compiling
+        # its shape took 20-36 s at the first evaluation, and 50 evaluations eager take
+        # ~8 s (160 against 60-90 ms each, the main job's 10 windows); the figures are
+        # the same bit for bit (tests/test_masking.py; P_g's sum: tests/test_env.py)
+        eval_env = make_eval_env(cfg, traces.get("eval"), dev, compile=False,
+                                 members=self.n)
         self.params = p = env.base_env.params
         self.learner = make_algorithm(cfg.algo, Dims(p.obs_dim, N_ACTIONS, p.n_uabs), seeds, dev)
         self.learner.compile_update(tr.compile if tr.compile_update is None
@@ -207,8 +212,7 @@ class Experiment:
                                    Teacher(env.base_env, horizon))
         self.updates = UpdateSchedule(self.learner, cfg.algo)
         self.evaluator = Evaluator(eval_env, tr.eval_seed)
-        self.greedy = greedy_policy(self.qnet, eval_env, cfg, compile=tr.compile,
-                                    members=self.n)
+        self.greedy = greedy_policy(self.qnet, eval_env, cfg, members=self.n)
         self.members = [Member(cfg, s, self.run_dir if self.solo else
                                member_dir(self.run_dir, s)) for s in seeds]
         self.checkpoints = Checkpoints(self)
