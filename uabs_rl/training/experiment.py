@@ -23,7 +23,7 @@ from uabs_rl.config import RunConfig, TrainConfig
 from uabs_rl.env.uabs_env import N_ACTIONS
 from uabs_rl.evaluation.evaluator import Evaluator, greedy_policy, make_eval_env
 from uabs_rl.rng import Generators, make_generator
-from uabs_rl.runs.checkpoint import Interrupted, config_dict
+from uabs_rl.runs.checkpoint import Interrupted
 from uabs_rl.runs.folder import write_error
 from uabs_rl.runs.layout import RunFolder
 from uabs_rl.safety.make import make_env, make_selector, resolve_device
@@ -243,7 +243,7 @@ class Experiment:
         m = self.members[i]
         selector, env = self.generators(i)
         state = {
-            "config": config_dict(m.cfg), "run": self.identity,
+            "config": m.config, "run": self.identity,
             "learner": self.learner.member_state_dict(i),
             "counters": {"episode": self.episode, "env_steps": self.collector.env_steps,
                          "update_credit": self.updates.credit, "best_eval": m.best_eval,
