@@ -464,6 +464,50 @@ def test_bands_are_drawn_and_named_only_where_there_are_seeds():
     plt.close(fig)
 
 
+def test_live_evaluation_pictures_redraw_as_a_fresh_figure_draws():
+    """A run keeps its evaluation pictures and redraws only their paths, curves and
+    titles (LivePicture): after one episode's paths, the next episode's picture is the
+    one a fresh figure of that episode draws, with no trace of the one before (the
+    footprints now cross the axes' frame above it: a few pixels at its edge differ)."""
+    import torch
+
+    from uabs_rl.config import AreaConfig
+    from uabs_rl.evaluation.plots import PgCurvePicture, TrajectoryPicture
+
+    def fresh(pic):  # a full draw of a figure built for this episode only
+        pic.fig.canvas.draw()
+        return np.asarray(pic.fig.canvas.buffer_rgba()).copy()
+
+    area = AreaConfig(width=350.0, height=170.0)
+    gen = torch.Generator().manual_seed(0)
+    steps, m, v = 21, 3, 12
+    vehicles = torch.rand(steps, 2, v, generator=gen) * torch.tensor([[350.0], [170.0]])
+    present = torch.rand(steps, v, generator=gen) > 0.3
+    episodes = [torch.rand(steps, m, 2, generator=gen) * torch.tensor([350.0, 170.0])
+                for _ in range(2)]
+    live = TrajectoryPicture(area, vehicles, present, 11.6, 9, m, live=True)
+    assert live.shows(vehicles, present) and not live.shows(vehicles + 1, present)
+    drawn, want = [], []
+    for i, uabs in enumerate(episodes):
+        live.update(uabs, f"episode {i}")
+        drawn.append(live.live.render().copy())
+        pic = TrajectoryPicture(area, vehicles, present, 11.6, 9, m)
+        pic.update(uabs, f"episode {i}")
+        want.append(fresh(pic))
+    differ = [[(drawn[i] != want[j]).any(-1).mean() for j in range(2)] for i in range(2)]
+    assert differ[1][1] < 0.002 and differ[0][0] < 0.002  # the frame's few pixels
+    assert differ[1][0] > 0.01  # the second picture is not the first one's
+
+    curves = [np.linspace(0.9, 0.1, 10), np.linspace(0.5, 0.0, 10)]
+    live = PgCurvePicture(["rank"], 10, live=True)
+    for i, curve in enumerate(curves):
+        live.update([curve], f"after {i} episodes")
+        drawn = live.live.render().copy()
+        pic = PgCurvePicture(["rank"], 10)
+        pic.update([curve], f"after {i} episodes")
+        assert np.array_equal(drawn, fresh(pic))
+
+
 def test_trajectory_picture_is_cropped_to_the_area_and_tracks_are_not_lanes():
     """The axes fill the figure's height (no empty band above or below the map), at the
     area's aspect; vehicle positions are dots (one per present vehicle and step), the

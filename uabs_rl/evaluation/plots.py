@@ -13,7 +13,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: E402
 from matplotlib.collections import LineCollection  # noqa: E402
+from matplotlib.figure import Figure  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
 from matplotlib.patches import Circle  # noqa: E402
 
@@ -83,6 +85,14 @@ def scenario_lanes(scenario: ScenarioConfig) -> np.ndarray | None:
     return lane_segments(str(net), a.x_min, a.y_min) if net else None
 
 
+def _agg_figure(size: tuple[float, float], dpi: int = 100) -> Figure:
+    """A figure drawn by Agg, outside pyplot's list of open figures: a run keeps its
+    evaluation pictures open (a population two per member; pyplot warns past 20)."""
+    fig = Figure(figsize=size, dpi=dpi)
+    FigureCanvasAgg(fig)
+    return fig
+
+
 def _map_axes(area: AreaConfig, legend_in: float = 2.5, map_in: float = 6.0):
     """A figure whose axes hold exactly the area at equal scale (``map_in`` inches along
     its longer side), with a column for the legend at the right: no empty band above or
@@ -92,7 +102,7 @@ def _map_axes(area: AreaConfig, legend_in: float = 2.5, map_in: float = 6.0):
     left, bottom, top, gap = 0.75, 0.5, 0.35, 0.15
     fig_w = left + ax_w + gap + legend_in
     fig_h = max(bottom + ax_h + top, 2.8)  # the legend's height, for a very flat area
-    fig = plt.figure(figsize=(fig_w, fig_h), dpi=100)
+    fig = _agg_figure((fig_w, fig_h))
     ax = fig.add_axes((left / fig_w, (fig_h - top - ax_h) / fig_h, ax_w / fig_w, ax_h / fig_h))
     ax.set_xlim(0, area.width)
     ax.set_ylim(0, area.height)
@@ -100,76 +110,159 @@ def _map_axes(area: AreaConfig, legend_in: float = 2.5, map_in: float = 6.0):
     return fig, ax
 
 
+class LivePicture:
+    """A figure drawn in full once; afterwards only its ``changing`` artists are drawn
+    again, over a copy of the rest (matplotlib's blitting). A run's evaluation pictures
+    change in their paths, curves and titles only: redrawn so, they take a few
+    milliseconds instead of a full build and draw (~0.3 s each evaluation)."""
+
+    def __init__(self, fig, changing):
+        self.fig, self.changing = fig, list(changing)
+        self._background = None
+        for artist in self.changing:
+            artist.set_animated(True)  # left out of the full draw: the background
+
+    def render(self) -> np.ndarray:
+        """The picture, ``[H, W, 4]`` uint8 (a view of the canvas, valid until the next
+        render)."""
+        canvas = self.fig.canvas
+        if self._background is None:
+            canvas.draw()
+            self._background = canvas.copy_from_bbox(self.fig.bbox)
+        else:
+            canvas.restore_region(self._background)
+        for artist in self.changing:
+            self.fig.draw_artist(artist)
+        return np.asarray(canvas.buffer_rgba())
+
+
+class TrajectoryPicture:
+    """One episode over the street map, cropped to the area: the UABS paths (a circle at
+    the start, a star at the end) with the beam footprints of every UABS at a few
+    instants, over ``vehicles [T+1, 2, V]`` with ``present [T+1, V]``: the position of
+    every vehicle at every step as a small grey dot (dotted tracks, never lines, so they
+    do not read as lanes) and at the last step as a black dot; lanes as thin light-grey
+    lines. The map is drawn once; :meth:`update` places the ``n_uabs`` paths of an
+    episode over the same vehicles (a run's evaluation window), and with ``live``
+    :meth:`render` redraws only them (:class:`LivePicture`)."""
+
+    def __init__(self, area: AreaConfig, vehicles: torch.Tensor, present: torch.Tensor,
+                 r_b: float, n_beams: int, n_uabs: int, lanes: np.ndarray | None = None,
+                 instants: tuple[int, ...] | None = None, live: bool = False):
+        self.vehicles, self.present = vehicles, present
+        vehicles, present = vehicles.cpu().numpy(), present.cpu().numpy()
+        steps = vehicles.shape[0]
+        self.instants = instants or (0, steps // 2, steps - 1)
+        fig, ax = _map_axes(area)
+        self.fig, self.ax = fig, ax
+        if lanes is not None and len(lanes):
+            ax.add_collection(LineCollection(lanes, colors="0.82", linewidths=0.6, zorder=0),
+                              autolim=False)
+        t_on, v_on = np.nonzero(present)
+        ax.scatter(vehicles[t_on, 0, v_on], vehicles[t_on, 1, v_on], s=2.5, color="0.3",
+                   alpha=0.6, lw=0, zorder=1,
+                   rasterized=True)  # one artist, an image in the PDF: a district's 50 000
+        # points would be 50 000 vector markers (slow to write, slow to open)
+        last = present[-1]
+        ax.scatter(vehicles[-1, 0, last], vehicles[-1, 1, last], s=9, color="k", zorder=2)
+        self.centres = beam_centres(r_b, n_beams).numpy()
+        self.footprints: list[tuple[int, int, int, Circle]] = []  # (UABS, step, beam, circle)
+        self.paths, self.marks = [], []  # marks: start and end of each UABS, in turn
+        for u in range(n_uabs):
+            c = COLORS[u % len(COLORS)]
+            for t in self.instants:
+                for k in range(len(self.centres)):
+                    # add_artist, not add_patch: the limits are fixed, and updating them
+                    # patch by patch took half of the picture's drawing time
+                    circle = Circle((0.0, 0.0), r_b, fill=False, ec=c, lw=0.7,
+                                    alpha=0.3 + 0.7 * t / max(steps - 1, 1), zorder=2)
+                    self.footprints.append((u, t, k, ax.add_artist(circle)))
+            self.paths.append(ax.plot([], [], color=c, lw=2, zorder=3, label=f"UABS {u}")[0])
+            self.marks += [ax.plot([], [], "o", color=c, ms=7, zorder=4)[0],
+                           ax.plot([], [], "*", color=c, ms=13, mec="k", zorder=4)[0]]
+        ax.set_xlabel("x (m)")
+        ax.set_ylabel("y (m)")
+        ax.set_title("UABS trajectories", fontsize=10)
+        handles, _ = ax.get_legend_handles_labels()
+        handles += [
+            Line2D([], [], color="0.4", marker="o", ls="", ms=7, label="start (t = 0)"),
+            Line2D([], [], color="0.4", marker="*", ls="", ms=12, mec="k",
+                   label=f"end (t = {steps - 1})"),
+            Line2D([], [], color="0.4", marker="o", ls="", ms=9, mfc="none",
+                   label=f"beam footprints at t = {', '.join(map(str, self.instants))}\n"
+                         f"(fainter = earlier)"),
+            Line2D([], [], color="k", marker="o", ls="", ms=3,
+                   label=f"vehicles at t = {steps - 1}"),
+            Line2D([], [], color="0.3", marker="o", ls="", ms=2,
+                   label="vehicle positions, every step"),
+        ] + ([Line2D([], [], color="0.82", lw=1.0, label="lanes")] if lanes is not None else [])
+        ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8,
+                  frameon=False, borderaxespad=0)
+        # drawn in the order a full draw draws them (z-order, then the order added)
+        self.live = LivePicture(self.fig, [*(f[-1] for f in self.footprints), *self.paths,
+                                           *self.marks, ax.title]) if live else None
+
+    def shows(self, vehicles: torch.Tensor, present: torch.Tensor) -> bool:
+        """Whether the map holds these vehicles (else a new picture is needed)."""
+        return (vehicles.shape == self.vehicles.shape and torch.equal(vehicles, self.vehicles)
+                and torch.equal(present, self.present))
+
+    def update(self, uabs: torch.Tensor, title: str = "") -> None:
+        """Place the paths ``uabs [T+1, M, 2]`` and the title."""
+        uabs = uabs.cpu().numpy()
+        for u, path in enumerate(self.paths):
+            path.set_data(uabs[:, u, 0], uabs[:, u, 1])
+            self.marks[2 * u].set_data(uabs[:1, u, 0], uabs[:1, u, 1])
+            self.marks[2 * u + 1].set_data(uabs[-1:, u, 0], uabs[-1:, u, 1])
+        for u, t, k, circle in self.footprints:
+            circle.set_center(self.centres[k] + uabs[t, u])
+        self.ax.title.set_text(title or "UABS trajectories")
+
+
 def trajectory_figure(area: AreaConfig, uabs: torch.Tensor, vehicles: torch.Tensor,
                       present: torch.Tensor, r_b: float, n_beams: int,
                       lanes: np.ndarray | None = None, title: str = "",
                       instants: tuple[int, ...] | None = None):
-    """One episode over the street map, cropped to the area: ``uabs [T+1, M, 2]`` paths
-    (a circle at the start, a star at the end) with the beam footprints of every UABS at
-    a few instants; ``vehicles [T+1, 2, V]`` with ``present [T+1, V]``: the position of
-    every vehicle at every step as a small grey dot (dotted tracks, never lines, so they
-    do not read as lanes) and at the last step as a black dot; lanes as thin light-grey
-    lines."""
-    uabs, vehicles, present = uabs.cpu().numpy(), vehicles.cpu().numpy(), present.cpu().numpy()
-    steps = uabs.shape[0]
-    instants = instants or (0, steps // 2, steps - 1)
-    fig, ax = _map_axes(area)
-    if lanes is not None and len(lanes):
-        ax.add_collection(LineCollection(lanes, colors="0.82", linewidths=0.6, zorder=0),
-                          autolim=False)
-    t_on, v_on = np.nonzero(present)
-    ax.scatter(vehicles[t_on, 0, v_on], vehicles[t_on, 1, v_on], s=2.5, color="0.3",
-               alpha=0.6, lw=0, zorder=1,
-               rasterized=True)  # one artist, an image in the PDF: a district's 50 000
-    # points would be 50 000 vector markers (slow to write, slow to open)
-    last = present[-1]
-    ax.scatter(vehicles[-1, 0, last], vehicles[-1, 1, last], s=9, color="k", zorder=2)
-    centres = beam_centres(r_b, n_beams).numpy()
-    for u in range(uabs.shape[1]):
-        c = COLORS[u % len(COLORS)]
-        ax.plot(uabs[:, u, 0], uabs[:, u, 1], color=c, lw=2, zorder=3, label=f"UABS {u}")
-        ax.plot(*uabs[0, u], "o", color=c, ms=7, zorder=4)
-        ax.plot(*uabs[-1, u], "*", color=c, ms=13, mec="k", zorder=4)
-        for t in instants:
-            for cx, cy in centres + uabs[t, u]:
-                # add_artist, not add_patch: the limits are fixed, and updating them
-                # patch by patch took half of the picture's drawing time
-                ax.add_artist(Circle((cx, cy), r_b, fill=False, ec=c, lw=0.7,
-                                     alpha=0.3 + 0.7 * t / max(steps - 1, 1), zorder=2))
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
-    ax.set_title(title or "UABS trajectories", fontsize=10)
-    handles, _ = ax.get_legend_handles_labels()
-    handles += [
-        Line2D([], [], color="0.4", marker="o", ls="", ms=7, label="start (t = 0)"),
-        Line2D([], [], color="0.4", marker="*", ls="", ms=12, mec="k",
-               label=f"end (t = {steps - 1})"),
-        Line2D([], [], color="0.4", marker="o", ls="", ms=9, mfc="none",
-               label=f"beam footprints at t = {', '.join(map(str, instants))}\n"
-                     f"(fainter = earlier)"),
-        Line2D([], [], color="k", marker="o", ls="", ms=3, label=f"vehicles at t = {steps - 1}"),
-        Line2D([], [], color="0.3", marker="o", ls="", ms=2,
-               label="vehicle positions, every step"),
-    ] + ([Line2D([], [], color="0.82", lw=1.0, label="lanes")] if lanes is not None else [])
-    ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8,
-              frameon=False, borderaxespad=0)
-    return fig
+    """The figure of :class:`TrajectoryPicture` for the paths ``uabs [T+1, M, 2]``."""
+    pic = TrajectoryPicture(area, vehicles, present, r_b, n_beams, uabs.shape[1], lanes,
+                            instants)
+    pic.update(uabs, title)
+    return pic.fig
+
+
+class PgCurvePicture:
+    """P_g (%) against N̂_s = 1..``n``, one line per label, on fixed axes (0 to 100 %):
+    a run's evaluations compare at a glance, and with ``live`` :meth:`render` redraws
+    only the lines and the title (:class:`LivePicture`)."""
+
+    def __init__(self, labels: list[str], n: int, live: bool = False):
+        fig = _agg_figure((6, 4))
+        ax = fig.subplots()
+        self.fig, self.ax = fig, ax
+        self.lines = [ax.plot([], [], marker="o", color=COLORS[i % len(COLORS)],
+                              label=label)[0] for i, label in enumerate(labels)]
+        ax.set_xlim(1 - 0.05 * max(n - 1, 1), n + 0.05 * max(n - 1, 1))
+        ax.set_ylim(-5, 105)
+        ax.set_xlabel(r"$\hat{N}_s$ (served steps required per window)")
+        ax.set_ylabel(r"$P_g$ (% satisfied users)")
+        ax.set_title("Satisfied users")
+        ax.grid(alpha=0.3)
+        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
+        self.fig.tight_layout()
+        self.live = LivePicture(self.fig, [*self.lines, ax.title]) if live else None
+
+    def update(self, curves: list[np.ndarray], title: str = "Satisfied users") -> None:
+        for line, curve in zip(self.lines, curves, strict=True):
+            line.set_data(np.arange(1, len(curve) + 1), 100 * np.asarray(curve))
+        self.ax.title.set_text(title)
 
 
 def pg_curve_figure(curves: dict[str, np.ndarray], title: str = "Satisfied users"):
-    """P_g against N̂_s = 1..N, one line per label."""
-    fig, ax = plt.subplots(figsize=(6, 4), dpi=100)
-    for i, (label, curve) in enumerate(curves.items()):
-        x = np.arange(1, len(curve) + 1)
-        c = COLORS[i % len(COLORS)]
-        ax.plot(x, 100 * np.asarray(curve), marker="o", color=c, label=label)
-    ax.set_xlabel(r"$\hat{N}_s$ (served steps required per window)")
-    ax.set_ylabel(r"$P_g$ (% satisfied users)")
-    ax.set_title(title)
-    ax.grid(alpha=0.3)
-    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
-    fig.tight_layout()
-    return fig
+    """The figure of :class:`PgCurvePicture` for these curves."""
+    n = max(len(c) for c in curves.values())
+    pic = PgCurvePicture(list(curves), n)
+    pic.update(list(curves.values()), title)
+    return pic.fig
 
 
 BAND_ALPHA = 0.2

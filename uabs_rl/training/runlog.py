@@ -19,7 +19,6 @@ from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 from tensordict import TensorDictBase
 
 from uabs_rl.config import ConfigError, LoggerKind, RunConfig
@@ -168,6 +167,8 @@ class RunLog:
         self.cfg, self.run_dir = cfg, Path(run_dir)
         self.folder = RunFolder(self.run_dir)
         self.metrics = MetricsFile(self.folder.metrics)
+        # the evaluation pictures, drawn at the first evaluation (eval_figures)
+        self.pictures: dict[str, Any] = {}
         self.logger = None
         self._rate: tuple[float, int] | None = None  # (time, env steps) of the last record
 
@@ -222,6 +223,7 @@ class RunLog:
             shutil.rmtree(d)
 
     def close(self) -> None:
+        self.pictures.clear()
         if self.logger is not None:
             exp = getattr(self.logger, "experiment", None)
             for name in ("close", "finish", "end_run"):  # SummaryWriter, wandb, ...
@@ -269,32 +271,36 @@ class RunLog:
             return
         import matplotlib.pyplot as plt
 
-        from uabs_rl.evaluation.plots import pg_curve_figure, scenario_lanes, trajectory_figure
+        from uabs_rl.evaluation.plots import PgCurvePicture, TrajectoryPicture, scenario_lanes
 
-        cfg, p = self.cfg, evaluator.params
-        figs = {"pg_curve": pg_curve_figure(
-            {cfg.masking.mode: record["pg_curve"]},
-            title=f"P_g after {record['episode']} episodes")}
+        # the pictures live as long as the run: each evaluation places its curve and
+        # paths on them and redraws those only (LivePicture)
+        cfg, p, pics = self.cfg, evaluator.params, self.pictures
+        if "pg_curve" not in pics:
+            pics["pg_curve"] = PgCurvePicture([cfg.masking.mode], len(record["pg_curve"]),
+                                              live=True)
+        pics["pg_curve"].update([record["pg_curve"]],
+                                title=f"P_g after {record['episode']} episodes")
         if cfg.train.trajectory_images:
-            figs["trajectories"] = trajectory_figure(
-                cfg.scenario.area, *evaluator.trajectory_of(td), p.r_b, p.n_beams,
-                scenario_lanes(cfg.scenario),
-                title=f"{cfg.masking.mode}, episode {record['episode']}, held-out window "
-                      f"0: R = {record['returns'][0]:.0f}")
+            uabs, vehicles, present = evaluator.trajectory_of(td)
+            pic = pics.get("trajectories")
+            if pic is None or not pic.shows(vehicles, present):
+                pic = pics["trajectories"] = TrajectoryPicture(
+                    cfg.scenario.area, vehicles, present, p.r_b, p.n_beams, uabs.shape[1],
+                    scenario_lanes(cfg.scenario), live=True)
+            pic.update(uabs, title=f"{cfg.masking.mode}, episode {record['episode']}, "
+                                   f"held-out window 0: R = {record['returns'][0]:.0f}")
         out = self.folder.eval
         out.mkdir(exist_ok=True)
-        for name, fig in figs.items():
-            # rendered once, for the PNG and TensorBoard alike (savefig and add_figure
-            # would each render it: the pictures were a tenth of the main job's time)
-            fig.canvas.draw()
-            rgba = np.asarray(fig.canvas.buffer_rgba())
+        for name, pic in pics.items():
+            # rendered once, for the PNG and TensorBoard alike
+            rgba = pic.live.render()
             plt.imsave(out / f"last_{name}.png", rgba)
             if is_best:  # the same picture: copied, not drawn again
                 shutil.copyfile(out / f"last_{name}.png", out / f"best_{name}.png")
             if writer is not None:
                 writer.add_image(f"eval/{name}", rgba[..., :3], record["env_steps"],
                                  dataformats="HWC")
-            plt.close(fig)
         if writer is not None:
             # on disk before the checkpoint that follows an evaluation, so a resume after
             # a kill finds every event up to its checkpoint
