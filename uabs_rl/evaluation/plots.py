@@ -144,7 +144,8 @@ class TrajectoryPicture:
     do not read as lanes) and at the last step as a black dot; lanes as thin light-grey
     lines. The map is drawn once; :meth:`update` places the ``n_uabs`` paths of an
     episode over the same vehicles (a run's evaluation window), and with ``live``
-    :meth:`render` redraws only them (:class:`LivePicture`)."""
+    ``self.live.render()`` redraws only them (:class:`LivePicture`; ``self.live`` is
+    None otherwise)."""
 
     def __init__(self, area: AreaConfig, vehicles: torch.Tensor, present: torch.Tensor,
                  r_b: float, n_beams: int, n_uabs: int, lanes: np.ndarray | None = None,
@@ -198,7 +199,8 @@ class TrajectoryPicture:
         ] + ([Line2D([], [], color="0.82", lw=1.0, label="lanes")] if lanes is not None else [])
         ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8,
                   frameon=False, borderaxespad=0)
-        # drawn in the order a full draw draws them (z-order, then the order added)
+        # drawn in z-order over the background, which holds the axes' frame: footprints
+        # cross the frame where a full draw puts them under it (a few pixels)
         self.live = LivePicture(self.fig, [*(f[-1] for f in self.footprints), *self.paths,
                                            *self.marks, ax.title]) if live else None
 
@@ -232,8 +234,8 @@ def trajectory_figure(area: AreaConfig, uabs: torch.Tensor, vehicles: torch.Tens
 
 class PgCurvePicture:
     """P_g (%) against N̂_s = 1..``n``, one line per label, on fixed axes (0 to 100 %):
-    a run's evaluations compare at a glance, and with ``live`` :meth:`render` redraws
-    only the lines and the title (:class:`LivePicture`)."""
+    a run's evaluations compare at a glance, and with ``live`` ``self.live.render()``
+    redraws only the lines and the title (:class:`LivePicture`)."""
 
     def __init__(self, labels: list[str], n: int, live: bool = False):
         fig = _agg_figure((6, 4))

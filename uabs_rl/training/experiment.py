@@ -318,8 +318,9 @@ class Experiment:
         """One batched evaluation of the greedy policy; each member logs its block,
         checkpoints ``best`` (by evaluation return) and ``last``, and draws its pictures
         (``eval/``, the logger's figures): a single run at every evaluation, a
-        population's members at a new best and at the end only (each member's pictures
-        take longer to draw than the batched rollout of all). Returns their returns.
+        population's members at a new best and at the end only (each member's first
+        pictures take longer to make than the batched rollout of all). Returns their
+        returns.
         Weights that are not all finite stop training first (:class:`NotFinite`)."""
         self.check_weights()
         td = self.evaluator.rollout(self.greedy)

@@ -167,7 +167,7 @@ class RunLog:
         self.cfg, self.run_dir = cfg, Path(run_dir)
         self.folder = RunFolder(self.run_dir)
         self.metrics = MetricsFile(self.folder.metrics)
-        # the evaluation pictures, drawn at the first evaluation (eval_figures)
+        # the evaluation pictures, made at their first draw (eval_figures) and kept
         self.pictures: dict[str, Any] = {}
         self.logger = None
         self._rate: tuple[float, int] | None = None  # (time, env steps) of the last record
