@@ -43,7 +43,7 @@ def evaluate(mode: str, m: int, horizons: list[int], beam: int, rounds: int,
              log) -> list[dict]:
     """Every policy's record on the test windows of (mode, M)."""
     cfg = compose("config", [f"masking={mode}", f"scenario.n_uabs={m}"])
-    env = make_eval_env(cfg, split="test", compile=False)
+    env = make_eval_env(cfg, split="test")
     ev = Evaluator(env, cfg.train.eval_seed)
     sites = junction_sites(cfg, env.base_env)
     runs = [("greedy", 1), ("oracle", 1), ("kmeans", 1), ("junctions", 1)]

@@ -119,7 +119,7 @@ def main(argv: list[str] | None = None) -> None:
     train_env = make_env(cfg.scenario, cfg.channel, cfg.masking, traces, "train",
                          n_envs=args.windows, seed=args.seed, obs=cfg.obs)
     held = get_traces(cfg.scenario, cfg.traces, "eval", verbose=False)
-    held_env = make_eval_env(cfg, held, split="eval", compile=False, windows=window_count(
+    held_env = make_eval_env(cfg, held, split="eval", windows=window_count(
         held.n_sims, held.steps, cfg.scenario.episode_steps))  # every validation window
     held_env.set_seed(ev.evaluator.seed)
     data = {"fitting": collect(train_env, net, args.horizon),

@@ -59,7 +59,7 @@ def evaluate(mode: str, m: int, horizons: list[int], ceiling: list[int], sees: l
              log, predictors: tuple[str, ...] = ("cv",),
              uncoordinated: bool = False) -> tuple[list[dict], list[dict]]:
     cfg = compose("config", [f"masking={mode}", f"scenario.n_uabs={m}"])
-    env = make_eval_env(cfg, split="test", compile=False)
+    env = make_eval_env(cfg, split="test")
     ev = Evaluator(env, cfg.train.eval_seed)
     made = {pred: make_predictor(pred, "all", cfg.scenario) for pred in predictors}
     runs = [("greedy", 1, None, "all", True), ("oracle", 1, None, "all", True)]

@@ -35,7 +35,7 @@ from uabs_rl.training.resume import run
 
 def eval_env(trace_cache, *overrides: str, windows: int = 4):
     cfg = smoke(trace_cache, *overrides)
-    return cfg, make_eval_env(cfg, split="test", windows=windows, compile=False)
+    return cfg, make_eval_env(cfg, split="test", windows=windows)
 
 
 def rollout(cfg, env, name: str, horizon: int = 1):

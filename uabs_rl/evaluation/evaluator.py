@@ -57,14 +57,16 @@ def greedy_policy(qnet: nn.Module, env: TransformedEnv, cfg: RunConfig,
 
 def make_eval_env(cfg: RunConfig, traces: TraceSet | None = None,
                   device: str | torch.device = "cpu", windows: int | None = None,
-                  compile: bool | None = None, split: str = "eval",
+                  compile: bool = False, split: str = "eval",
                   members: int = 1, windows_name: str = "windows") -> TransformedEnv:
     """The held-out env of ``split`` ("eval": the validation traces that training
     evaluates on; "test": the traces every reported figure comes from) with ``windows``
     fixed windows, one env each (default: ``train.eval_windows`` for validation, every
-    window of the test traces for test); compiled as ``train.compile`` unless
-    ``compile`` says otherwise. With ``members`` > 1, the windows once per member of a
-    population, side by side, each block with its own generator seeded alike.
+    window of the test traces for test); eager unless ``compile``: an evaluation is a few
+    rollouts, and compiling its shape (20-36 s for the main job's 10 windows) costs more
+    than it saves (60-90 ms a rollout). With ``members`` > 1, the windows once per
+    member of a population, side by side, each block with its own generator seeded
+    alike.
     ``windows_name`` is how the caller's user gave ``windows`` (``--windows``)."""
     tr = cfg.train
     traces = get_traces(cfg.scenario, cfg.traces, split) if traces is None else traces
@@ -72,8 +74,7 @@ def make_eval_env(cfg: RunConfig, traces: TraceSet | None = None,
     seed = [tr.eval_seed] * members if members > 1 else tr.eval_seed
     return make_env(cfg.scenario, cfg.channel, cfg.masking, traces, split,
                     n_envs=n * members, device=device, n_eval_windows=n, seed=seed,
-                    compile=tr.compile if compile is None else compile, spec_mask=False,
-                    obs=cfg.obs)
+                    compile=compile, spec_mask=False, obs=cfg.obs)
 
 
 def eval_window_count(cfg: RunConfig, traces: TraceSet, split: str,

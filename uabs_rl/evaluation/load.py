@@ -238,8 +238,7 @@ def load_evaluation(path: Path, which: str = "best", windows: int | None = None,
             device = resolve_device(cfg.device)
     else:
         validate_world(cfg)
-    # a few rollouts: compiling would cost more than it saves
-    env = make_eval_env(cfg, windows=windows, compile=False, split=split, device=device,
+    env = make_eval_env(cfg, windows=windows, split=split, device=device,
                         windows_name=windows_name)
     p = env.base_env.params
     algorithm = algorithm_class(cfg.algo.name)

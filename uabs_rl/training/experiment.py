@@ -191,12 +191,10 @@ class Experiment:
         env = make_env(cfg.scenario, cfg.channel, cfg.masking, train,
                        "train", n_envs=tr.n_envs * self.n, device=dev, seed=seed,
                        compile=tr.compile, spec_mask=False, obs=cfg.obs)
-        # the periodic evaluation runs eager, as uabs-eval's test rollouts do: compiling
-        # its shape took 20-36 s at the first evaluation, and 50 evaluations eager take
-        # ~8 s (160 against 60-90 ms each, the main job's 10 windows); the figures are
-        # the same bit for bit (tests/test_masking.py; P_g's sum: tests/test_env.py)
-        eval_env = make_eval_env(cfg, traces.get("eval"), dev, compile=False,
-                                 members=self.n)
+        # eager, as every evaluation (make_eval_env): 50 evaluations take ~8 s; the
+        # figures are the compiled rollout's bit for bit (tests/test_masking.py; P_g's
+        # sum: tests/test_env.py)
+        eval_env = make_eval_env(cfg, traces.get("eval"), dev, members=self.n)
         self.params = p = env.base_env.params
         self.learner = make_algorithm(cfg.algo, Dims(p.obs_dim, N_ACTIONS, p.n_uabs), seeds, dev)
         self.learner.compile_update(tr.compile if tr.compile_update is None
