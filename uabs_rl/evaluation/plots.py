@@ -206,8 +206,7 @@ class TrajectoryPicture:
 
     def shows(self, vehicles: torch.Tensor, present: torch.Tensor) -> bool:
         """Whether the map holds these vehicles (else a new picture is needed)."""
-        return (vehicles.shape == self.vehicles.shape and torch.equal(vehicles, self.vehicles)
-                and torch.equal(present, self.present))
+        return torch.equal(vehicles, self.vehicles) and torch.equal(present, self.present)
 
     def update(self, uabs: torch.Tensor, title: str = "") -> None:
         """Place the paths ``uabs [T+1, M, 2]`` and the title."""
