@@ -378,6 +378,10 @@ def test_compiled_act_equals_the_eager_decision(small_traces_cfg, train, mode, r
     assert tds[0].get((DIAG, "ep_return")).abs().sum() > 0
     if mode == "flat":
         assert tds[0].get((DIAG, "ep_fallbacks")).sum() > 0
+    # the one program ran compiled ahead of time (AheadOfTime), not through its fallback
+    (program,) = directs[2]._decided.values()
+    assert program.fn.programs and all(p is not program.fn.fallback
+                                       for p in program.fn.programs.values())
 
 
 @pytest.mark.parametrize("mode,recoverable,compiled", [("rank", True, True),

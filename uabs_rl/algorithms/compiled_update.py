@@ -34,8 +34,9 @@ step as the fused kernel does): ``tests/test_compiled_update.py`` bounds the dif
 and checks that a compiled run learns within the eager runs' seed spread. A failure to
 compile (no C++ compiler, an unsupported op) falls back to the eager update with one
 warning, as the env step's compilation does (:func:`~uabs_rl.env._compile.compiled_or_eager`).
-Each change of torch's thread count compiles the program again once (its guards include
-it), as for every compiled program.
+The program is compiled ahead of its calls and called without Dynamo's per-call guard
+evaluation (:class:`~uabs_rl.env._compile.AheadOfTime`); each change of torch's thread
+count or of the batch's fields compiles it again once.
 """
 
 from __future__ import annotations
@@ -49,6 +50,7 @@ from tensordict import TensorDict
 from torch import nn
 
 from uabs_rl.algorithms.base import flush_denormals
+from uabs_rl.env._compile import AheadOfTime, compile_options, signature
 
 log = logging.getLogger(__name__)
 
@@ -157,9 +159,29 @@ class UpdateProgram:
                 adam_(p, g, m, v, step, *hyper, *c)
             return (*aux, None) if len(aux) == 2 else tuple(aux)
 
-        options = {"cpp_wrapper": True} if torch.device(device).type == "cpu" else None
-        self.compiled = torch.compile(update, fullgraph=True, dynamic=False, options=options)
-        self.checked: tuple | None = None  # the last fully guarded call's threads, fields
+        compiled = torch.compile(update, fullgraph=True, dynamic=False,
+                                 options=compile_options(device))
+        # compiled ahead per thread count and batch signature, called without Dynamo's
+        # per-call guards: their ~1 300 checks (the modules the loss reads, every
+        # tensor's shape and aliasing) took 0.2-0.4 ms a call, a tenth of the update, and
+        # what they check cannot change between two calls with the same key: the
+        # parameters, moments and step counts are the same tensors, updated in place (or
+        # replaced by ``load_state_dict`` with tensors of their parameters' layout), the
+        # settings are fixed when the program is built
+        def key(args: tuple) -> tuple:
+            return torch.get_num_threads(), signature(args[-1])
+
+        checked = []  # where it is not: the key of the last fully guarded Dynamo call
+
+        def guarded_once(*args):
+            if checked and checked[-1] == key(args):
+                with torch.compiler.set_stance(skip_guard_eval_unsafe=True):
+                    return compiled(*args)
+            out = compiled(*args)
+            checked.append(key(args))
+            return out
+
+        self.compiled = AheadOfTime(compiled, guarded_once, "the update", key=key)
 
     def state(self) -> tuple[list[torch.Tensor], list[torch.Tensor], list[torch.Tensor]]:
         """Adam's moments and step counts of every parameter, from the optimisers' own
@@ -198,24 +220,10 @@ class UpdateProgram:
         return out
 
     def __call__(self, batch: TensorDict) -> LossOutputs:
-        # Dynamo checks ~1 300 guards before each call (the modules the loss reads, every
-        # tensor's shape and aliasing): 0.2-0.4 ms, a tenth of the update. What they
-        # guard cannot change between two calls of one program at the same thread count
-        # (its inputs are tensors of fixed shapes, its settings fixed when it is built,
-        # the modules it reads updated in place), so a call whose thread count and batch
-        # fields are those of the previous call runs without them; any other call
-        # (the first, a change of the thread governor) checks them all and compiles again
-        # where they fail
-        key = (torch.get_num_threads(), tuple(batch.keys()))
         avgs, sqs, steps = self.state()
-        args = (self.data, avgs, sqs, steps, self.corrections(steps), dict(batch.items()))
         with flush_denormals():
-            if key != self.checked:
-                out = self.compiled(*args)
-                self.checked = key
-                return out
-            with torch.compiler.set_stance(skip_guard_eval_unsafe=True):
-                return self.compiled(*args)
+            return self.compiled(self.data, avgs, sqs, steps, self.corrections(steps),
+                                 dict(batch.items()))
 
 
 def adam_(p: torch.Tensor, g: torch.Tensor, m: torch.Tensor, v: torch.Tensor,

@@ -126,7 +126,7 @@ class DirectEnv:
         if key not in self._decided:
             self._decided[key] = compiled_or_eager(
                 self._decided_step(selector._act_program(qnet, target)),
-                "the action selection and env step", self.base.device)
+                "the action selection and env step", self.base.device, ahead=True)
         mask = td.get(MASK)
         u = uniforms(mask.shape[:-1], selector.generator, mask.device)
         b = self.base

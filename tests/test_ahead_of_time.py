@@ -1,0 +1,71 @@
+"""Programs compiled ahead of their calls (uabs_rl.env._compile.AheadOfTime): called
+without Dynamo's per-call guards, they must still never run code compiled for other
+arguments. What the guards would have caught, the key catches: a new shape, new strides
+(the same shape, transposed), another dtype, another thread count, an argument that is
+None where it was a tensor, each compile a program of their own, and every call returns
+what the function computes eagerly."""
+
+from __future__ import annotations
+
+import logging
+
+import torch
+
+from uabs_rl.env._compile import AheadOfTime, compiled_or_eager, signature
+
+
+def affine(x: torch.Tensor, w: torch.Tensor, bias: torch.Tensor | None) -> torch.Tensor:
+    y = x @ w
+    return torch.relu(y if bias is None else y + bias).sum(-1)
+
+
+def test_a_program_compiled_ahead_recompiles_for_what_its_guards_would_check():
+    call = compiled_or_eager(affine, "a test program", ahead=True)
+    ahead = call.fn
+    assert isinstance(ahead, AheadOfTime)
+    g = torch.Generator().manual_seed(0)
+    x, w, b = (torch.randn(6, 5, generator=g), torch.randn(5, 4, generator=g),
+               torch.randn(4, generator=g))
+    cases = [
+        (x, w, b), (x + 1, w, b), (x, w, b),  # the same key: one program
+        (x.t().contiguous().t(), w, b),  # the same shape, other strides
+        (torch.randn(3, 5, generator=g), w, b),  # another shape
+        (x.double(), w.double(), b.double()),  # another dtype
+        (x, w, None),  # None where a tensor was
+    ]
+    for args in cases:
+        assert torch.equal(call(*args), affine(*args))
+    assert len(ahead.programs) == 5
+    assert all(p is not ahead.fallback for p in ahead.programs.values())  # all ahead
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1 if threads > 1 else 2)
+        assert torch.equal(call(x, w, b), affine(x, w, b))
+    finally:
+        torch.set_num_threads(threads)
+    assert len(ahead.programs) == 6
+
+
+def test_the_key_holds_what_compiled_code_specialises_on():
+    x = torch.zeros(2, 3)
+    assert signature((x, None, 2.0)) == signature((torch.ones(2, 3), None, 2.0))
+    for other in ((x.t().contiguous().t(), None, 2.0), (x.double(), None, 2.0),
+                  (x, x, 2.0), (x, None, 3.0), [x, None, 2.0], (x[:1], None, 2.0)):
+        assert signature(other) != signature((x, None, 2.0))
+    assert signature({"a": x}) != signature({"b": x})
+
+
+def graph_break(x: torch.Tensor) -> torch.Tensor:
+    if x.sum().item() > 0:  # data-dependent Python control flow: no single graph
+        return x * 2
+    return x - 1
+
+
+def test_a_function_that_cannot_be_compiled_ahead_runs_through_torch_compile(caplog):
+    call = compiled_or_eager(graph_break, "a program with a graph break", ahead=True)
+    with caplog.at_level(logging.INFO, logger="uabs_rl.env._compile"):
+        for x in (torch.ones(3), -torch.ones(3), torch.ones(3)):
+            assert torch.equal(call(x), graph_break(x))
+    ahead = call.fn
+    assert list(ahead.programs.values()) == [ahead.fallback]
+    assert any("without ahead-of-time compilation" in r.message for r in caplog.records)
