@@ -121,6 +121,26 @@ def test_a_failing_compile_falls_back_to_the_eager_update(monkeypatch, caplog):
         assert torch.equal(pe, pf)
 
 
+def test_without_ahead_of_time_compilation_the_update_is_the_same():
+    """Where a program cannot be compiled ahead (AheadOfTime's fallback: the plain
+    torch.compile function, its guards checked once per key), updates are those of the
+    ahead-of-time program bit for bit."""
+    ahead, plain = learner("dqn3", 1), learner("dqn3", 1)
+    ahead.compile_update()
+    plain.compile_update()
+    program = plain.whole.compiled
+    program.build = lambda args: program.fallback  # as when aot_compile fails
+    for _ in range(5):
+        b = ahead.buffer.sample()
+        plain.buffer.sample()
+        assert torch.equal(plain.update(b)[0], ahead.update(b)[0])
+    assert list(program.programs.values()) == [program.fallback]
+    assert all(p is not ahead.whole.compiled.fallback
+               for p in ahead.whole.compiled.programs.values())
+    for pa, pp in zip(parameters(ahead), parameters(plain), strict=True):
+        assert torch.equal(pa, pp)
+
+
 def test_an_eager_program_raises_its_errors():
     program = LossProgram(lambda b: (_ for _ in ()).throw(ValueError("bad batch")))
     with pytest.raises(ValueError, match="bad batch"):

@@ -171,14 +171,15 @@ class UpdateProgram:
         def key(args: tuple) -> tuple:
             return torch.get_num_threads(), signature(args[-1])
 
-        checked = []  # where it is not: the key of the last fully guarded Dynamo call
+        checked: dict[str, tuple] = {}  # where it is not: the last fully guarded call's key
 
         def guarded_once(*args):
-            if checked and checked[-1] == key(args):
+            k = key(args)
+            if checked.get("key") == k:
                 with torch.compiler.set_stance(skip_guard_eval_unsafe=True):
                     return compiled(*args)
             out = compiled(*args)
-            checked.append(key(args))
+            checked["key"] = k
             return out
 
         self.compiled = AheadOfTime(compiled, guarded_once, "the update", key=key)
