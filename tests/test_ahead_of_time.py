@@ -69,3 +69,37 @@ def test_a_function_that_cannot_be_compiled_ahead_runs_through_torch_compile(cap
     ahead = call.fn
     assert list(ahead.programs.values()) == [ahead.fallback]
     assert any("without ahead-of-time compilation" in r.message for r in caplog.records)
+
+
+class Owner:
+    """Holds a program whose function reads the owner (as the env wrapper's decision
+    and step and the learner's update do): Dynamo's ahead-of-time compilation pickles
+    what the traced function reaches, here the program with its compiled code."""
+
+    def __init__(self):
+        self.w = torch.randn(5, 4, generator=torch.Generator().manual_seed(1))
+        self.call = compiled_or_eager(self.program(), "an owned program", ahead=True)
+
+    def program(self):
+        def run(x: torch.Tensor) -> torch.Tensor:
+            return torch.relu(x @ self.w).sum(-1)
+        return run
+
+
+def test_a_program_reaching_itself_compiles_ahead_for_each_thread_count(caplog):
+    """The training loop's programs reach their own AheadOfTime: each new key (another
+    thread count, as the thread governor sets on a busy machine) still compiles ahead
+    of time, not through the fallback (the programs compiled before do not pickle)."""
+    owner = Owner()
+    x = torch.randn(6, 5, generator=torch.Generator().manual_seed(2))
+    threads = torch.get_num_threads()
+    with caplog.at_level(logging.INFO, logger="uabs_rl.env._compile"):
+        try:
+            for n in (threads, 1 if threads > 1 else 2, threads):
+                torch.set_num_threads(n)
+                assert torch.equal(owner.call(x), torch.relu(x @ owner.w).sum(-1))
+        finally:
+            torch.set_num_threads(threads)
+    ahead = owner.call.fn
+    assert len(ahead.programs) == 2
+    assert all(p is not ahead.fallback for p in ahead.programs.values()), caplog.text

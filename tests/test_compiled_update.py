@@ -25,6 +25,7 @@ import pytest
 import torch
 
 from uabs_rl.algorithms import Dims, make_algorithm
+from uabs_rl.algorithms.base import Algorithm
 from uabs_rl.algorithms.compiled_update import LossProgram
 from uabs_rl.config import algo_schema
 
@@ -58,7 +59,7 @@ def parameters(m) -> list[torch.Tensor]:
 
 
 def check_tracks_eager(name: str, members: int, replay: str = "uniform",
-                       grad_clip: float | None = None) -> None:
+                       grad_clip: float | None = None) -> Algorithm:
     eager = learner(name, members, replay, grad_clip)
     compiled = learner(name, members, replay, grad_clip)
     compiled.compile_update()
@@ -82,10 +83,22 @@ def check_tracks_eager(name: str, members: int, replay: str = "uniform",
         for se, sc in zip(eager.buffer.samplers, compiled.buffer.samplers, strict=True):
             torch.testing.assert_close(sc.state_dict(held)["priority"],
                                        se.state_dict(held)["priority"], rtol=1e-4, atol=0)
+    return compiled
 
 
 def test_compiled_3dqn_update_tracks_the_eager_one():
-    check_tracks_eager("dqn3", 1)
+    compiled = check_tracks_eager("dqn3", 1)
+    # another thread count (the thread governor's, on a busy machine) compiles a second
+    # program, ahead of time too
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1 if threads > 1 else 2)
+        compiled.update(compiled.buffer.sample())
+    finally:
+        torch.set_num_threads(threads)
+    programs = compiled.whole.compiled.programs
+    assert len(programs) == 2
+    assert all(p is not compiled.whole.compiled.fallback for p in programs.values())
 
 
 @pytest.mark.slow

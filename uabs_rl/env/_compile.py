@@ -101,6 +101,15 @@ class AheadOfTime:
         self.key = key or (lambda args: (torch.get_num_threads(), signature(args)))
         self.programs: dict[Hashable, Callable] = {}
 
+    def __getstate__(self) -> dict:
+        """Pickled without its programs. Compiling ahead of time, Dynamo pickles the
+        state its guards read (``aot_compile``'s guards state), which for a function
+        that reads its owner (the env wrapper's decision and step, the learner's update)
+        reaches this object; the programs already compiled hold Dynamo's C++ guard
+        managers, which do not pickle, and every key after the first (another thread
+        count on a busy machine) failed to compile ahead."""
+        return {**self.__dict__, "programs": {}}
+
     def __call__(self, *args):
         key = self.key(args)
         program = self.programs.get(key)
