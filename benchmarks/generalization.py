@@ -3,9 +3,10 @@ own validation traces) on the test traces of every (city, M) given, beside the g
 and oracle baselines under the same masks and windows. Prints a markdown table (rows:
 city x M; learned, greedy and oracle served fraction, learned − greedy with a
 Student-t 95 % CI over seeds: each seed's mean over windows of the paired differences)
-and writes every number to a csv. Over the held-out pairs it adds rliable's aggregates
-of the greedy-to-oracle normalised score, (learned − greedy) / (oracle − greedy) per
-seed and pair: its IQM with a stratified bootstrap CI.
+and writes every number to a csv (with each pair's collisions, proximity events and mask
+fallbacks summed over every rollout flown, also printed per pair). Over the held-out
+pairs it adds rliable's aggregates of the greedy-to-oracle normalised score, (learned −
+greedy) / (oracle − greedy) per seed and pair: its IQM with a stratified bootstrap CI.
 
     python benchmarks/generalization.py outputs/runs/<generalist population> \
         --at grid6:3 grid6:6 lights60:3 city:25 --csv docs/results/generalization/table.csv
@@ -18,7 +19,10 @@ difference learned − other with Welch's 95 % CI (``learned_minus_other``). ``-
 adds the deployable receding-horizon planner of horizon H (constant-velocity prediction,
 ``uabs-eval --policy mpc``) beside greedy and the oracle: its served fraction and
 learned − mpc (columns ``mpc``, ``learned_minus_mpc``; with ``--beside``, also
-``other_minus_mpc``). The mpc costs far more than the learned policies (about a second
+``other_minus_mpc``), and for every policy P_g at N̂_s = 5 (``pg_*``, learned − mpc in
+``pg_learned_minus_mpc``) and the ms per fleet decision of its rollout (``ms_*``: all the
+windows flown side by side, the time per step of one window; the learned policy's the
+mean over its seeds). The mpc costs far more than the learned policies (about a second
 per fleet decision at M = 25 over a district): ``--mpc-from CITY:M=EVAL_JSON`` takes a
 pair's mpc from a ``uabs-eval RUN <the pair's overrides> --policy mpc --mpc-horizon H``
 of a run with the same masking and channel (its ``eval.json``: per window, the same
@@ -48,6 +52,8 @@ from uabs_rl.evaluation.stats import (
 from uabs_rl.runs.layout import RunFolder
 
 METRIC = "served_fractions"  # per window
+# the table's two metrics, per window: the served fraction and P_g at N̂_s = 5
+METRICS = {"served": METRIC, "pg": "pgs"}
 
 
 def overrides(at: str) -> list[str]:
@@ -55,8 +61,8 @@ def overrides(at: str) -> list[str]:
     return ([] if city == "home" else [f"scenario={city}"]) + [f"scenario.n_uabs={m}"]
 
 
-def mpc_from(path: Path, at: str, horizon: int) -> np.ndarray:
-    """The mpc's served fraction per window from a ``uabs-eval --policy mpc`` record
+def mpc_from(path: Path, at: str, horizon: int) -> dict:
+    """The mpc's record (:func:`record`) from a ``uabs-eval --policy mpc`` record
     (``eval.json``) of the pair ``at``: the test split, the pair's overrides, horizon H,
     the constant-velocity predictor and every vehicle seen; refused otherwise."""
     try:
@@ -67,20 +73,21 @@ def mpc_from(path: Path, at: str, horizon: int) -> np.ndarray:
     rec = (d.get("policies") or {}).get("mpc") or {}
     if ((d.get("split"), sorted(d.get("overrides") or [])) != ("test", sorted(overrides(at)))
             or (rec.get("horizon"), rec.get("predictor"), rec.get("sees")) != (horizon, "cv", "all")
-            or METRIC not in rec):
+            or any(key not in rec for key in METRICS.values())):
         raise SystemExit(
             f"--mpc-from {at}={path}: not the mpc of {at} on the test split at horizon "
             f"{horizon} (constant velocity, every vehicle seen); write it with uabs-eval "
             f"RUN {' '.join(overrides(at))} --policy mpc --mpc-horizon {horizon}")
-    return np.asarray(rec[METRIC], dtype=float)
+    return record({"ms_per_decision": float("nan"), **rec})
 
 
 def evaluate(runs: list[Path], over: list[str], dirs: list[Path],
              baselines: tuple[str, ...] = (), mpc_horizon: int = 5
-             ) -> tuple[list[np.ndarray], dict] | None:
-    """Per seed, the learned policy's served fraction per window, and those of the
-    ``baselines`` (on the first seed's env: they do not depend on the run's seed); None
-    where the network does not fit (the paper's observation at another M)."""
+             ) -> tuple[list[dict], dict[str, dict]] | None:
+    """Per seed, the learned policy's record (its served fraction and P_g per window,
+    :data:`METRICS`, and its ms per decision), and the records of the ``baselines`` (on
+    the first seed's env: they do not depend on the run's seed); None where the network
+    does not fit (the paper's observation at another M)."""
     out, base = [], {}
     for i, run in enumerate(runs):
         try:
@@ -91,16 +98,29 @@ def evaluate(runs: list[Path], over: list[str], dirs: list[Path],
             raise
         res = evaluate_policies(ev, ("learned", *(baselines if i == 0 else ())),
                                 mpc_horizon=mpc_horizon)
-        values = {k: np.asarray(rec[METRIC], dtype=float) for k, (rec, _) in res.items()}
+        values = {k: record(rec) for k, (rec, _) in res.items()}
         out.append(values.pop("learned"))
         base = base or values
     return out, base
 
 
-def versus(per_seed: list[np.ndarray], base: np.ndarray) -> tuple[float, float, float]:
-    """learned − baseline: per seed the mean over windows of the paired differences,
-    then their mean over seeds and its Student-t 95 % CI (over the windows for one seed)."""
-    d = paired_over_seeds(per_seed, [base] * len(per_seed))
+SAFETY = ("collisions", "proximity", "fallbacks")  # each rollout's counts, summed
+
+
+def record(rec: dict) -> dict:
+    """A policy's per-window metrics (:data:`METRICS`), its ms per decision and its
+    :data:`SAFETY` counts."""
+    return {**{m: np.asarray(rec[key], dtype=float) for m, key in METRICS.items()},
+            "ms": float(rec["ms_per_decision"]),
+            **{k: float(rec.get(k, float("nan"))) for k in SAFETY}}
+
+
+def versus(per_seed: list[dict], base: dict, metric: str = "served"
+           ) -> tuple[float, float, float]:
+    """learned − baseline in ``metric``: per seed the mean over windows of the paired
+    differences, then their mean over seeds and its Student-t 95 % CI (over the windows
+    for one seed)."""
+    d = paired_over_seeds([s[metric] for s in per_seed], [base[metric]] * len(per_seed))
     return d["diff"], d["ci_low"], d["ci_high"]
 
 
@@ -127,6 +147,11 @@ def aggregate(rows: list[dict]) -> None:
           f"at 3 seeds, 91 % at 5, 93 % at 10: docs/evaluation.md)")
 
 
+def mean_of(per_seed: list[dict], metric: str = "served") -> float:
+    """The mean over seeds of each seed's mean over windows."""
+    return float(np.mean([s[metric].mean() for s in per_seed]))
+
+
 def pt(x: float) -> str:
     return f"{100 * x:+.2f}"
 
@@ -138,7 +163,8 @@ def table(rows: list[dict], other: bool, marks: dict[str, str] | None = None) ->
     mpc = any("mpc" in r for r in rows)
     head = ("| city | M | windows | learned | greedy | oracle |" + (" mpc |" if mpc else "")
             + " learned − greedy [95 % CI] | learned − oracle [95 % CI] |"
-            + (" learned − mpc [95 % CI] |" if mpc else "")
+            + (" learned − mpc [95 % CI] | P_g(5): learned | greedy | mpc | learned − mpc"
+               " [95 % CI] | ms per decision: learned | mpc |" if mpc else "")
             + (" beside − greedy [95 % CI] |" if other else "")
             + (" beside − mpc [95 % CI] |" if other and mpc else ""))
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
@@ -153,7 +179,10 @@ def table(rows: list[dict], other: bool, marks: dict[str, str] | None = None) ->
                  *([f"{100 * r['mpc']:.2f} %"] if mpc else []),
                  cell(r, "learned_minus_greedy", "ci_low", "ci_high"),
                  cell(r, "learned_minus_oracle", "oracle_ci_low", "oracle_ci_high"),
-                 *([cell(r, "learned_minus_mpc", "mpc_ci_low", "mpc_ci_high")] if mpc else [])]
+                 *([cell(r, "learned_minus_mpc", "mpc_ci_low", "mpc_ci_high"),
+                    *(f"{100 * r[k]:.2f} %" for k in ("pg_learned", "pg_greedy", "pg_mpc")),
+                    cell(r, "pg_learned_minus_mpc", "pg_mpc_ci_low", "pg_mpc_ci_high"),
+                    *(f"{r[k]:.3g}" for k in ("ms_learned", "ms_mpc"))] if mpc else [])]
         if other:
             fits = r.get("other") not in (None, "")
             cells.append(cell(r, "other_minus_greedy", "other_ci_low", "other_ci_high")
@@ -202,39 +231,48 @@ def main(argv: list[str] | None = None) -> None:
         mine, base = found
         if args.mpc and not fly_mpc:
             base["mpc"] = recorded[at]
-            if base["mpc"].shape != base["greedy"].shape:
-                raise SystemExit(f"--mpc-from {at}: {base['mpc'].size} windows, the test "
-                                 f"split has {base['greedy'].size} here")
+            if base["mpc"]["served"].shape != base["greedy"]["served"].shape:
+                raise SystemExit(f"--mpc-from {at}: {base['mpc']['served'].size} windows, "
+                                 f"the test split has {base['greedy']['served'].size} here")
         theirs = evaluate(other, over, args.config_dir) if other else None
-        if args.mpc:
-            dm, lo_m, hi_m = versus(mine, base["mpc"])
         theirs = theirs and theirs[0]
         d, lo, hi = versus(mine, base["greedy"])
         do, lo_o, hi_o = versus(mine, base["oracle"])
         row = {"city": at.split(":")[0], "M": int(at.split(":")[1]),
-               "windows": int(base["greedy"].size), "seeds": len(mine),
-               "learned": float(np.mean([s.mean() for s in mine])),
-               "greedy": float(base["greedy"].mean()), "oracle": float(base["oracle"].mean()),
+               "windows": int(base["greedy"]["served"].size), "seeds": len(mine),
+               "learned": mean_of(mine), "greedy": float(base["greedy"]["served"].mean()),
+               "oracle": float(base["oracle"]["served"].mean()),
                "learned_minus_greedy": d, "ci_low": lo, "ci_high": hi,
                "learned_minus_oracle": do, "oracle_ci_low": lo_o, "oracle_ci_high": hi_o}
-        if args.mpc:
-            row.update(mpc=float(base["mpc"].mean()), mpc_horizon=args.mpc,
-                       learned_minus_mpc=dm, mpc_ci_low=lo_m, mpc_ci_high=hi_m)
+        if args.mpc:  # the planning-against-learning columns: P_g and the cost too
+            dm, lo_m, hi_m = versus(mine, base["mpc"])
+            dp, lo_p, hi_p = versus(mine, base["mpc"], "pg")
+            row.update(mpc=float(base["mpc"]["served"].mean()), mpc_horizon=args.mpc,
+                       learned_minus_mpc=dm, mpc_ci_low=lo_m, mpc_ci_high=hi_m,
+                       pg_learned=mean_of(mine, "pg"),
+                       **{f"pg_{k}": float(base[k]["pg"].mean()) for k in base},
+                       pg_learned_minus_mpc=dp, pg_mpc_ci_low=lo_p, pg_mpc_ci_high=hi_p,
+                       ms_learned=float(np.mean([s["ms"] for s in mine])),
+                       **{f"ms_{k}": base[k]["ms"] for k in base})
         if theirs is not None:
             d2, lo2, hi2 = versus(theirs, base["greedy"])
-            row.update(other=float(np.mean([s.mean() for s in theirs])),
+            row.update(other=mean_of(theirs),
                        other_minus_greedy=d2, other_ci_low=lo2, other_ci_high=hi2)
             if args.mpc:
                 d3, lo3, hi3 = versus(theirs, base["mpc"])
                 row.update(other_minus_mpc=d3, other_mpc_ci_low=lo3, other_mpc_ci_high=hi3)
             if len(mine) > 1 and len(theirs) > 1:
-                w = welch_difference([s.mean() for s in mine], [s.mean() for s in theirs])
+                w = welch_difference([s["served"].mean() for s in mine],
+                                     [s["served"].mean() for s in theirs])
                 row.update(learned_minus_other=w["diff"], welch_ci_low=w["ci_low"],
                            welch_ci_high=w["ci_high"])
-        row["scores"] = [float((s.mean() - base["greedy"].mean())
-                               / (base["oracle"].mean() - base["greedy"].mean())) for s in mine]
+        row["scores"] = [float((s["served"].mean() - row["greedy"])
+                               / (row["oracle"] - row["greedy"])) for s in mine]
+        flown = [*mine, *(theirs or []), *base.values()]
+        row.update({k: sum(r[k] for r in flown) for k in SAFETY})
         rows.append(row)
-        print(f"{at}: {time.perf_counter() - t0:.0f} s", file=sys.stderr)
+        print(f"{at}: {time.perf_counter() - t0:.0f} s; every rollout ({len(flown)}): "
+              + ", ".join(f"{row[k]:.0f} {k}" for k in SAFETY), file=sys.stderr)
     print(table(rows, bool(other)), end="")
     print(f"\nDifferences: {interval_words(rows)}.")
     aggregate(rows)

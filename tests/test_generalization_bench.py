@@ -1,0 +1,64 @@
+"""benchmarks/generalization.py's table against the mpc: learned − mpc in the served
+fraction and P_g per seed and window, each policy's ms per decision and the safety
+counts summed over every rollout, checked on records of known values (no rollout)."""
+
+from __future__ import annotations
+
+import csv
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+
+def load_bench():
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "generalization.py"
+    spec = importlib.util.spec_from_file_location("generalization_bench", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def rec(served, pg, ms, collisions=0.0):
+    return {"served": np.asarray(served), "pg": np.asarray(pg), "ms": ms,
+            "collisions": collisions, "proximity": 0.0, "fallbacks": 0.0}
+
+
+def test_the_table_holds_learned_minus_mpc_in_both_metrics_and_the_costs(
+        monkeypatch, tmp_path, capsys):
+    bench = load_bench()
+    greedy = np.array([0.20, 0.30, 0.40, 0.50])
+    seeds = [rec(greedy + 0.04, greedy + 0.10, 0.2), rec(greedy + 0.06, greedy + 0.12, 0.4)]
+    base = {"greedy": rec(greedy, greedy + 0.05, 0.1),
+            "oracle": rec(greedy + 0.02, greedy + 0.07, 0.1),
+            "mpc": rec(greedy + 0.10, greedy + 0.20, 3.0, collisions=1.0)}
+
+    def evaluate(runs, over, dirs, baselines=(), mpc_horizon=5):
+        assert over == ["scenario=grid6", "scenario.n_uabs=6"] and mpc_horizon == 5
+        assert "mpc" in baselines
+        return seeds, dict(base)
+
+    class Runs:
+        def __init__(self, path):
+            pass
+
+        def members(self):
+            return ["seed=0", "seed=1"]
+
+    monkeypatch.setattr(bench, "evaluate", evaluate)
+    monkeypatch.setattr(bench, "RunFolder", Runs)
+    out = tmp_path / "t.csv"
+    bench.main(["runs", "--at", "grid6:6", "--mpc", "5", "--csv", str(out)])
+    (row,) = csv.DictReader(out.open())
+    # per seed the mean paired difference (−0.06, −0.04), then their mean over seeds
+    assert float(row["learned_minus_mpc"]) == pytest.approx(-0.05)
+    assert float(row["pg_learned_minus_mpc"]) == pytest.approx(-0.09)
+    assert float(row["mpc_ci_low"]) < -0.05 < float(row["mpc_ci_high"])
+    assert float(row["pg_mpc"]) == pytest.approx(0.55)
+    assert float(row["ms_learned"]) == pytest.approx(0.3)
+    assert float(row["ms_mpc"]) == pytest.approx(3.0)
+    assert float(row["collisions"]) == 1.0 and float(row["fallbacks"]) == 0.0
+    printed = capsys.readouterr()
+    assert "P_g(5)" in printed.out and "-5.00 [" in printed.out and "-9.00 [" in printed.out
+    assert "1 collisions" in printed.err
