@@ -2,6 +2,7 @@ from __future__ import annotations
 
 import contextlib
 import importlib
+import importlib.util
 import io
 import logging
 import os
@@ -27,6 +28,15 @@ SMALL_TRACES = [
     "traces.eval.duration_s=60",
     "traces.eval.warmup_s=10",
 ]
+
+
+def load_benchmark(name: str):
+    """The script benchmarks/<name>.py as a module (its functions, without running it)."""
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(f"benchmark_{name}", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 def compose_cfg(config_name: str, overrides: list[str]):

@@ -5,19 +5,11 @@ counts summed over every rollout, checked on records of known values (no rollout
 from __future__ import annotations
 
 import csv
-import importlib.util
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-
-def load_bench():
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "generalization.py"
-    spec = importlib.util.spec_from_file_location("generalization_bench", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+from tests.conftest import load_benchmark
 
 
 def rec(served, pg, ms, collisions=0.0):
@@ -27,7 +19,7 @@ def rec(served, pg, ms, collisions=0.0):
 
 def test_the_table_holds_learned_minus_mpc_in_both_metrics_and_the_costs(
         monkeypatch, tmp_path, capsys):
-    bench = load_bench()
+    bench = load_benchmark("generalization")
     greedy = np.array([0.20, 0.30, 0.40, 0.50])
     seeds = [rec(greedy + 0.04, greedy + 0.10, 0.2), rec(greedy + 0.06, greedy + 0.12, 0.4)]
     base = {"greedy": rec(greedy, greedy + 0.05, 0.1),

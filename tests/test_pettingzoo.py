@@ -6,7 +6,6 @@ trained through ``torchrl.envs.PettingZooWrapper`` (docs/interop.md)."""
 from __future__ import annotations
 
 import copy
-import importlib.util
 import math
 import re
 from pathlib import Path
@@ -19,6 +18,7 @@ pytest.importorskip("pettingzoo", reason='needs the interop extra: pip install -
 
 from pettingzoo.test import parallel_api_test, parallel_seed_test  # noqa: E402
 
+from tests.conftest import load_benchmark  # noqa: E402
 from uabs_rl.config import ChannelConfig, MaskingConfig  # noqa: E402
 from uabs_rl.env.geometry import UNIT_MOVES, path_distance  # noqa: E402
 from uabs_rl.env.uabs_env import MASK  # noqa: E402
@@ -160,11 +160,7 @@ def test_parallel_rank_mask_lies_between_flat_and_sequential_rank():
 
 def load_example():
     """benchmarks/pettingzoo_dqn.py, the example docs/interop.md runs."""
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "pettingzoo_dqn.py"
-    spec = importlib.util.spec_from_file_location("pettingzoo_dqn", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("pettingzoo_dqn")
 
 
 @pytest.mark.parametrize("mode", ["flat", "rank"])
