@@ -103,3 +103,36 @@ def test_a_program_reaching_itself_compiles_ahead_for_each_thread_count(caplog):
     ahead = owner.call.fn
     assert len(ahead.programs) == 2
     assert all(p is not ahead.fallback for p in ahead.programs.values()), caplog.text
+
+
+CACHED_RUN = """
+import torch
+from torch._dynamo.utils import counters
+from uabs_rl.env._compile import compiled_or_eager
+
+def affine(x, w):
+    return torch.relu(x @ w * SCALE).sum(-1)
+
+call = compiled_or_eager(affine, "a cached program", ahead=True)
+x, w = torch.ones(6, 5), torch.ones(5, 4)
+assert torch.equal(call(x, w), affine(x, w))
+(program,) = call.fn.programs.values()
+assert program is not call.fn.fallback
+cache = counters["aot_autograd"]
+print(cache["autograd_cache_hit"], cache["autograd_cache_miss"])
+"""
+
+
+def test_a_program_compiled_ahead_is_found_in_inductors_cache_by_the_next_process():
+    """The second process that compiles the same program ahead of time loads it from
+    Inductor's on-disk cache (AOTAutograd's: a hit, no miss) instead of compiling it
+    again, as the plain torch.compile path does; the first compiles it (a miss). The
+    program is new to the cache (a constant of this test run in its graph); the cache
+    is the machine's, whose compiler checks are already there."""
+    import random
+    import subprocess
+    import sys
+    code = f"SCALE = {1 + random.random()!r}\n" + CACHED_RUN
+    runs = [subprocess.run([sys.executable, "-c", code], check=True, capture_output=True,
+                           text=True).stdout.split() for _ in range(2)]
+    assert runs == [["0", "1"], ["1", "0"]]

@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
-from collections.abc import Callable, Hashable
+from collections.abc import Callable, Hashable, Iterator
 
 import torch
 
@@ -123,7 +124,8 @@ class AheadOfTime:
         try:
             for _ in range(4):  # Dynamo's own compile loop restarts a trace this way
                 try:
-                    program = self.compiled.aot_compile((args, {}))
+                    with stable_program_names():
+                        program = self.compiled.aot_compile((args, {}))
                     break
                 except RestartAnalysis:
                     continue
@@ -137,3 +139,28 @@ class AheadOfTime:
             log.info("%s: compiled without ahead-of-time compilation (%s: %s)", self.name,
                      type(e).__name__, str(e).splitlines()[0][:200] if str(e) else "")
             return self.fallback
+
+
+@contextlib.contextmanager
+def stable_program_names() -> Iterator[None]:
+    """Dynamo names each compiled graph ``__compiled_fn_<n>_<uuid4>``, and under
+    ``aot_compile`` that name is part of AOTAutograd's cache key, so no program compiled
+    ahead of time was ever found in Inductor's on-disk caches: every run compiled from
+    scratch (the main job's two programs ~40 s, the generalist's ~65 s, where the plain
+    ``torch.compile`` path loads them in seconds from the second run on). Within this
+    context the name is ``__compiled_fn_<n>`` (the counter still makes it unique in the
+    process; the same command compiles its programs in the same order, so their keys
+    repeat from run to run; a process that compiled other graphs before, as a sweep's
+    later jobs in one process, names them otherwise and compiles them once more). The
+    key still holds the whole graph, the inputs' layout and the compiler's configuration,
+    so a hit is the same program. A torch without this function is left as it is."""
+    from torch._dynamo import output_graph
+    named = getattr(output_graph, "unique_id", None)
+    if named is None:
+        yield
+        return
+    output_graph.unique_id = lambda name, with_uuid=False: named(name)
+    try:
+        yield
+    finally:
+        output_graph.unique_id = named
