@@ -146,8 +146,9 @@ def stable_program_names() -> Iterator[None]:
     """Dynamo names each compiled graph ``__compiled_fn_<n>_<uuid4>``, and under
     ``aot_compile`` that name is part of AOTAutograd's cache key, so no program compiled
     ahead of time was ever found in Inductor's on-disk caches: every run compiled from
-    scratch (the main job's two programs ~40 s, the generalist's ~65 s, where the plain
-    ``torch.compile`` path loads them in seconds from the second run on). Within this
+    scratch (the main job's two programs ~40 s, the generalist's ~65 s on the
+    development CPU), where the plain ``torch.compile`` path finds them from the second
+    run on. Within this
     context the name is ``__compiled_fn_<n>`` (the counter still makes it unique in the
     process; the same command compiles its programs in the same order, so their keys
     repeat from run to run; a process that compiled other graphs before, as a sweep's
