@@ -39,6 +39,19 @@ def load_benchmark(name: str):
     return module
 
 
+@contextlib.contextmanager
+def another_thread_count():
+    """torch's thread count changed for the block (1, or 2 where it is 1), as the thread
+    governor changes it on a busy machine; restored after."""
+    import torch
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1 if threads > 1 else 2)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
+
+
 def compose_cfg(config_name: str, overrides: list[str]):
     """Compose a config exactly as the CLI would, and return it as dataclasses."""
     return compose(config_name, overrides)

@@ -11,6 +11,7 @@ import logging
 
 import torch
 
+from tests.conftest import another_thread_count
 from uabs_rl.env._compile import AheadOfTime, compiled_or_eager, signature
 
 
@@ -37,12 +38,8 @@ def test_a_program_compiled_ahead_recompiles_for_what_its_guards_would_check():
         assert torch.equal(call(*args), affine(*args))
     assert len(ahead.programs) == 5
     assert all(p is not ahead.fallback for p in ahead.programs.values())  # all ahead
-    threads = torch.get_num_threads()
-    try:
-        torch.set_num_threads(1 if threads > 1 else 2)
+    with another_thread_count():
         assert torch.equal(call(x, w, b), affine(x, w, b))
-    finally:
-        torch.set_num_threads(threads)
     assert len(ahead.programs) == 6
 
 
@@ -92,14 +89,14 @@ def test_a_program_reaching_itself_compiles_ahead_for_each_thread_count(caplog):
     of time, not through the fallback (the programs compiled before do not pickle)."""
     owner = Owner()
     x = torch.randn(6, 5, generator=torch.Generator().manual_seed(2))
-    threads = torch.get_num_threads()
+    def check():
+        assert torch.equal(owner.call(x), torch.relu(x @ owner.w).sum(-1))
+
     with caplog.at_level(logging.INFO, logger="uabs_rl.env._compile"):
-        try:
-            for n in (threads, 1 if threads > 1 else 2, threads):
-                torch.set_num_threads(n)
-                assert torch.equal(owner.call(x), torch.relu(x @ owner.w).sum(-1))
-        finally:
-            torch.set_num_threads(threads)
+        check()
+        with another_thread_count():
+            check()
+        check()
     ahead = owner.call.fn
     assert len(ahead.programs) == 2
     assert all(p is not ahead.fallback for p in ahead.programs.values()), caplog.text

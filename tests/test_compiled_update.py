@@ -24,6 +24,7 @@ import math
 import pytest
 import torch
 
+from tests.conftest import another_thread_count
 from uabs_rl.algorithms import Dims, make_algorithm
 from uabs_rl.algorithms.base import Algorithm
 from uabs_rl.algorithms.compiled_update import LossProgram
@@ -90,12 +91,8 @@ def test_compiled_3dqn_update_tracks_the_eager_one():
     compiled = check_tracks_eager("dqn3", 1)
     # another thread count (the thread governor's, on a busy machine) compiles a second
     # program, ahead of time too
-    threads = torch.get_num_threads()
-    try:
-        torch.set_num_threads(1 if threads > 1 else 2)
+    with another_thread_count():
         compiled.update(compiled.buffer.sample())
-    finally:
-        torch.set_num_threads(threads)
     programs = compiled.whole.compiled.programs
     assert len(programs) == 2
     assert all(p is not compiled.whole.compiled.fallback for p in programs.values())

@@ -11,6 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from tensordict import TensorDict
 
+from tests.conftest import another_thread_count
 from tests.test_algorithms import learner_config
 from uabs_rl.config import ChannelConfig, ConfigError, MaskingConfig, MaskingMode, ScenarioConfig
 from uabs_rl.env.params import EnvParams
@@ -382,12 +383,8 @@ def test_compiled_act_equals_the_eager_decision(small_traces_cfg, train, mode, r
     # so does its second program, for another thread count (the thread governor's, on a
     # busy machine; one mode suffices: it is a compile)
     if mode == "rank":
-        threads = torch.get_num_threads()
-        try:
-            torch.set_num_threads(1 if threads > 1 else 2)
+        with another_thread_count():
             directs[2].act_and_step(sels[2], qnet, tds[2], target=target)
-        finally:
-            torch.set_num_threads(threads)
     (program,) = directs[2]._decided.values()
     assert len(program.fn.programs) == (2 if mode == "rank" else 1)
     assert all(p is not program.fn.fallback for p in program.fn.programs.values())

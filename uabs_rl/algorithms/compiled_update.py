@@ -171,15 +171,16 @@ class UpdateProgram:
         def key(args: tuple) -> tuple:
             return torch.get_num_threads(), signature(args[-1])
 
-        checked: dict[str, tuple] = {}  # where it is not: the last fully guarded call's key
+        checked = None  # where it is not: the key of the last fully guarded Dynamo call
 
         def guarded_once(*args):
+            nonlocal checked
             k = key(args)
-            if checked.get("key") == k:
+            if k == checked:
                 with torch.compiler.set_stance(skip_guard_eval_unsafe=True):
                     return compiled(*args)
             out = compiled(*args)
-            checked["key"] = k
+            checked = k
             return out
 
         self.compiled = AheadOfTime(compiled, guarded_once, "the update", key=key)

@@ -148,13 +148,13 @@ def stable_program_names() -> Iterator[None]:
     ahead of time was ever found in Inductor's on-disk caches: every run compiled from
     scratch (the main job's two programs ~40 s, the generalist's ~65 s on the
     development CPU), where the plain ``torch.compile`` path finds them from the second
-    run on. Within this
-    context the name is ``__compiled_fn_<n>`` (the counter still makes it unique in the
-    process; the same command compiles its programs in the same order, so their keys
-    repeat from run to run; a process that compiled other graphs before, as a sweep's
-    later jobs in one process, names them otherwise and compiles them once more). The
-    key still holds the whole graph, the inputs' layout and the compiler's configuration,
-    so a hit is the same program. A torch without this function is left as it is."""
+    run on. Within this context the name is ``__compiled_fn_<n>`` (the counter still
+    makes it unique in the process; the same command compiles its programs in the same
+    order, so their keys repeat from run to run; a process that compiled other graphs
+    before, as a sweep's later jobs in one process, names them otherwise and compiles
+    them once more). The key still holds the whole graph, the inputs' layout and the
+    compiler's configuration, so a hit is the same program. A torch without this
+    function is left as it is."""
     from torch._dynamo import output_graph
     named = getattr(output_graph, "unique_id", None)
     if named is None:
