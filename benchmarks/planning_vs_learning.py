@@ -9,6 +9,10 @@ with Student-t 95 % CIs over the windows and the compute per decision.
     python benchmarks/planning_vs_learning.py --paired docs/results/planning_vs_learning/road
     python benchmarks/planning_vs_learning.py --horizons 5 --uncoordinated
     python benchmarks/planning_vs_learning.py --paired DIR --learned HYBRID_DIR
+    python benchmarks/planning_vs_learning.py --scenario grid6 --fleets 3 6 --out DIR
+
+``--scenario NAME`` flies a preset of ``conf/scenario`` (a held-out grid, the city)
+instead of the default grid: its test traces, its network for ``--predictors road``.
 
 Writes ``table.csv`` (per policy and setting: served fraction and P_g(N̂_s) with their
 intervals over windows, paired differences against greedy, ms per decision for the
@@ -56,11 +60,14 @@ from uabs_rl.safety.make import make_selector
 
 
 def evaluate(mode: str, m: int, horizons: list[int], ceiling: list[int], sees: list[str],
-             log, predictors: tuple[str, ...] = ("cv",),
-             uncoordinated: bool = False) -> tuple[list[dict], list[dict]]:
-    cfg = compose("config", [f"masking={mode}", f"scenario.n_uabs={m}"])
+             log, predictors: tuple[str, ...] = ("cv",), uncoordinated: bool = False,
+             scenario: str | None = None) -> tuple[list[dict], list[dict]]:
+    over = [] if scenario is None else [f"scenario={scenario}"]
+    cfg = compose("config", over + [f"masking={mode}", f"scenario.n_uabs={m}"])
     env = make_eval_env(cfg, split="test")
     ev = Evaluator(env, cfg.train.eval_seed)
+    if scenario is not None:
+        log(f"scenario={scenario}, {mode} masks, M={m}: its test traces")
     made = {pred: make_predictor(pred, "all", cfg.scenario) for pred in predictors}
     runs = [("greedy", 1, None, "all", True), ("oracle", 1, None, "all", True)]
     runs += [("mpc", h, pred, s, True) for pred in predictors for s in sees for h in horizons]
@@ -192,6 +199,8 @@ def main() -> None:
                     help="the mpc's predictors (default cv)")
     ap.add_argument("--uncoordinated", action="store_true",
                     help="also each mpc (cv) and planner with its UABS planning alone")
+    ap.add_argument("--scenario", metavar="NAME",
+                    help="a preset of conf/scenario instead of the default grid")
     ap.add_argument("--out", type=Path)
     ap.add_argument("--paired", type=Path, metavar="DIR",
                     help="only print the paired differences of a folder this script wrote")
@@ -219,7 +228,7 @@ def main() -> None:
     for mode in args.modes:
         for m in args.fleets:
             r, e = evaluate(mode, m, args.horizons, args.ceiling, args.sees, log,
-                            tuple(args.predictors), args.uncoordinated)
+                            tuple(args.predictors), args.uncoordinated, args.scenario)
             rows += r
             errs += e
     paired(rows, log)
