@@ -7,6 +7,7 @@ what the function computes eagerly."""
 
 from __future__ import annotations
 
+import contextlib
 import logging
 
 import torch
@@ -133,3 +134,57 @@ def test_a_program_compiled_ahead_is_found_in_inductors_cache_by_the_next_proces
     runs = [subprocess.run([sys.executable, "-c", code], check=True, capture_output=True,
                            text=True).stdout.split() for _ in range(2)]
     assert runs == [["0", "1"], ["1", "0"]]
+
+
+def gathered(x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+    """A small program of the env's kinds of indexing: a permuted 4-d view, a gather,
+    a flatten of a strided slice."""
+    y = x.permute(0, 2, 1, 3).reshape(x.shape[0], -1)
+    g = torch.gather(y, 1, idx)
+    return g.cumsum(-1) + x[:, ::2, 1:, :].flatten(1)[:, : g.shape[1]]
+
+
+def test_linear_indices_kept_generates_the_same_code_without_simplifying_them(monkeypatch):
+    """Within linear_indices_kept, Inductor's stride analysis no longer sends linear
+    indices to sympy.simplify (fewer calls) and the generated C++ is the same, character
+    for character, as without it (each compiled from scratch: no cache)."""
+    import sympy
+    from torch._inductor import config
+    from torch._inductor.utils import run_and_get_code
+
+    from uabs_rl.env._compile import linear_indices_kept
+
+    monkeypatch.setattr(config, "fx_graph_cache", False)
+    calls = []
+    real = sympy.simplify
+    monkeypatch.setattr(sympy, "simplify", lambda e, *a, **k: calls.append(e) or real(e, *a, **k))
+    x = torch.randn(4, 6, 5, 8)
+    idx = torch.randint(0, 240, (4, 37))
+    codes = []
+    for kept in (False, True):
+        torch._dynamo.reset()
+        from torch._inductor import sizevars  # its analyses are cached per expression
+        sizevars.stride_at_vec_range.cache_clear()
+        sizevars.simplify_index_in_vec_range.cache_clear()
+        sizevars.stride_at.cache_clear()
+        calls.clear()
+        program = torch.compile(gathered, dynamic=False, options={"cpp_wrapper": True})
+        with linear_indices_kept() if kept else contextlib.nullcontext():
+            out, code = run_and_get_code(program, x, idx)
+        torch.testing.assert_close(out, gathered(x, idx), rtol=0, atol=1e-5)
+        codes.append((code, len(calls)))
+    (plain, n_plain), (kept, n_kept) = codes
+    assert kept == plain
+    assert n_kept < n_plain, (n_kept, n_plain)
+
+
+def test_linear_means_integer_multiples_of_symbols():
+    import sympy
+    from torch.utils._sympy.functions import FloorDiv
+
+    from uabs_rl.env._compile import _linear
+    d0, d1, x = sympy.symbols("d0 d1 x", integer=True)
+    for e in (24 * d0 + 6 * d1 + 2, d0, sympy.Integer(3), -d1 + 4, 4 * x - 2 * d0):
+        assert _linear(e) and sympy.simplify(e) == e
+    for e in (FloorDiv(x, 4) + d0, d0 * d1, d0 / 2, 2 ** d0, sympy.Rational(1, 2) * d0):
+        assert not _linear(e)
