@@ -1,0 +1,145 @@
+"""Planning against learning on every (city, M): one table from the folders the other
+benchmarks wrote, nothing flown.
+
+    python benchmarks/cities_table.py docs/results/planning_vs_learning \
+        > docs/results/planning_vs_learning/cities/summary.md
+
+Reads, under the folder given (``docs/results/planning_vs_learning``):
+
+* the planners, flown by ``benchmarks/planning_vs_learning.py`` (greedy, the oracle, the
+  mpc at H = 1, 5, 10 with both predictors, the clairvoyant planner at H = 5 and 10): the
+  default grid's in ``road/``, each other city's in ``cities/planners_<city>/``;
+* the learned policies, ``cities/table.csv`` of ``benchmarks/generalization.py`` (the
+  generalist and the per-city 3DQN, 5 seeds each);
+* the hybrids, each a folder of ``benchmarks/hybrid.py``: ``hybrid/`` (the default grid at
+  M = 3, with the 3DQN's Q-values), ``cities/hybrid_<city>/`` (M = 3) and
+  ``cities/hybrid_<city>_<M>/`` (other fleets; the city's ``cities/hybrid_city/``), with
+  the generalist's.
+
+Prints three markdown tables: the served fraction of every policy, its P_g(5), and the
+paired differences of the learned policy and of the hybrid against the mpc (H = 5,
+constant velocity: the one both were flown beside) and against the best deployable
+planner of the row (the mpc variant that served most on these test windows: chosen on
+the test windows, which favours the planner), each member's mean paired difference over
+the windows, Student-t 95 % CI over the 5 members. A pair or folder that is missing is
+a blank cell.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import sys
+from pathlib import Path
+
+from uabs_rl.evaluation.stats import paired_over_seeds
+
+PAIRS = [("home", 3), ("home", 6), ("grid6", 3), ("grid6", 6), ("lights60", 3),
+         ("lights60", 6), ("lanes75", 3), ("lanes75", 6), ("city", 25)]
+PLANNERS = ["greedy", "oracle", *(f"mpc H={h} ({p})" for p in ("cv", "road") for h in (1, 5, 10)),
+            "planner H=5 (clairvoyant)", "planner H=10 (clairvoyant)"]
+SHORT = {"greedy": "greedy", "oracle": "oracle", "planner H=5 (clairvoyant)": "clairvoyant H=5",
+         "planner H=10 (clairvoyant)": "clairvoyant H=10"}
+MPC = "mpc H=5 (cv)"
+
+
+def short(policy: str) -> str:
+    """``mpc H=5 (cv)`` -> ``mpc H=5 cv``; the clairvoyant planner's name."""
+    return SHORT.get(policy, policy.replace(" (", " ").rstrip(")"))
+
+
+def planners(root: Path, city: str, m: int) -> dict[str, dict]:
+    """Each planner's per-window values and its row of ``table.csv``, by policy."""
+    folder = root / ("road" if city == "home" else f"cities/planners_{city}")
+    if not (folder / "per_window.json").exists():
+        return {}
+    rows = {r["policy"]: r for r in csv.DictReader(open(folder / "table.csv"))
+            if r["mode"] == "rank" and int(r["n_uabs"]) == m}
+    return {r["policy"]: {**rows[r["policy"]], "per_window": r}
+            for r in json.loads((folder / "per_window.json").read_text())
+            if r["mode"] == "rank" and r["n_uabs"] == m and r["policy"] in rows}
+
+
+def hybrid(root: Path, city: str, m: int) -> dict | None:
+    name = ("hybrid" if (city, m) == ("home", 3) else
+            f"cities/hybrid_{city}" if m == 3 or city == "city" else f"cities/hybrid_{city}_{m}")
+    path = root / name / "hybrid.json"
+    return json.loads(path.read_text()) | {"folder": name} if path.exists() else None
+
+
+def pct(x) -> str:
+    return "" if x is None else f"{100 * float(x):.2f}"
+
+
+def ci(d: dict | None) -> str:
+    if d is None:
+        return ""
+    return f"{100 * d['diff']:+.2f} [{100 * d['ci_low']:+.2f}, {100 * d['ci_high']:+.2f}]"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("root", type=Path, help="docs/results/planning_vs_learning")
+    args = ap.parse_args()
+    learned = {(r["city"], int(r["M"])): r for r in csv.DictReader(
+        open(args.root / "cities/table.csv"))}
+    served, pg, diffs = [], [], []
+    for city, m in PAIRS:
+        plan, hyb, lrn = planners(args.root, city, m), hybrid(args.root, city, m), \
+            learned.get((city, m))
+        if not plan:
+            print(f"{city}:{m}: no planners' folder, left out", file=sys.stderr)
+            continue
+        if hyb is not None and hyb["policies"]["mpc"]["served"] != \
+                plan[MPC]["per_window"]["served_fractions"]:
+            sys.exit(f"{hyb['folder']}'s mpc is not the planners' {MPC} of {city}:{m}: "
+                     f"other windows or masks")
+        head = [city, str(m)]
+        for table, key, lkey, hkey in ((served, "served", "learned", "served"),
+                                       (pg, "pg", "pg_learned", "pg")):
+            cells = [pct(plan[p][key]) if p in plan else "" for p in PLANNERS]
+            cells.append(pct(lrn[lkey]) if lrn else "")
+            if key == "served":  # the per-city 3DQN (M = 3 only): its served fraction
+                cells.append(pct(lrn["other"]) if lrn and lrn.get("other") else "")
+            h = hyb["policies"]["hybrid"][hkey] if hyb else None
+            hmean = (sum(sum(w) / len(w) for w in h) / len(h)) if h else None
+            cells.append(f"{pct(hmean)} (λ* = {hyb['best_weight']:g})" if hyb else "")
+            table.append(head + cells)
+        mpcs = [p for p in PLANNERS if p.startswith("mpc") and p in plan]
+        best = max(mpcs, key=lambda p: float(plan[p]["served"]))
+        row = head + [short(best), pct(plan[best]["served"])]
+        if hyb is None:
+            diffs.append(row + [""] * 5)
+            continue
+        values = {"learned": hyb["policies"]["learned"]["served"],
+                  "hybrid": hyb["policies"]["hybrid"]["served"]}
+        for name in ("learned", "hybrid"):
+            for base in (MPC, best):
+                b = plan[base]["per_window"]["served_fractions"]
+                row.append(ci(paired_over_seeds(values[name], [b] * len(values[name]))))
+        row.append("3DQN" if (city, m) == ("home", 3) else "generalist")
+        diffs.append(row)
+
+    cols = [short(p) for p in PLANNERS]
+    for title, table, learners in (
+            ("Served fraction, %", served, ["generalist", "3DQN (per city)", "hybrid"]),
+            ("P_g(5), %", pg, ["generalist", "hybrid"])):
+        print(f"{title} (test windows; learned and hybrid: the mean over 5 seeds)\n")
+        print("| city | M | " + " | ".join(cols + learners) + " |")
+        print("|---" * (len(cols) + len(learners) + 2) + "|")
+        for r in table:
+            print("| " + " | ".join(r) + " |")
+        print()
+    print("Paired differences on the test windows, served fraction, points [95 % CI, "
+          "Student-t over the 5 members]\n")
+    print("| city | M | best mpc (on test) | served % | learned − mpc H=5 cv | learned − "
+          "best mpc | hybrid − mpc H=5 cv | hybrid − best mpc | learned (the hybrid's "
+          "Q-values) |")
+    print("|---" * 9 + "|")
+    for r in diffs:
+        print("| " + " | ".join(r) + " |")
+
+
+if __name__ == "__main__":
+    main()

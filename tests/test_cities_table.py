@@ -1,0 +1,76 @@
+"""benchmarks/cities_table.py: the one table of every (city, M) from the folders the
+other benchmarks wrote, checked on folders of known values (nothing flown)."""
+
+from __future__ import annotations
+
+import csv
+import json
+import sys
+
+import pytest
+
+from tests.conftest import load_benchmark
+
+GREEDY = [0.20, 0.30, 0.40, 0.50]
+
+
+def planners(folder, m, served):
+    """A planning_vs_learning.py folder: ``served`` maps a policy to its per-window
+    values."""
+    folder.mkdir(parents=True)
+    rows = [{"mode": "rank", "n_uabs": m, "policy": p, "served": sum(v) / len(v),
+             "pg": sum(v) / len(v) + 0.01} for p, v in served.items()]
+    with open(folder / "table.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    (folder / "per_window.json").write_text(json.dumps(
+        [{"mode": "rank", "n_uabs": m, "policy": p, "served_fractions": v,
+          "pgs": [x + 0.01 for x in v]} for p, v in served.items()]))
+
+
+def hybrid(folder, mpc, learned, flown, weight):
+    folder.mkdir(parents=True)
+    (folder / "hybrid.json").write_text(json.dumps({"best_weight": weight, "policies": {
+        "mpc": {"served": mpc}, "learned": {"served": learned},
+        "hybrid": {"served": flown, "pg": flown}}}))
+
+
+def test_the_table_pairs_learned_and_hybrid_with_the_mpc_and_the_best_mpc(
+        tmp_path, monkeypatch, capsys):
+    bench = load_benchmark("cities_table")
+    mpc5 = [x + 0.10 for x in GREEDY]
+    mpc10 = [x + 0.12 for x in GREEDY]  # the best mpc: 2 points above H = 5
+    planners(tmp_path / "cities/planners_grid6", 3,
+             {"greedy": GREEDY, "mpc H=5 (cv)": mpc5, "mpc H=10 (road)": mpc10})
+    (tmp_path / "cities").mkdir(exist_ok=True)
+    with open(tmp_path / "cities/table.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, ["city", "M", "learned", "pg_learned", "other"])
+        w.writeheader()
+        w.writerow({"city": "grid6", "M": 3, "learned": 0.37, "pg_learned": 0.38, "other": ""})
+    learned = [[x + 0.05 for x in GREEDY], [x + 0.07 for x in GREEDY]]
+    hybrid(tmp_path / "cities/hybrid_grid6", mpc5, learned, [mpc5, [x + 0.01 for x in mpc5]],
+           0.5)
+    monkeypatch.setattr(sys, "argv", ["cities_table.py", str(tmp_path)])
+    bench.main()
+    out = capsys.readouterr().out
+    row = next(line for line in out.splitlines() if line.startswith("| grid6 | 3 | mpc"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[2:4] == ["mpc H=10 road", "47.00"]
+    # learned − mpc H=5: per member −5 and −3 points, mean −4; − best mpc: −6
+    assert cells[4].startswith("-4.00 [") and cells[5].startswith("-6.00 [")
+    # hybrid: the mpc, and the mpc + 1 point: +0.5 against H = 5, −1.5 against the best
+    assert cells[6].startswith("+0.50 [") and cells[7].startswith("-1.50 [")
+    assert "45.50 (λ* = 0.5)" in out  # the hybrid's mean over members and windows
+
+
+def test_a_hybrid_flown_beside_another_mpc_is_refused(tmp_path, monkeypatch):
+    bench = load_benchmark("cities_table")
+    mpc5 = [x + 0.10 for x in GREEDY]
+    planners(tmp_path / "cities/planners_grid6", 3, {"greedy": GREEDY, "mpc H=5 (cv)": mpc5})
+    (tmp_path / "cities").mkdir(exist_ok=True)
+    (tmp_path / "cities/table.csv").write_text("city,M,learned,pg_learned,other\n")
+    hybrid(tmp_path / "cities/hybrid_grid6", GREEDY, [GREEDY], [GREEDY], 0.0)
+    monkeypatch.setattr(sys, "argv", ["cities_table.py", str(tmp_path)])
+    with pytest.raises(SystemExit, match="other windows or masks"):
+        bench.main()
