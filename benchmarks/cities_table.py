@@ -10,7 +10,8 @@ Reads, under the folder given (``docs/results/planning_vs_learning``):
   mpc at H = 1, 5, 10 with both predictors, the clairvoyant planner at H = 5 and 10): the
   default grid's in ``road/``, each other city's in ``cities/planners_<city>/``;
 * the learned policies, ``cities/table.csv`` of ``benchmarks/generalization.py`` (the
-  generalist and the per-city 3DQN, 5 seeds each);
+  generalist and the 3DQN trained on the default grid at M = 3, flown on each grid at
+  M = 3, 5 seeds each);
 * the hybrids, each a folder of ``benchmarks/hybrid.py``: ``hybrid/`` (the default grid at
   M = 3, with the 3DQN's Q-values), ``cities/hybrid_<city>/`` (M = 3) and
   ``cities/hybrid_<city>_<M>/`` (other fleets; the city's ``cities/hybrid_city/``), with
@@ -21,8 +22,10 @@ paired differences of the learned policy and of the hybrid against the mpc (H = 
 constant velocity: the one both were flown beside) and against the best deployable
 planner of the row (the mpc variant that served most on these test windows: chosen on
 the test windows, which favours the planner), each member's mean paired difference over
-the windows, Student-t 95 % CI over the 5 members. A pair or folder that is missing is
-a blank cell.
+the windows, Student-t 95 % CI over the 5 members. A (city, M) without its planners'
+folder is left out (said on stderr); one without a learned row or a hybrid has blank
+cells there. A planners' folder flown on another scenario (its ``log.txt``) or a hybrid
+flown beside another mpc (its settings, its per-window values) is refused.
 """
 
 from __future__ import annotations
@@ -52,8 +55,12 @@ def short(policy: str) -> str:
 def planners(root: Path, city: str, m: int) -> dict[str, dict]:
     """Each planner's per-window values and its row of ``table.csv``, by policy."""
     folder = root / ("road" if city == "home" else f"cities/planners_{city}")
-    if not (folder / "per_window.json").exists():
+    if not all((folder / f).exists() for f in ("per_window.json", "table.csv", "log.txt")):
         return {}
+    flown = (folder / "log.txt").read_text().split(",")[0]
+    if flown.startswith("scenario=") and flown != f"scenario={city}" or (
+            city != "home" and not flown.startswith("scenario=")):
+        sys.exit(f"{folder} was flown on {flown.split()[0]!r}, not scenario={city}")
     rows = {r["policy"]: r for r in csv.DictReader(open(folder / "table.csv"))
             if r["mode"] == "rank" and int(r["n_uabs"]) == m}
     return {r["policy"]: {**rows[r["policy"]], "per_window": r}
@@ -82,8 +89,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("root", type=Path, help="docs/results/planning_vs_learning")
     args = ap.parse_args()
-    learned = {(r["city"], int(r["M"])): r for r in csv.DictReader(
-        open(args.root / "cities/table.csv"))}
+    table = args.root / "cities/table.csv"
+    learned = ({(r["city"], int(r["M"])): r for r in csv.DictReader(open(table))}
+               if table.exists() else {})
     served, pg, diffs = [], [], []
     for city, m in PAIRS:
         plan, hyb, lrn = planners(args.root, city, m), hybrid(args.root, city, m), \
@@ -91,22 +99,27 @@ def main() -> None:
         if not plan:
             print(f"{city}:{m}: no planners' folder, left out", file=sys.stderr)
             continue
-        if hyb is not None and hyb["policies"]["mpc"]["served"] != \
-                plan[MPC]["per_window"]["served_fractions"]:
+        if hyb is not None and (
+                (hyb.get("mpc_horizon"), hyb.get("predictor"), hyb.get("sees")) != (5, "cv", "all")
+                or MPC not in plan
+                or hyb["policies"]["mpc"]["served"] != plan[MPC]["per_window"]["served_fractions"]
+                or hyb["policies"]["mpc"]["pg"] != plan[MPC]["per_window"]["pgs"]):
             sys.exit(f"{hyb['folder']}'s mpc is not the planners' {MPC} of {city}:{m}: "
-                     f"other windows or masks")
+                     f"other settings, windows or masks")
         head = [city, str(m)]
         for table, key, lkey, hkey in ((served, "served", "learned", "served"),
                                        (pg, "pg", "pg_learned", "pg")):
             cells = [pct(plan[p][key]) if p in plan else "" for p in PLANNERS]
             cells.append(pct(lrn[lkey]) if lrn else "")
-            if key == "served":  # the per-city 3DQN (M = 3 only): its served fraction
+            if key == "served":  # the default grid's 3DQN (M = 3 only): its served fraction
                 cells.append(pct(lrn["other"]) if lrn and lrn.get("other") else "")
             h = hyb["policies"]["hybrid"][hkey] if hyb else None
             hmean = (sum(sum(w) / len(w) for w in h) / len(h)) if h else None
             cells.append(f"{pct(hmean)} (λ* = {hyb['best_weight']:g})" if hyb else "")
             table.append(head + cells)
         mpcs = [p for p in PLANNERS if p.startswith("mpc") and p in plan]
+        if not mpcs:
+            sys.exit(f"{city}:{m}: the planners' folder holds no mpc")
         best = max(mpcs, key=lambda p: float(plan[p]["served"]))
         row = head + [short(best), pct(plan[best]["served"])]
         if hyb is None:
@@ -118,12 +131,12 @@ def main() -> None:
             for base in (MPC, best):
                 b = plan[base]["per_window"]["served_fractions"]
                 row.append(ci(paired_over_seeds(values[name], [b] * len(values[name]))))
-        row.append("3DQN" if (city, m) == ("home", 3) else "generalist")
+        row.append(Path(hyb["members"][0]).parent.name)  # the population's folder
         diffs.append(row)
 
     cols = [short(p) for p in PLANNERS]
     for title, table, learners in (
-            ("Served fraction, %", served, ["generalist", "3DQN (per city)", "hybrid"]),
+            ("Served fraction, %", served, ["generalist", "3DQN (default grid's)", "hybrid"]),
             ("P_g(5), %", pg, ["generalist", "hybrid"])):
         print(f"{title} (test windows; learned and hybrid: the mean over 5 seeds)\n")
         print("| city | M | " + " | ".join(cols + learners) + " |")
@@ -135,7 +148,7 @@ def main() -> None:
           "Student-t over the 5 members]\n")
     print("| city | M | best mpc (on test) | served % | learned − mpc H=5 cv | learned − "
           "best mpc | hybrid − mpc H=5 cv | hybrid − best mpc | learned (the hybrid's "
-          "Q-values) |")
+          "Q-values: its run folder) |")
     print("|---" * 9 + "|")
     for r in diffs:
         print("| " + " | ".join(r) + " |")

@@ -10,6 +10,7 @@ with Student-t 95 % CIs over the windows and the compute per decision.
     python benchmarks/planning_vs_learning.py --horizons 5 --uncoordinated
     python benchmarks/planning_vs_learning.py --paired DIR --learned HYBRID_DIR
     python benchmarks/planning_vs_learning.py --scenario grid6 --fleets 3 6 --out DIR
+    python benchmarks/planning_vs_learning.py --scenario city --fleets 25 --horizons 1 5
 
 ``--scenario NAME`` flies a preset of ``conf/scenario`` (a held-out grid, the city)
 instead of the default grid: its test traces, its network for ``--predictors road``.

@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import logging
 
+import pytest
 import torch
 
 from tests.conftest import another_thread_count
@@ -152,7 +153,7 @@ def test_linear_indices_kept_generates_the_same_code_without_simplifying_them(mo
     from torch._inductor import config
     from torch._inductor.utils import run_and_get_code
 
-    from uabs_rl.env._compile import linear_indices_kept
+    from uabs_rl.env._compile import _linear, linear_indices_kept
 
     monkeypatch.setattr(config, "fx_graph_cache", False)
     calls = []
@@ -172,10 +173,34 @@ def test_linear_indices_kept_generates_the_same_code_without_simplifying_them(mo
         with linear_indices_kept() if kept else contextlib.nullcontext():
             out, code = run_and_get_code(program, x, idx)
         torch.testing.assert_close(out, gathered(x, idx), rtol=0, atol=1e-5)
-        codes.append((code, len(calls)))
-    (plain, n_plain), (kept, n_kept) = codes
+        codes.append((code, len(calls), sum(map(_linear, calls))))
+    (plain, n_plain, linear_plain), (kept, n_kept, linear_kept) = codes
+    if not linear_plain:
+        pytest.skip("Inductor analysed no linear index here (no vectorised C++ loops)")
     assert kept == plain
-    assert n_kept < n_plain, (n_kept, n_plain)
+    assert n_kept < n_plain and linear_kept == 0, (n_kept, n_plain, linear_kept)
+
+
+def test_programs_compiled_ahead_are_compiled_within_linear_indices_kept(monkeypatch):
+    """AheadOfTime.build compiles inside the context, and Inductor's sympy is its own
+    again afterwards."""
+    from torch._inductor import sizevars
+
+    import uabs_rl.env._compile as compile_module
+    seen = []
+    real = compile_module.linear_indices_kept
+
+    @contextlib.contextmanager
+    def spy():
+        with real():
+            seen.append(type(sizevars.sympy).__name__)
+            yield
+
+    monkeypatch.setattr(compile_module, "linear_indices_kept", spy)
+    program = compiled_or_eager(affine, "affine", ahead=True)
+    x, w = torch.randn(3, 4), torch.randn(4, 2)
+    torch.testing.assert_close(program(x, w, None), affine(x, w, None))
+    assert seen == ["_LinearKept"] and sizevars.sympy.__name__ == "sympy"
 
 
 def test_linear_means_integer_multiples_of_symbols():

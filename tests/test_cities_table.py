@@ -14,10 +14,11 @@ from tests.conftest import load_benchmark
 GREEDY = [0.20, 0.30, 0.40, 0.50]
 
 
-def planners(folder, m, served):
+def planners(folder, m, served, scenario="grid6"):
     """A planning_vs_learning.py folder: ``served`` maps a policy to its per-window
     values."""
     folder.mkdir(parents=True)
+    (folder / "log.txt").write_text(f"scenario={scenario}, rank masks, M={m}: its test traces\n")
     rows = [{"mode": "rank", "n_uabs": m, "policy": p, "served": sum(v) / len(v),
              "pg": sum(v) / len(v) + 0.01} for p, v in served.items()]
     with open(folder / "table.csv", "w", newline="") as f:
@@ -31,9 +32,11 @@ def planners(folder, m, served):
 
 def hybrid(folder, mpc, learned, flown, weight):
     folder.mkdir(parents=True)
-    (folder / "hybrid.json").write_text(json.dumps({"best_weight": weight, "policies": {
-        "mpc": {"served": mpc}, "learned": {"served": learned},
-        "hybrid": {"served": flown, "pg": flown}}}))
+    (folder / "hybrid.json").write_text(json.dumps({
+        "best_weight": weight, "mpc_horizon": 5, "predictor": "cv", "sees": "all",
+        "members": ["outputs/runs/generalist_rank5/seed=0"], "policies": {
+            "mpc": {"served": mpc, "pg": [x + 0.01 for x in mpc]},
+            "learned": {"served": learned}, "hybrid": {"served": flown, "pg": flown}}}))
 
 
 def test_the_table_pairs_learned_and_hybrid_with_the_mpc_and_the_best_mpc(
@@ -62,6 +65,20 @@ def test_the_table_pairs_learned_and_hybrid_with_the_mpc_and_the_best_mpc(
     # hybrid: the mpc, and the mpc + 1 point: +0.5 against H = 5, −1.5 against the best
     assert cells[6].startswith("+0.50 [") and cells[7].startswith("-1.50 [")
     assert "45.50 (λ* = 0.5)" in out  # the hybrid's mean over members and windows
+    assert cells[8] == "generalist_rank5"
+    for line in out.splitlines():  # every row as wide as its table's header
+        if line.startswith("| city"):
+            width = line.count("|")
+        elif line.startswith("|"):
+            assert line.count("|") == width, line
+
+
+def test_a_planners_folder_of_another_scenario_is_refused(tmp_path, monkeypatch):
+    bench = load_benchmark("cities_table")
+    planners(tmp_path / "cities/planners_grid6", 3, {"mpc H=5 (cv)": GREEDY}, "lanes75")
+    monkeypatch.setattr(sys, "argv", ["cities_table.py", str(tmp_path)])
+    with pytest.raises(SystemExit, match="scenario=lanes75"):
+        bench.main()
 
 
 def test_a_hybrid_flown_beside_another_mpc_is_refused(tmp_path, monkeypatch):
@@ -72,5 +89,5 @@ def test_a_hybrid_flown_beside_another_mpc_is_refused(tmp_path, monkeypatch):
     (tmp_path / "cities/table.csv").write_text("city,M,learned,pg_learned,other\n")
     hybrid(tmp_path / "cities/hybrid_grid6", GREEDY, [GREEDY], [GREEDY], 0.0)
     monkeypatch.setattr(sys, "argv", ["cities_table.py", str(tmp_path)])
-    with pytest.raises(SystemExit, match="other windows or masks"):
+    with pytest.raises(SystemExit, match="other settings, windows or masks"):
         bench.main()

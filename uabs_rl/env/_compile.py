@@ -171,16 +171,19 @@ def stable_program_names() -> Iterator[None]:
 def linear_indices_kept() -> Iterator[None]:
     """Inductor's C++ code generation asks, for every load and store of every kernel,
     how its index moves along the vectorised loop variable
-    (``torch._inductor.sizevars.stride_at_vec_range``), and passes each index to
+    (``torch._inductor.sizevars.stride_at_vec_range``): it passes the index (unless it
+    holds a relation) and then the index's difference between ``x + 1`` and ``x`` to
     ``sympy.simplify``, about 6 ms a call. Almost every index of this project's programs
-    is linear with integer coefficients (``24*d0 + 6*d1 + 2*d2 + d3``), which
-    ``simplify`` returns unchanged, at a cost of ~16 s of the generalist's ~60 s compile
-    on an empty cache (3079 of its 3156 calls; none of them returned another
-    expression). Within this context Inductor's calls return such an index as it is
-    without calling ``simplify``; every other expression goes to ``simplify`` as before.
-    What Inductor derives from a linear index (its stride: the difference of the index
-    at ``x + 1`` and ``x``, which sympy reduces to an integer as it builds it) cannot
-    depend on its form, so the generated code is the same. A torch whose ``sizevars``
+    is linear with integer coefficients (``24*d0 + 6*d1 + 2*d2 + d3``; its difference is
+    an integer), which ``simplify`` returns unchanged, at a cost of ~16 s of the
+    generalist's compile on an empty cache (3079 of its 3156 calls; none of them
+    returned another expression). Within this context those calls return such an
+    expression as it is without calling ``simplify``; every other expression goes to
+    ``simplify`` as before. What Inductor derives from a linear index, its stride, is
+    the integer sympy reduces the difference to as it builds it, whatever the index's
+    form, so the generated code is the same (``tests/test_ahead_of_time.py``). The swap
+    is of a module attribute, for the process: compiling from two threads at once
+    could leave it in place, which would change no result. A torch whose ``sizevars``
     reads ``sympy`` otherwise is left as it is."""
     from torch._inductor import sizevars
     real = getattr(sizevars, "sympy", None)
