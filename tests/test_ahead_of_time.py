@@ -155,7 +155,6 @@ def test_linear_indices_kept_generates_the_same_code_without_simplifying_them(mo
 
     from uabs_rl.env._compile import _linear, linear_indices_kept
 
-    monkeypatch.setattr(config, "fx_graph_cache", False)
     calls = []
     real = sympy.simplify
     monkeypatch.setattr(sympy, "simplify", lambda e, *a, **k: calls.append(e) or real(e, *a, **k))
@@ -170,7 +169,9 @@ def test_linear_indices_kept_generates_the_same_code_without_simplifying_them(mo
         sizevars.stride_at.cache_clear()
         calls.clear()
         program = torch.compile(gathered, dynamic=False, options={"cpp_wrapper": True})
-        with linear_indices_kept() if kept else contextlib.nullcontext():
+        # torch's own patch: monkeypatch would delete the setting when it undoes itself
+        with config.patch(fx_graph_cache=False), \
+                linear_indices_kept() if kept else contextlib.nullcontext():
             out, code = run_and_get_code(program, x, idx)
         torch.testing.assert_close(out, gathered(x, idx), rtol=0, atol=1e-5)
         codes.append((code, len(calls), sum(map(_linear, calls))))
