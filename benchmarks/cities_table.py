@@ -42,7 +42,7 @@ PAIRS = [("home", 3), ("home", 6), ("grid6", 3), ("grid6", 6), ("lights60", 3),
          ("lights60", 6), ("lanes75", 3), ("lanes75", 6), ("city", 25)]
 PLANNERS = ["greedy", "oracle", *(f"mpc H={h} ({p})" for p in ("cv", "road") for h in (1, 5, 10)),
             "planner H=5 (clairvoyant)", "planner H=10 (clairvoyant)"]
-SHORT = {"greedy": "greedy", "oracle": "oracle", "planner H=5 (clairvoyant)": "clairvoyant H=5",
+SHORT = {"planner H=5 (clairvoyant)": "clairvoyant H=5",
          "planner H=10 (clairvoyant)": "clairvoyant H=10"}
 MPC = "mpc H=5 (cv)"
 
@@ -57,9 +57,9 @@ def planners(root: Path, city: str, m: int) -> dict[str, dict]:
     folder = root / ("road" if city == "home" else f"cities/planners_{city}")
     if not all((folder / f).exists() for f in ("per_window.json", "table.csv", "log.txt")):
         return {}
-    flown = (folder / "log.txt").read_text().split(",")[0]
-    if flown.startswith("scenario=") and flown != f"scenario={city}" or (
-            city != "home" and not flown.startswith("scenario=")):
+    flown = (folder / "log.txt").read_text().split(",")[0]  # "scenario=<name>" unless home
+    if (flown if flown.startswith("scenario=") else None) != (
+            None if city == "home" else f"scenario={city}"):
         sys.exit(f"{folder} was flown on {flown.split()[0]!r}, not scenario={city}")
     rows = {r["policy"]: r for r in csv.DictReader(open(folder / "table.csv"))
             if r["mode"] == "rank" and int(r["n_uabs"]) == m}
@@ -89,9 +89,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("root", type=Path, help="docs/results/planning_vs_learning")
     args = ap.parse_args()
-    table = args.root / "cities/table.csv"
-    learned = ({(r["city"], int(r["M"])): r for r in csv.DictReader(open(table))}
-               if table.exists() else {})
+    learned_csv = args.root / "cities/table.csv"
+    learned = ({(r["city"], int(r["M"])): r for r in csv.DictReader(open(learned_csv))}
+               if learned_csv.exists() else {})
     served, pg, diffs = [], [], []
     for city, m in PAIRS:
         plan, hyb, lrn = planners(args.root, city, m), hybrid(args.root, city, m), \

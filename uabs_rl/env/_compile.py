@@ -157,14 +157,9 @@ def stable_program_names() -> Iterator[None]:
     function is left as it is."""
     from torch._dynamo import output_graph
     named = getattr(output_graph, "unique_id", None)
-    if named is None:
+    with _replaced(output_graph, "unique_id", named and (
+            lambda name, with_uuid=False: named(name))):
         yield
-        return
-    output_graph.unique_id = lambda name, with_uuid=False: named(name)
-    try:
-        yield
-    finally:
-        output_graph.unique_id = named
 
 
 @contextlib.contextmanager
@@ -188,14 +183,23 @@ def linear_indices_kept() -> Iterator[None]:
     reads ``sympy`` otherwise is left as it is."""
     from torch._inductor import sizevars
     real = getattr(sizevars, "sympy", None)
-    if getattr(real, "simplify", None) is None:
+    with _replaced(sizevars, "sympy", getattr(real, "simplify", None) and _LinearKept(real)):
+        yield
+
+
+@contextlib.contextmanager
+def _replaced(owner, name: str, value) -> Iterator[None]:
+    """``owner.name`` is ``value`` within the block and what it was after it, also on
+    errors; a ``value`` of None (what the caller needed is absent) changes nothing."""
+    if value is None:
         yield
         return
-    sizevars.sympy = _LinearKept(real)
+    before = getattr(owner, name)
+    setattr(owner, name, value)
     try:
         yield
     finally:
-        sizevars.sympy = real
+        setattr(owner, name, before)
 
 
 class _LinearKept:
