@@ -25,10 +25,11 @@ predictor gives (``--predictor cv``: constant velocity from the vehicles' curren
 previous positions, the default) seeing every vehicle or only those within ``--sees R``
 metres of a UABS: a deployable policy; ``hybrid`` adds ``--hybrid-weight`` λ times the
 learned Q-values to the mpc's scores (:mod:`uabs_rl.evaluation.hybrid`; choose λ on
-``--split eval``). Every policy's compute per decision (ms per step
-for the whole fleet, amortised over the windows run side by side) is printed. With
-learned, greedy and planner together it also prints the learned policy's share of the
-greedy-to-planner gap. Also a
+``--split eval``), ``leaf`` adds λ times the learned value at the end of each of the
+mpc's paths (:mod:`uabs_rl.evaluation.leaf`; a network of ``obs=egocentric``). Every
+policy's compute per decision (ms per step for the whole fleet, amortised over the
+windows run side by side) is printed. With learned, greedy and planner together it also
+prints the learned policy's share of the greedy-to-planner gap. Also a
 trajectory picture per policy and, with ``--gif``, an animation of one episode of the
 learned policy, into ``<run dir>/evaluation/`` (or ``--out``, checked before anything
 is evaluated).
@@ -64,6 +65,7 @@ import torch
 from uabs_rl.config import ConfigError
 from uabs_rl.evaluation.baselines import HEURISTICS, MPC, PLANNER
 from uabs_rl.evaluation.hybrid import HYBRID
+from uabs_rl.evaluation.leaf import LEAF
 from uabs_rl.evaluation.load import (
     POLICIES,
     Evaluation,
@@ -80,7 +82,7 @@ from uabs_rl.paths import OutputFolder, OutputInterrupted, check_path
 from uabs_rl.runs.checkpoint import CheckpointError
 from uabs_rl.training.threads import ThreadGovernor
 
-CHOICES = (*POLICIES, *HEURISTICS, PLANNER, MPC, HYBRID)  # every --policy
+CHOICES = (*POLICIES, *HEURISTICS, PLANNER, MPC, HYBRID, LEAF)  # every --policy
 
 
 def percent(x: float) -> str:
@@ -138,13 +140,15 @@ def _print_planner(results: dict[str, tuple[dict, Any]], shares: dict[str, dict]
 
 
 def _print_mpc(results: dict[str, tuple[dict, Any]]) -> None:
-    for name in (MPC, HYBRID):
+    for name in (MPC, HYBRID, LEAF):
         if name not in results:
             continue
         rec = results[name][0]
         sees = ("every vehicle" if rec["sees"] == "all"
                 else f"the vehicles within {rec['sees']:g} m")
-        weight = f", weight {rec['weight']:g} of the learned Q-values" if name == HYBRID else ""
+        weight = {HYBRID: f", weight {rec.get('weight', 0):g} of the learned Q-values",
+                  LEAF: f", weight {rec.get('weight', 0):g} of the learned leaf values"
+                  }.get(name, "")
         print(f"\n{name}: horizon {rec['horizon']}, predictor {rec['predictor']}, sees "
               f"{sees}{weight}; {rec['ms_per_decision']:.1f} ms per decision "
               f"({rec['windows']} windows side by side, {rec['seconds']:.1f} s, "
@@ -187,7 +191,9 @@ def parser() -> argparse.ArgumentParser:
                          "random, greedy and oracle baselines, all (these four), the "
                          "kmeans and junctions heuristics, planner (see --horizon), mpc "
                          "(see --mpc-horizon, --predictor, --sees), hybrid (the mpc's "
-                         "scores plus the learned Q-values, see --hybrid-weight)")
+                         "scores plus the learned Q-values, see --hybrid-weight), leaf "
+                         "(the mpc whose paths end in the learned values, an egocentric "
+                         "network's; the same weight)")
     ap.add_argument("--horizon", type=int, default=10,
                     help="the planner's horizon in steps (default 10; 1 = the oracle)")
     ap.add_argument("--mpc-horizon", type=int, default=5,
@@ -201,7 +207,8 @@ def parser() -> argparse.ArgumentParser:
                          "within R metres of some UABS")
     ap.add_argument("--hybrid-weight", type=float, default=1.0, metavar="λ",
                     help="the hybrid's weight of the learned Q-values beside the mpc's "
-                         "scores (default 1; 0 = the mpc); choose it on --split eval")
+                         "scores, and leaf's of the learned leaf values (default 1; 0 = "
+                         "the mpc); choose it on --split eval")
     ap.add_argument("--split", choices=("test", "eval"), default="test",
                     help="test traces (default; never seen by training or selection) or "
                          "eval, the validation traces training evaluated on")

@@ -119,13 +119,8 @@ class LinkModel:
         """Footprint membership ``inside [E,M,V]``, beam index ``[E,M,V]`` (all agents'
         beams in one index space: u·B + i) and served flags ``[E,V]``, for vehicles
         ``veh [E,2,V]`` (planar) under UABS at ``pos [E,M,2]``."""
-        p, k, half, inv = self.p, self.beam_k, (self.beam_k - 1) / 2.0, self.inv_pitch
-        # beam-grid coordinates of every link, from [E,V] and [E,M] pieces: one
-        # [E,M,V] subtraction per axis
-        vx, vy = veh[:, 0, :] * inv, veh[:, 1, :] * inv
-        ux, uy = pos[..., 0] * inv - half, pos[..., 1] * inv + half
-        gx = vx[:, None, :] - ux[:, :, None]
-        gy = uy[:, :, None] - vy[:, None, :]
+        p, k, half = self.p, self.beam_k, (self.beam_k - 1) / 2.0
+        gx, gy = self.grid_coordinates(pos, veh)
         if not self.always_served:
             d2 = ((gx - half) ** 2 + (gy - half) ** 2) * (2.0 * p.r_b) ** 2
         inside, beam = beam_cells(gx, gy, k, self.agent_offset)
@@ -144,6 +139,16 @@ class LinkModel:
             ok_in = snr + p.gain_db >= p.snr_th_db
             ok_out = snr + p.outside_gain_db >= p.snr_th_db
         return inside, beam, torch.where(inside, ok_in, ok_out).any(1) & present
+
+    def grid_coordinates(self, pos: torch.Tensor,
+                         veh: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Beam-grid coordinates ``(gx, gy) [E,M,V]`` of every link (as
+        :func:`~uabs_rl.env.channel.beam_cells` takes them), from [E,V] and [E,M] pieces:
+        one [E,M,V] subtraction per axis."""
+        half, inv = (self.beam_k - 1) / 2.0, self.inv_pitch
+        vx, vy = veh[:, 0, :] * inv, veh[:, 1, :] * inv
+        ux, uy = pos[..., 0] * inv - half, pos[..., 1] * inv + half
+        return vx[:, None, :] - ux[:, :, None], uy[:, :, None] - vy[:, None, :]
 
     def snr(self, d2d_sq: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
         """SNR in dB without the receive gain, per link (LoS state per ``los_mode``)."""

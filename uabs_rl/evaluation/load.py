@@ -36,6 +36,7 @@ from uabs_rl.env.uabs_env import N_ACTIONS
 from uabs_rl.evaluation.baselines import BASELINES, MPC, PLANNER, baseline_policy
 from uabs_rl.evaluation.evaluator import Evaluator, greedy_policy, make_eval_env
 from uabs_rl.evaluation.hybrid import HYBRID, HybridScore
+from uabs_rl.evaluation.leaf import LEAF, LeafValue
 from uabs_rl.evaluation.planner import gap_share, junction_sites
 from uabs_rl.evaluation.predict import make_predictor
 from uabs_rl.evaluation.stats import paired_difference
@@ -268,7 +269,8 @@ def evaluate_policies(ev: Evaluation, policies: tuple[str, ...], seed: int = 0,
                       ) -> dict[str, tuple[dict[str, Any], Any]]:
     """Records and rollouts of each policy on the same held-out windows and masks
     (``horizon``: the planner's; ``mpc_horizon``, ``predictor`` and ``sees``: the mpc's
-    and the hybrid's; ``hybrid_weight``: the hybrid's λ, :mod:`uabs_rl.evaluation.hybrid`).
+    and the hybrids'; ``hybrid_weight``: the hybrids' λ, :mod:`uabs_rl.evaluation.hybrid`
+    and :mod:`uabs_rl.evaluation.leaf`).
     The planner's, the mpc's and the hybrid's records hold their ``horizon`` and
     ``seconds``, the wall time of the rollout of all the windows side by side (the mpc's
     and the hybrid's also their ``predictor`` and ``sees``, the hybrid's its ``weight``);
@@ -294,6 +296,10 @@ def evaluate_policies(ev: Evaluation, policies: tuple[str, ...], seed: int = 0,
             score, selector = mpc_policy()
             policy = TensorDictSequential(
                 HybridScore(score, ev.greedy[0].module, hybrid_weight), selector)
+        elif name == LEAF:  # the mpc whose paths end in λ V (uabs_rl.evaluation.leaf)
+            policy = mpc_policy()
+            if hybrid_weight:  # λ = 0: the mpc itself
+                policy[0].leaf = LeafValue(env.base_env, ev.greedy[0].module, hybrid_weight)
         else:
             sites = junction_sites(ev.cfg, env.base_env) if name == "junctions" else None
             policy = baseline_policy(name, env, make_selector(env), seed, horizon=horizon,
@@ -306,9 +312,9 @@ def evaluate_policies(ev: Evaluation, policies: tuple[str, ...], seed: int = 0,
         rec["ms_per_decision"] = 1000 * sec / (rec["windows"] * ev.evaluator.params.episode_steps)
         if name == PLANNER:
             rec.update(horizon=horizon, seconds=sec)
-        elif name in (MPC, HYBRID):
+        elif name in (MPC, HYBRID, LEAF):
             rec.update(horizon=mpc_horizon, seconds=sec, predictor=predictor, sees=sees)
-            if name == HYBRID:
+            if name in (HYBRID, LEAF):
                 rec["weight"] = hybrid_weight
     return results
 

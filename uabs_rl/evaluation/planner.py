@@ -19,6 +19,7 @@ best legal action, so every one of them obeys the masks the learned policy obeys
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import torch
 from tensordict import TensorDictBase
@@ -168,6 +169,8 @@ class PlannerScore(TensorDictModuleBase):
         self.beam, self.rounds = beam, rounds if coordinated else 1
         self.coordinated = coordinated
         self.predictor = predictor if predictor is not None else TrueFuture()
+        # learned values at the paths' ends (uabs_rl.evaluation.leaf; None: the search alone)
+        self.leaf: Callable[..., torch.Tensor] | None = None
         self.in_keys, self.out_keys = [POSITION, MASK, BEAM_PRIORITY], [ACTION_VALUE]
 
     def forward(self, td: TensorDictBase) -> TensorDictBase:
@@ -238,7 +241,7 @@ class PlannerScore(TensorDictModuleBase):
             own = cover[rows, u]  # [E, H, V]; the others cover where covers > own
             look = None if table is None else Lookup(pos[rows, u], step,
                                                     [t[rows, u] for t in table])
-            value, path = self.search(pos[rows, u], plan, others, covers > own, w, look)
+            value, path = self.search(pos[rows, u], plan, others, covers > own, w, look, u)
             out[rows, u] = value
             if not self.coordinated:  # no plan is kept: the next UABS plans alone too
                 continue
@@ -254,10 +257,12 @@ class PlannerScore(TensorDictModuleBase):
 
     def search(self, pos: torch.Tensor, plan: torch.Tensor, others: torch.Tensor,
                oth_cover: torch.Tensor, w: dict[str, torch.Tensor],
-               look: Lookup | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """Beam search of one UABS at ``pos [E, 2]`` given the plans ``plan [E, M, H, 2]``
-        of ``others [E, M]`` and the vehicles they cover, ``oth_cover [E, H, V]``:
-        ``(value [E, 4], path [E, 4, H, 2])``, the best value of steps 2..H and its path
+               look: Lookup | None = None,
+               u: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Beam search of one UABS, ``u [E]``, at ``pos [E, 2]`` given the plans ``plan
+        [E, M, H, 2]`` of ``others [E, M]`` and the vehicles they cover, ``oth_cover
+        [E, H, V]``: ``(value [E, 4], path [E, 4, H, 2])``, the best value of steps 2..H
+        (plus, with :attr:`leaf`, the learned value at the path's end) and its path
         (positions at steps 1..H) per first move. A first move with no path that keeps
         d_th gets a value just below the others'. ``look``: its footprint tests, made in
         advance (:class:`Lookup`; default: tested here)."""
@@ -274,8 +279,15 @@ class PlannerScore(TensorDictModuleBase):
                  "path": first[:, :, None, None, :].expand(e, 4, 1, h, 2).clone()}
         for k in range(1, h):
             beams = self.expand(beams, k, plan, others, oth_cover, w, geo, look)
-        value = beams["value"].amax(-1)  # [E, 4]
-        path = beams["path"][:, :, 0]  # the best beam per first move (sorted)
+        if self.leaf is None:
+            value = beams["value"].amax(-1)  # [E, 4]
+            path = beams["path"][:, :, 0]  # the best beam per first move (sorted)
+        else:  # each beam's value plus the learned value where it ends; the best of them
+            total = beams["value"] + self.leaf(beams["pos"], beams["prio"],
+                                               plan[:, :, -1], u, w)
+            value, best = total.max(-1)  # [E, 4]
+            path = beams["path"].gather(2, best[:, :, None, None, None].expand(
+                -1, -1, 1, h, 2)).squeeze(2)
         dead = torch.isinf(value)
         floor = value.masked_fill(dead, math.inf).amin(-1, keepdim=True) - 1.0
         value = torch.where(dead, torch.where(dead.all(-1, keepdim=True), 0.0, floor), value)

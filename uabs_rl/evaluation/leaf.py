@@ -1,0 +1,157 @@
+"""Learned leaf values for the deployable planner: the mpc's paths end in a value.
+
+``uabs-eval RUN --policy leaf --hybrid-weight λ`` flies the mpc
+(:class:`~uabs_rl.evaluation.planner.PlannerScore` with the mpc's predictor, horizon and
+visibility) whose every path is scored
+
+    Σ_{k=1..H} (priority the path covers at step k) + λ · V(o_{t+H}),
+
+where o_{t+H} is the observation the UABS would have at the path's end (its position
+after H moves, at step t + H, over the predicted vehicles with the priorities simulated
+along the path, the other UABS where their plans put them) and V(o) = max_a Q(o, a) over
+the moves legal at the area's edges, the run's learned network. So the search covers
+the H steps it can predict and the learned values the steps after it (γ = 0.8: about
+five), which the mpc leaves out; :mod:`uabs_rl.evaluation.hybrid` adds Q at the first
+move instead. A path that ends at or past the episode's end gets no value (the episode
+is over there). λ = 0 is the mpc, action for action.
+
+The observation at a path's end is the egocentric one (docs/model.md §5; a network of
+``obs=egocentric``, as ``experiment=generalist`` trains it), computed by the env's own
+functions: the beam sums, the local map (and its motion half at the vehicles'
+positions extrapolated one step from their last predicted move), the nearest other
+UABS and the edges. At the current state it is the env's observation bit for bit
+(``tests/test_leaf.py``). The fleet frame's observation (every UABS's position, the
+3DQN of ``experiment=lookahead_motion``) is not supported: a ConfigError says so.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from uabs_rl.config import ConfigError
+from uabs_rl.env import observe
+from uabs_rl.env.channel import beam_cells
+from uabs_rl.env.service import beam_sums, move_scores
+from uabs_rl.env.uabs_env import UABSEnv
+from uabs_rl.evaluation.planner import footprint, on_lattice
+
+LEAF = "leaf"  # --policy leaf
+
+
+class LeafValue:
+    """λ · V at the end of each path of one UABS (module docstring). ``env``: the base
+    (untransformed) env the planner plans in; ``qnet``: the run's network, observation to
+    Q-values ``[..., 4]``."""
+
+    def __init__(self, env: UABSEnv, qnet: nn.Module, weight: float):
+        p = env.params
+        if not p.egocentric:
+            raise ConfigError("leaf values need a network of the egocentric observation "
+                              "(obs=egocentric, as experiment=generalist trains it); this "
+                              "run's observation is the fleet frame's, whose size is tied "
+                              "to the fleet: use --policy hybrid for it.")
+        if not weight >= 0:
+            raise ValueError(f"the leaf values' weight must be >= 0, got {weight}")
+        self.env, self.qnet, self.weight = env, qnet, float(weight)
+
+    # ------------------------------------------------------------------ the observation
+    def observation(self, pos: torch.Tensor, u: torch.Tensor, fleet: torch.Tensor,
+                    t: torch.Tensor, veh: torch.Tensor, present: torch.Tensor,
+                    prev: torch.Tensor, prev_present: torch.Tensor,
+                    priority: torch.Tensor, origin: torch.Tensor | None = None,
+                    reach: int = 0) -> torch.Tensor:
+        """[E, N, obs_dim]: the egocentric observation of UABS ``u [E]`` at ``pos [E, N,
+        2]`` (N candidate positions), the others at ``fleet [E, M, 2]`` (u's own entry
+        is replaced), at step ``t [E]``, with the vehicles at ``veh [E, 2, V]`` /
+        ``present [E, V]``, one step before at ``prev`` / ``prev_present`` (the motion
+        half of the map) and the priorities ``priority [E, N, V]`` of each candidate's
+        path. With ``origin [E, 2]``, every candidate within ``reach`` lattice steps of
+        it (per axis) and every such point exact (:func:`on_lattice`), the local maps
+        are read from one table of footprint tests (:meth:`map_scores`: the same
+        numbers)."""
+        env, p = self.env, self.env.params
+        e, n = pos.shape[:2]
+        m, v = fleet.shape[1], veh.shape[-1]
+        flat = pos.reshape(e * n, 1, 2)
+        vehs = veh[:, None].expand(e, n, 2, v).reshape(e * n, 2, v)
+        pres = present[:, None].expand(e, n, v).reshape(e * n, v)
+        prio = priority.reshape(e * n, v)
+        # beam sums, as the env's links compute them for one UABS at each candidate
+        gx, gy = env.math.links.grid_coordinates(flat, vehs)
+        inside, beam = beam_cells(gx, gy, env.math.links.beam_k)
+        b = beam_sums(inside & pres[:, None, :], beam, prio, p.n_beams)  # [E·N, 1, B]
+        worlds = [veh]
+        if p.motion_obs:
+            moving = (present & prev_present)[:, None, :]
+            worlds.append(torch.where(moving, 2 * veh - prev, veh))
+        radius = reach + p.map_radius
+        if origin is not None and on_lattice(origin, p.step_m, radius):
+            look = torch.cat([self.map_scores(pos, origin, radius, x, present, priority)
+                              for x in worlds], dim=-1)
+        else:
+            cand = flat[:, :, None, :] + env.math.look_offsets  # [E·N, 1, C, 2]
+            look = torch.cat([move_scores(cand, x[:, None].expand(e, n, 2, v).reshape(
+                e * n, 2, v), pres, prio, p.r_b, p.n_beams) for x in worlds], dim=-1)
+        # the nearest others, with u at each candidate
+        rows = torch.arange(e, device=pos.device)
+        full = fleet[:, None].expand(e, n, m, 2).clone()
+        full[rows, :, u] = pos
+        near = observe.nearest_neighbours(full.reshape(e * n, m, 2), p.neighbours,
+                                          p.neighbour_range * p.step_m)
+        near = near.view(e, n, m, -1)[rows, :, u]  # [E, N, 3K]
+        bounds = env.state.get("bounds")
+        area = env.math.geometry.area if bounds is None else bounds[:, None, :]
+        edges = (torch.cat([pos, area - pos], dim=-1) / (p.edge_range * p.step_m)).clamp(0.0, 1.0)
+        tt = (t.float() / p.episode_steps)[:, None, None].expand(e, n, 1)
+        return torch.cat([tt, b.view(e, n, -1) / p.obs_scale, look.view(e, n, -1) / p.obs_scale,
+                          near, edges], dim=-1)
+
+    def map_scores(self, pos: torch.Tensor, origin: torch.Tensor, radius: int,
+                   veh: torch.Tensor, present: torch.Tensor,
+                   priority: torch.Tensor) -> torch.Tensor:
+        """``[E, N, C]`` the local maps of candidates ``pos [E, N, 2]`` (what
+        :func:`~uabs_rl.env.service.move_scores` gives at ``pos + look_offsets``): the
+        footprint tests are made once for each lattice point within ``radius`` steps of
+        ``origin [E, 2]`` (per axis), their sums weighted by each candidate's priorities
+        in one product, and each map point read from there. Every point is a lattice
+        value of ``origin`` (the caller checks :func:`on_lattice`) and every sum is of
+        whole priorities, so the numbers are move_scores' own."""
+        p, env = self.env.params, self.env
+        side = 2 * radius + 1
+        k = torch.arange(-radius, radius + 1, device=pos.device, dtype=pos.dtype) * p.step_m
+        gy, gx = torch.meshgrid(k, k, indexing="ij")
+        points = origin[:, None, :] + torch.stack([gx.flatten(), gy.flatten()], dim=-1)
+        inside = footprint(points, veh, p.r_b, p.n_beams)  # [E, side², V]
+        weight = torch.where(present[:, None, :], priority.clamp_min(1.0), 0.0)  # [E, N, V]
+        sums = weight @ inside.to(weight.dtype).transpose(1, 2)  # [E, N, side²]
+        cell = torch.round((pos[:, :, None, :] - origin[:, None, None, :]
+                            + env.math.look_offsets) / p.step_m).long() + radius  # [E, N, C, 2]
+        return sums.gather(2, cell[..., 1] * side + cell[..., 0])
+
+    # ------------------------------------------------------------------ the value
+    @torch.no_grad()
+    def __call__(self, leaf: torch.Tensor, priority: torch.Tensor, fleet: torch.Tensor,
+                 u: torch.Tensor, w: dict[str, torch.Tensor]) -> torch.Tensor:
+        """``[E, A, B]`` λ · V at the ends ``leaf [E, A, B, 2]`` of the beams of UABS ``u
+        [E]`` (A first moves, B beams each), their priorities ``priority [E, A, B, V]``,
+        the fleet at the horizon ``fleet [E, M, 2]``, in the planner's world ``w``
+        (:meth:`~uabs_rl.evaluation.planner.PlannerScore.world`)."""
+        env, p = self.env, self.env.params
+        e, a, b = leaf.shape[:3]
+        h = w["veh"].shape[0]
+        t = env.state["t"] + h
+        veh, present = w["veh"][h - 1], w["present"][h]
+        if h > 1:
+            prev, prev_present = w["veh"][h - 2], w["present"][h - 1]
+        else:
+            prev, prev_present = env.vehicles(0)[0], w["present"][0]
+        pos = leaf.reshape(e, a * b, 2)
+        rows = torch.arange(e, device=leaf.device)
+        obs = self.observation(pos, u, fleet, t, veh, present, prev, prev_present,
+                               priority.reshape(e, a * b, -1), env.state["pos"][rows, u], h)
+        q = self.qnet(obs)  # [E, A·B, 4]
+        legal = env.math.geometry.boundary_mask(pos, env.state.get("bounds"))
+        value = q.masked_fill(~legal, -torch.inf).amax(-1).clamp_min(-1e30)
+        value = torch.where((t < p.episode_steps)[:, None], value, 0.0)
+        return (self.weight * value).view(e, a, b)
