@@ -15,10 +15,11 @@ Reads, under the folder given (``docs/results/planning_vs_learning``):
 * the hybrids, each a folder of ``benchmarks/hybrid.py``: ``hybrid/`` (the default grid at
   M = 3, with the 3DQN's Q-values), ``cities/hybrid_<city>/`` (M = 3) and
   ``cities/hybrid_<city>_<M>/`` (other fleets; the city's ``cities/hybrid_city/``), with
-  the generalist's.
+  the generalist's; the mpc with the generalist's leaf values (``--leaf``),
+  ``cities/leaf_<city>_<M>/`` (the default grid: ``leaf_home_<M>``).
 
 Prints three markdown tables: the served fraction of every policy, its P_g(5), and the
-paired differences of the learned policy and of the hybrid against the mpc (H = 5,
+paired differences of the learned policy and of each hybrid against the mpc (H = 5,
 constant velocity: the one both were flown beside) and against the best deployable
 planner of the row (the mpc variant that served most on these test windows: chosen on
 the test windows, which favours the planner), each member's mean paired difference over
@@ -68,11 +69,36 @@ def planners(root: Path, city: str, m: int) -> dict[str, dict]:
             if r["mode"] == "rank" and r["n_uabs"] == m and r["policy"] in rows}
 
 
-def hybrid(root: Path, city: str, m: int) -> dict | None:
-    name = ("hybrid" if (city, m) == ("home", 3) else
-            f"cities/hybrid_{city}" if m == 3 or city == "city" else f"cities/hybrid_{city}_{m}")
+def hybrid(root: Path, city: str, m: int, kind: str = "hybrid") -> dict | None:
+    """The hybrid (``kind`` "hybrid": Q at the first move) or the mpc with learned leaf
+    values ("leaf") of (city, M), as ``benchmarks/hybrid.py`` wrote it; None if absent."""
+    if kind == "leaf":
+        name = f"cities/leaf_{city}_{m}"
+    elif (city, m) == ("home", 3):
+        name = "hybrid"
+    else:
+        name = f"cities/hybrid_{city}" + ("" if m == 3 or city == "city" else f"_{m}")
     path = root / name / "hybrid.json"
     return json.loads(path.read_text()) | {"folder": name} if path.exists() else None
+
+
+def check_mpc(hyb: dict | None, plan: dict, city: str, m: int) -> None:
+    """Exit unless ``hyb`` (if any) was flown beside the planners' mpc H=5 (cv) itself."""
+    if hyb is not None and (
+            (hyb.get("mpc_horizon"), hyb.get("predictor"), hyb.get("sees")) != (5, "cv", "all")
+            or MPC not in plan
+            or hyb["policies"]["mpc"]["served"] != plan[MPC]["per_window"]["served_fractions"]
+            or hyb["policies"]["mpc"]["pg"] != plan[MPC]["per_window"]["pgs"]):
+        sys.exit(f"{hyb['folder']}'s mpc is not the planners' {MPC} of {city}:{m}: "
+                 f"other settings, windows or masks")
+
+
+def mean_cell(hyb: dict | None, key: str) -> str:
+    """A hybrid's mean over members and windows, with its λ*; blank if absent."""
+    if hyb is None:
+        return ""
+    h = hyb["policies"]["hybrid"][key]
+    return f"{pct(sum(sum(w) / len(w) for w in h) / len(h))} (λ* = {hyb['best_weight']:g})"
 
 
 def pct(x) -> str:
@@ -94,18 +120,13 @@ def main() -> None:
                if learned_csv.exists() else {})
     served, pg, diffs = [], [], []
     for city, m in PAIRS:
-        plan, hyb, lrn = planners(args.root, city, m), hybrid(args.root, city, m), \
-            learned.get((city, m))
+        plan, lrn = planners(args.root, city, m), learned.get((city, m))
+        hyb, leaf = hybrid(args.root, city, m), hybrid(args.root, city, m, "leaf")
         if not plan:
             print(f"{city}:{m}: no planners' folder, left out", file=sys.stderr)
             continue
-        if hyb is not None and (
-                (hyb.get("mpc_horizon"), hyb.get("predictor"), hyb.get("sees")) != (5, "cv", "all")
-                or MPC not in plan
-                or hyb["policies"]["mpc"]["served"] != plan[MPC]["per_window"]["served_fractions"]
-                or hyb["policies"]["mpc"]["pg"] != plan[MPC]["per_window"]["pgs"]):
-            sys.exit(f"{hyb['folder']}'s mpc is not the planners' {MPC} of {city}:{m}: "
-                     f"other settings, windows or masks")
+        check_mpc(hyb, plan, city, m)
+        check_mpc(leaf, plan, city, m)
         head = [city, str(m)]
         for table, key, lkey, hkey in ((served, "served", "learned", "served"),
                                        (pg, "pg", "pg_learned", "pg")):
@@ -113,31 +134,29 @@ def main() -> None:
             cells.append(pct(lrn[lkey]) if lrn else "")
             if key == "served":  # the default grid's 3DQN (M = 3 only): its served fraction
                 cells.append(pct(lrn["other"]) if lrn and lrn.get("other") else "")
-            h = hyb["policies"]["hybrid"][hkey] if hyb else None
-            hmean = (sum(sum(w) / len(w) for w in h) / len(h)) if h else None
-            cells.append(f"{pct(hmean)} (λ* = {hyb['best_weight']:g})" if hyb else "")
+            cells += [mean_cell(hyb, hkey), mean_cell(leaf, hkey)]
             table.append(head + cells)
         mpcs = [p for p in PLANNERS if p.startswith("mpc") and p in plan]
         if not mpcs:
             sys.exit(f"{city}:{m}: the planners' folder holds no mpc")
         best = max(mpcs, key=lambda p: float(plan[p]["served"]))
         row = head + [short(best), pct(plan[best]["served"])]
-        if hyb is None:
-            diffs.append(row + [""] * 5)
-            continue
-        values = {"learned": hyb["policies"]["learned"]["served"],
-                  "hybrid": hyb["policies"]["hybrid"]["served"]}
-        for name in ("learned", "hybrid"):
+        values = [hyb["policies"]["learned"]["served"] if hyb else None,
+                  hyb["policies"]["hybrid"]["served"] if hyb else None,
+                  leaf["policies"]["hybrid"]["served"] if leaf else None]
+        for v in values:
             for base in (MPC, best):
                 b = plan[base]["per_window"]["served_fractions"]
-                row.append(ci(paired_over_seeds(values[name], [b] * len(values[name]))))
-        row.append(Path(hyb["members"][0]).parent.name)  # the population's folder
+                row.append(ci(paired_over_seeds(v, [b] * len(v))) if v else "")
+        row += [Path(h["members"][0]).parent.name if h else ""  # the population's folder
+                for h in (hyb, leaf)]
         diffs.append(row)
 
     cols = [short(p) for p in PLANNERS]
     for title, table, learners in (
-            ("Served fraction, %", served, ["generalist", "3DQN (default grid's)", "hybrid"]),
-            ("P_g(5), %", pg, ["generalist", "hybrid"])):
+            ("Served fraction, %", served,
+             ["generalist", "3DQN (default grid's)", "hybrid", "leaf"]),
+            ("P_g(5), %", pg, ["generalist", "hybrid", "leaf"])):
         print(f"{title} (test windows; learned and hybrid: the mean over 5 seeds)\n")
         print("| city | M | " + " | ".join(cols + learners) + " |")
         print("|---" * (len(cols) + len(learners) + 2) + "|")
@@ -147,9 +166,10 @@ def main() -> None:
     print("Paired differences on the test windows, served fraction, points [95 % CI, "
           "Student-t over the 5 members]\n")
     print("| city | M | best mpc (on test) | served % | learned − mpc H=5 cv | learned − "
-          "best mpc | hybrid − mpc H=5 cv | hybrid − best mpc | learned (the hybrid's "
-          "Q-values: its run folder) |")
-    print("|---" * 9 + "|")
+          "best mpc | hybrid − mpc H=5 cv | hybrid − best mpc | leaf − mpc H=5 cv | "
+          "leaf − best mpc | learned (the hybrid's Q-values: its run folder) | the leaf "
+          "values' run folder |")
+    print("|---" * 12 + "|")
     for r in diffs:
         print("| " + " | ".join(r) + " |")
 

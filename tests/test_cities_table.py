@@ -54,6 +54,9 @@ def test_the_table_pairs_learned_and_hybrid_with_the_mpc_and_the_best_mpc(
     learned = [[x + 0.05 for x in GREEDY], [x + 0.07 for x in GREEDY]]
     hybrid(tmp_path / "cities/hybrid_grid6", mpc5, learned, [mpc5, [x + 0.01 for x in mpc5]],
            0.5)
+    # the leaf values: the mpc + 3 and + 4 points: +3.5 against H = 5, +1.5 against the best
+    hybrid(tmp_path / "cities/leaf_grid6_3", mpc5, learned,
+           [[x + 0.03 for x in mpc5], [x + 0.04 for x in mpc5]], 1.0)
     monkeypatch.setattr(sys, "argv", ["cities_table.py", str(tmp_path)])
     bench.main()
     out = capsys.readouterr().out
@@ -64,8 +67,10 @@ def test_the_table_pairs_learned_and_hybrid_with_the_mpc_and_the_best_mpc(
     assert cells[4].startswith("-4.00 [") and cells[5].startswith("-6.00 [")
     # hybrid: the mpc, and the mpc + 1 point: +0.5 against H = 5, −1.5 against the best
     assert cells[6].startswith("+0.50 [") and cells[7].startswith("-1.50 [")
+    assert cells[8].startswith("+3.50 [") and cells[9].startswith("+1.50 [")
     assert "45.50 (λ* = 0.5)" in out  # the hybrid's mean over members and windows
-    assert cells[8] == "generalist_rank5"
+    assert "48.50 (λ* = 1)" in out  # the leaf's
+    assert cells[10:] == ["generalist_rank5", "generalist_rank5"]
     for line in out.splitlines():  # every row as wide as its table's header
         if line.startswith("| city"):
             width = line.count("|")
@@ -81,7 +86,7 @@ def test_a_planners_folder_of_another_scenario_is_refused(tmp_path, monkeypatch)
         bench.main()
 
 
-def test_a_hybrid_flown_beside_another_mpc_is_refused(tmp_path, monkeypatch):
+def test_a_hybrid_or_leaf_flown_beside_another_mpc_is_refused(tmp_path, monkeypatch):
     bench = load_benchmark("cities_table")
     mpc5 = [x + 0.10 for x in GREEDY]
     planners(tmp_path / "cities/planners_grid6", 3, {"greedy": GREEDY, "mpc H=5 (cv)": mpc5})
@@ -89,5 +94,9 @@ def test_a_hybrid_flown_beside_another_mpc_is_refused(tmp_path, monkeypatch):
     (tmp_path / "cities/table.csv").write_text("city,M,learned,pg_learned,other\n")
     hybrid(tmp_path / "cities/hybrid_grid6", GREEDY, [GREEDY], [GREEDY], 0.0)
     monkeypatch.setattr(sys, "argv", ["cities_table.py", str(tmp_path)])
-    with pytest.raises(SystemExit, match="other settings, windows or masks"):
+    with pytest.raises(SystemExit, match="hybrid_grid6's mpc .* other settings, windows"):
+        bench.main()
+    (tmp_path / "cities/hybrid_grid6/hybrid.json").unlink()  # the leaf's is checked alike
+    hybrid(tmp_path / "cities/leaf_grid6_3", GREEDY, [GREEDY], [GREEDY], 0.0)
+    with pytest.raises(SystemExit, match="leaf_grid6_3's mpc .* other settings, windows"):
         bench.main()
