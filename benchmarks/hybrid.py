@@ -136,8 +136,11 @@ def main(argv: list[str] | None = None) -> None:
     hybrid = LEAF if args.leaf else HYBRID
     sweep = {}
     for w in args.weights:
+        # λ = 0 is the mpc, which no member's network enters: flown once, as on test
+        members = runs[:1] if w == 0 else runs
         per = [float(np.nanmean(flown(r, (hybrid,), "eval", args.eval_windows, args, w)
-                                [hybrid]["served_fractions"])) for r in runs]
+                                [hybrid]["served_fractions"])) for r in members]
+        per = per * len(runs) if w == 0 else per
         sweep[w] = per
         say(f"validation  λ = {w:g}: served {pct(float(np.mean(per)))} % (members: "
             f"{', '.join(pct(x) for x in per)})")

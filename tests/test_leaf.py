@@ -10,6 +10,7 @@ import json
 import pytest
 import torch
 
+from tests.conftest import load_benchmark
 from tests.test_observation import AREA, EGO, FLEET, MOVES, traces
 from tests.test_train import smoke
 from uabs_rl.cli.evaluate import main as eval_main
@@ -118,3 +119,19 @@ def test_a_fleet_frame_network_is_refused_with_the_fix(trace_cache, tmp_path, ca
     with pytest.raises(ConfigError, match="egocentric"):
         LeafValue(load_evaluation(run_dir, "last", 1, "test").evaluator.env.base_env,
                   None, 1.0)
+
+
+def test_the_benchmark_chooses_lambda_on_validation_and_names_the_leaf(ego_run, tmp_path):
+    """``benchmarks/hybrid.py --leaf``: λ* from the validation sweep (λ = 0 the mpc's
+    figure), the test rows as for the hybrid, the kind of hybrid in hybrid.json."""
+    bench = load_benchmark("hybrid")
+    bench.main([str(ego_run), "--leaf", "--weights", "0", "100", "--eval-windows", "2",
+                "--out", str(tmp_path)])
+    out = json.loads((tmp_path / "hybrid.json").read_text())
+    assert out["hybrid"] == "leaf" and set(out["weights"]) == {"0.0", "100.0"}
+    sweep = {float(w): v[0] for w, v in out["weights"].items()}
+    assert out["best_weight"] == max(sweep, key=sweep.get)
+    mpc = evaluate_policies(load_evaluation(ego_run, "best", 2, "eval"), (MPC,))[MPC][0]
+    assert sweep[0.0] == pytest.approx(sum(mpc["served_fractions"]) / 2)
+    assert set(out["policies"]) == {"greedy", "mpc", "learned", "hybrid"}
+    assert "hybrid (the learned values at the paths' ends)" in (tmp_path / "log.txt").read_text()
