@@ -79,7 +79,13 @@ def hybrid(root: Path, city: str, m: int, kind: str = "hybrid") -> dict | None:
     else:
         name = f"cities/hybrid_{city}" + ("" if m == 3 or city == "city" else f"_{m}")
     path = root / name / "hybrid.json"
-    return json.loads(path.read_text()) | {"folder": name} if path.exists() else None
+    if not path.exists():
+        return None
+    j = json.loads(path.read_text())
+    if j.get("hybrid", "hybrid") != kind:  # files before --leaf have no such key
+        sys.exit(f"{path} holds the {j['hybrid']!r} hybrid, not {kind!r}: "
+                 f"another folder's results")
+    return j | {"folder": name}
 
 
 def check_mpc(hyb: dict | None, plan: dict, city: str, m: int) -> None:
@@ -157,7 +163,7 @@ def main() -> None:
             ("Served fraction, %", served,
              ["generalist", "3DQN (default grid's)", "hybrid", "leaf"]),
             ("P_g(5), %", pg, ["generalist", "hybrid", "leaf"])):
-        print(f"{title} (test windows; learned and hybrid: the mean over 5 seeds)\n")
+        print(f"{title} (test windows; learned, hybrid and leaf: the mean over 5 seeds)\n")
         print("| city | M | " + " | ".join(cols + learners) + " |")
         print("|---" * (len(cols) + len(learners) + 2) + "|")
         for r in table:

@@ -12,8 +12,9 @@ validation traces and every reported figure on test traces.
 
 1. Validation: each member's ``best.pt`` flies the hybrid at every λ of ``--weights`` on
    the validation split (``--split eval``: the traces training selected its checkpoint
-   on; ``--eval-windows`` windows, default every one); λ* maximises the served fraction's
-   mean over members and windows.
+   on; ``--eval-windows`` windows, default every one); λ = 0, the mpc, which no member's
+   network enters, once; λ* maximises the served fraction's mean over members and
+   windows.
 2. Test: on every test window, each member's learned policy and hybrid at λ*, beside
    greedy and the mpc under the same masks (greedy and the mpc are deterministic on these
    windows: flown once). Per member, the mean over windows of the paired differences
@@ -40,6 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
+from uabs_rl.config import ConfigError
 from uabs_rl.evaluation.hybrid import HYBRID
 from uabs_rl.evaluation.leaf import LEAF
 from uabs_rl.evaluation.load import Evaluation, evaluate_policies, load_evaluation
@@ -58,11 +60,13 @@ def flown(run: Path, policies: tuple[str, ...], split: str, windows: int | None,
     """Each policy's record on ``split`` (every window, or ``windows``); a member and
     split are loaded once, for every λ."""
     key = (run, split, windows)
-    if key not in LOADED:
-        LOADED[key] = load_evaluation(run, "best", windows, split, args.overrides)
-    ev = LOADED[key]
-    out = evaluate_policies(ev, policies, mpc_horizon=args.mpc_horizon,
-                            predictor=args.predictor, sees=args.sees, hybrid_weight=weight)
+    try:
+        if key not in LOADED:
+            LOADED[key] = load_evaluation(run, "best", windows, split, args.overrides)
+        out = evaluate_policies(LOADED[key], policies, mpc_horizon=args.mpc_horizon,
+                                predictor=args.predictor, sees=args.sees, hybrid_weight=weight)
+    except ConfigError as e:  # a setting the run cannot take, in one line
+        sys.exit(f"error: {run}: {e}")
     recs = {name: rec for name, (rec, _) in out.items()}
     for name, rec in recs.items():  # the masks' guarantees, checked for every rollout
         unsafe = rec["collisions"] + rec["proximity"] + rec["fallbacks"]

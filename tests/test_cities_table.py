@@ -30,9 +30,11 @@ def planners(folder, m, served, scenario="grid6"):
           "pgs": [x + 0.01 for x in v]} for p, v in served.items()]))
 
 
-def hybrid(folder, mpc, learned, flown, weight):
+def hybrid(folder, mpc, learned, flown, weight, kind=None):
     folder.mkdir(parents=True)
+    kind = kind or ("leaf" if folder.name.startswith("leaf_") else "hybrid")
     (folder / "hybrid.json").write_text(json.dumps({
+        "hybrid": kind,
         "best_weight": weight, "mpc_horizon": 5, "predictor": "cv", "sees": "all",
         "members": ["outputs/runs/generalist_rank5/seed=0"], "policies": {
             "mpc": {"served": mpc, "pg": [x + 0.01 for x in mpc]},
@@ -99,4 +101,15 @@ def test_a_hybrid_or_leaf_flown_beside_another_mpc_is_refused(tmp_path, monkeypa
     (tmp_path / "cities/hybrid_grid6/hybrid.json").unlink()  # the leaf's is checked alike
     hybrid(tmp_path / "cities/leaf_grid6_3", GREEDY, [GREEDY], [GREEDY], 0.0)
     with pytest.raises(SystemExit, match="leaf_grid6_3's mpc .* other settings, windows"):
+        bench.main()
+
+
+def test_a_folder_holding_the_other_kind_of_hybrid_is_refused(tmp_path, monkeypatch):
+    bench = load_benchmark("cities_table")
+    mpc5 = [x + 0.10 for x in GREEDY]
+    planners(tmp_path / "cities/planners_grid6", 3, {"greedy": GREEDY, "mpc H=5 (cv)": mpc5})
+    (tmp_path / "cities/table.csv").write_text("city,M,learned,pg_learned,other\n")
+    hybrid(tmp_path / "cities/hybrid_grid6", mpc5, [GREEDY], [mpc5], 1.0, kind="leaf")
+    monkeypatch.setattr(sys, "argv", ["cities_table.py", str(tmp_path)])
+    with pytest.raises(SystemExit, match="holds the 'leaf' hybrid, not 'hybrid'"):
         bench.main()

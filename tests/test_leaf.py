@@ -19,7 +19,8 @@ from uabs_rl.env.uabs_env import ACTION, UABSEnv
 from uabs_rl.evaluation.baselines import MPC, baseline_policy
 from uabs_rl.evaluation.leaf import LeafValue
 from uabs_rl.evaluation.load import evaluate_policies, load_evaluation
-from uabs_rl.evaluation.predict import ConstantVelocity, observed
+from uabs_rl.evaluation.planner import PlannerScore, on_lattice
+from uabs_rl.evaluation.predict import ConstantVelocity, TrueFuture, observed
 from uabs_rl.safety.make import make_selector
 from uabs_rl.training.resume import run
 
@@ -38,6 +39,7 @@ def test_the_observation_at_the_current_state_is_the_envs():
         out = env.math.step(st, torch.stack([a, a.flip(0)]), env.veh_pos, env.veh_present,
                             env.rng)
     leaf = LeafValue(env, qnet=None, weight=1.0)
+    assert on_lattice(st["pos"], 20.0, 2 + env.params.map_radius)  # the table path is taken
     now, present = observed(env, 0)
     prev, prev_present = observed(env, 1)
     assert (st["priority"] > 1).any() and not torch.equal(now, prev)
@@ -49,6 +51,92 @@ def test_the_observation_at_the_current_state_is_the_envs():
         # read from the table of a point two steps west and one north (the same numbers)
         origin = st["pos"][:, u] + torch.tensor([-40.0, 20.0])
         assert torch.equal(leaf.observation(*args, origin=origin, reach=2), want)
+
+
+class Recorder(torch.nn.Module):
+    """A stand-in Q-network: records the observations it is given, returns ``q``."""
+
+    def __init__(self, q: list[float]):
+        super().__init__()
+        self.q, self.seen = torch.tensor(q), []
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        self.seen.append(obs)
+        return self.q.expand(*obs.shape[:-1], 4)
+
+
+@pytest.mark.parametrize("h", [1, 2, 3])
+def test_the_value_is_taken_at_the_observation_the_env_reaches_h_steps_on(h):
+    """With the true future as the world, the observation at the end of the path the
+    fleet then flies (UABS u's position after h moves, the env's own priorities and fleet
+    there) is the env's own observation h steps on, bit for bit: the world's positions,
+    presence, the step before (the motion half) and t + h, as LeafValue reads them."""
+    env = UABSEnv(ScenarioConfig(n_uabs=6, area=AREA, episode_steps=20),
+                  ChannelConfig(los_mode="los"), traces(AREA), n_envs=2, seed=3, obs=EGO)
+    env.reset()
+    st = env.state
+    st["pos"][:] = FLEET
+    for a in MOVES[:2]:
+        env.math.step(st, torch.stack([a, a.flip(0)]), env.veh_pos, env.veh_present, env.rng)
+    snap = {k: v.clone() for k, v in st.items()}
+    w = TrueFuture()(env, h)
+    for i in range(h):
+        a = MOVES[(2 + i) % len(MOVES)]
+        out = env.math.step(st, torch.stack([a, a.flip(0)]), env.veh_pos, env.veh_present,
+                            env.rng)
+    after = {k: st[k].clone() for k in ("pos", "priority")}
+    for k, v in snap.items():
+        st[k] = v
+    u = 2
+    qnet = Recorder([0.0, 1.0, 2.0, 3.0])
+    value = LeafValue(env, qnet, 0.5)(after["pos"][:, u, None, None, :],
+                                      after["priority"][:, None, None, :], after["pos"],
+                                      torch.full((2,), u), w, snap["pos"][:, u])
+    assert torch.equal(qnet.seen[0], out["observation"][:, u:u + 1])
+    assert torch.equal(value, torch.full((2, 1, 1), 0.5 * 3.0))  # λ · max Q
+
+
+def test_the_value_is_the_best_q_over_the_moves_legal_at_the_edges():
+    """A path ending at the area's west edge: the move west (index 3) is not counted,
+    however high its Q."""
+    env = UABSEnv(ScenarioConfig(n_uabs=6, area=AREA, episode_steps=20),
+                  ChannelConfig(los_mode="los"), traces(AREA), n_envs=2, seed=3, obs=EGO)
+    env.reset()
+    west = env.math.geometry.boundary_mask(torch.tensor([[[0.0, 400.0]]]))[0, 0]
+    assert west.tolist() == [True, True, True, False]
+    ends = torch.tensor([[[0.0, 400.0], [40.0, 400.0]]]).expand(2, 2, 2)[:, None]  # [E,1,2,2]
+    prio = env.priority[:, None, None, :].expand(2, 1, 2, -1)
+    w = ConstantVelocity()(env, 1)
+    value = LeafValue(env, Recorder([1.0, 2.0, 3.0, 100.0]), 1.0)(
+        ends, prio, env.state["pos"], torch.zeros(2, dtype=torch.long), w,
+        torch.tensor([[20.0, 400.0], [20.0, 400.0]]))
+    assert value[:, 0].tolist() == [[3.0, 100.0], [3.0, 100.0]]
+
+
+def test_the_search_takes_the_path_whose_end_is_worth_most():
+    """A leaf value of 1e6 per metre east: for each first move the path kept is the one
+    ending furthest east, the first move east then straight on, and its value carries
+    that end's worth (the search's own gains are a few hundred at most)."""
+    env = UABSEnv(ScenarioConfig(n_uabs=6, area=AREA, episode_steps=20),
+                  ChannelConfig(los_mode="los"), traces(AREA), n_envs=2, seed=3, obs=EGO)
+    env.reset()
+    env.state["pos"][:] = FLEET
+    h = 3
+    planner = PlannerScore(env, h, torch.Generator().manual_seed(0),
+                           predictor=ConstantVelocity())
+    planner.leaf = lambda leaf, *_: 1e6 * leaf[..., 0]
+    e, m = 2, 6
+    w = planner.world()
+    plan = env.state["pos"][:, :, None, :].expand(e, m, h, 2).clone()
+    none = torch.zeros(e, m, dtype=torch.bool)
+    cover = torch.zeros(e, h, w["veh"].shape[-1], dtype=torch.bool)
+    u = torch.zeros(e, dtype=torch.long)
+    value, path = planner.search(env.state["pos"][:, 0], plan, none, cover, w, None, u)
+    x0 = float(FLEET[0, 0])
+    east = env.math.moves[:, 0].argmax()  # the move east
+    assert path[:, east, -1, 0].tolist() == [x0 + 20.0 * h] * e
+    assert (value[:, east] // 1e6).tolist() == [x0 + 20.0 * h] * e
+    assert (path[:, :, -1, 0] == path[:, :, -1, 0].amax(-1, keepdim=True)).sum() == e
 
 
 @pytest.fixture(scope="module")
@@ -72,17 +160,20 @@ def test_leaf_with_weight_0_is_the_mpc_action_for_action(ego_run):
     assert rec["served_fraction"] > 0
 
 
-def test_leaf_values_change_the_moves_and_keep_the_guarantees(ego_run):
+@pytest.mark.parametrize("h", [1, 3])
+def test_leaf_values_change_the_moves_and_keep_the_guarantees(ego_run, h):
+    """At H = 1 too (the search is then the first move and its leaf value)."""
     ev = load_evaluation(ego_run, "last", 3, "test")
-    out = evaluate_policies(ev, (MPC, "leaf"), mpc_horizon=3, hybrid_weight=100.0)
+    out = evaluate_policies(ev, (MPC, "leaf"), mpc_horizon=h, hybrid_weight=100.0)
     for rec, _ in out.values():
         assert rec["collisions"] == rec["proximity"] == rec["fallbacks"] == 0
     assert not torch.equal(out["leaf"][1].get(ACTION), out[MPC][1].get(ACTION))
-    assert out["leaf"][0]["weight"] == 100.0 and out["leaf"][0]["horizon"] == 3
+    assert out["leaf"][0]["weight"] == 100.0 and out["leaf"][0]["horizon"] == h
 
 
 def test_the_value_counts_only_inside_the_episode(ego_run):
-    """A path ending at the episode's last step or after it earns no learned value."""
+    """A path ending before the episode's last step earns its value; one ending at that
+    step (the episode is over there) earns none."""
     ev = load_evaluation(ego_run, "last", 2, "test")
     env = ev.evaluator.env.base_env
     env.reset()
@@ -92,9 +183,11 @@ def test_the_value_counts_only_inside_the_episode(ego_run):
     ends = env.state["pos"][:, :1, None, :].expand(e, 4, 3, 2)
     prio = env.priority[:, None, None, :].expand(e, 4, 3, -1)
     u = torch.zeros(e, dtype=torch.long)
-    assert leaf(ends, prio, env.state["pos"], u, w).abs().sum() > 0
+    here = env.state["pos"][:, 0]
+    env.state["t"][:] = env.params.episode_steps - 3  # t + H = T - 1: one step left
+    assert (leaf(ends, prio, env.state["pos"], u, w, here) != 0).all()
     env.state["t"][:] = env.params.episode_steps - 2  # t + H = T: the episode is over
-    assert torch.equal(leaf(ends, prio, env.state["pos"], u, w), torch.zeros(e, 4, 3))
+    assert torch.equal(leaf(ends, prio, env.state["pos"], u, w, here), torch.zeros(e, 4, 3))
 
 
 def test_uabs_eval_leaf_reports_its_settings(ego_run, tmp_path, capsys):
@@ -112,10 +205,12 @@ def test_uabs_eval_leaf_reports_its_settings(ego_run, tmp_path, capsys):
 def test_a_fleet_frame_network_is_refused_with_the_fix(trace_cache, tmp_path, capsys):
     run_dir = tmp_path / "run"
     run(smoke(trace_cache, "train.episodes=2", "train.trajectory_images=false"), run_dir)
-    assert eval_main([str(run_dir), "--checkpoint", "last", "--policy", "leaf",
-                      "--windows", "1", "--out", str(tmp_path / "ev")]) == 2
-    err = capsys.readouterr().err
-    assert "obs=egocentric" in err and "--policy hybrid" in err
+    for weight in ("1", "0"):  # λ = 0 flies the mpc alone, and is refused alike
+        assert eval_main([str(run_dir), "--checkpoint", "last", "--policy", "leaf",
+                          "--hybrid-weight", weight, "--windows", "1",
+                          "--out", str(tmp_path / "ev")]) == 2
+        err = capsys.readouterr().err
+        assert "obs=egocentric" in err and "--policy hybrid" in err
     with pytest.raises(ConfigError, match="egocentric"):
         LeafValue(load_evaluation(run_dir, "last", 1, "test").evaluator.env.base_env,
                   None, 1.0)

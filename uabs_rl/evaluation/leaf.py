@@ -15,6 +15,12 @@ five), which the mpc leaves out; :mod:`uabs_rl.evaluation.hybrid` adds Q at the 
 move instead. A path that ends at or past the episode's end gets no value (the episode
 is over there). λ = 0 is the mpc, action for action.
 
+Two limits of the search carry over: only the paths the beam search keeps at its last
+step (``beam`` per first move, chosen by their covered priority alone) get a value, so a
+path pruned before it is never valued; and "where their plans put them" holds for the
+UABS planned before this one: in the first pass the others are at their current
+positions, and with ``coordinated=False`` every other UABS is.
+
 The observation at a path's end is the egocentric one (docs/model.md §5; a network of
 ``obs=egocentric``, as ``experiment=generalist`` trains it), computed by the env's own
 functions: the beam sums, the local map (and its motion half at the vehicles'
@@ -127,15 +133,20 @@ class LeafValue:
         sums = weight @ inside.to(weight.dtype).transpose(1, 2)  # [E, N, side²]
         cell = torch.round((pos[:, :, None, :] - origin[:, None, None, :]
                             + env.math.look_offsets) / p.step_m).long() + radius  # [E, N, C, 2]
+        if cell.numel() and not bool(((cell >= 0) & (cell < side)).all()):
+            raise ValueError(f"a candidate lies more than {radius - p.map_radius} lattice "
+                             f"steps from the table's origin")
         return sums.gather(2, cell[..., 1] * side + cell[..., 0])
 
     # ------------------------------------------------------------------ the value
     @torch.no_grad()
     def __call__(self, leaf: torch.Tensor, priority: torch.Tensor, fleet: torch.Tensor,
-                 u: torch.Tensor, w: dict[str, torch.Tensor]) -> torch.Tensor:
+                 u: torch.Tensor, w: dict[str, torch.Tensor],
+                 origin: torch.Tensor) -> torch.Tensor:
         """``[E, A, B]`` λ · V at the ends ``leaf [E, A, B, 2]`` of the beams of UABS ``u
-        [E]`` (A first moves, B beams each), their priorities ``priority [E, A, B, V]``,
-        the fleet at the horizon ``fleet [E, M, 2]``, in the planner's world ``w``
+        [E]`` (A first moves, B beams each) from ``origin [E, 2]`` (u's position now),
+        their priorities ``priority [E, A, B, V]``, the fleet at the horizon ``fleet [E,
+        M, 2]``, in the planner's world ``w``
         (:meth:`~uabs_rl.evaluation.planner.PlannerScore.world`)."""
         env, p = self.env, self.env.params
         e, a, b = leaf.shape[:3]
@@ -147,9 +158,8 @@ class LeafValue:
         else:
             prev, prev_present = env.vehicles(0)[0], w["present"][0]
         pos = leaf.reshape(e, a * b, 2)
-        rows = torch.arange(e, device=leaf.device)
         obs = self.observation(pos, u, fleet, t, veh, present, prev, prev_present,
-                               priority.reshape(e, a * b, -1), env.state["pos"][rows, u], h)
+                               priority.reshape(e, a * b, -1), origin, h)
         q = self.qnet(obs)  # [E, A·B, 4]
         legal = env.math.geometry.boundary_mask(pos, env.state.get("bounds"))
         value = q.masked_fill(~legal, -torch.inf).amax(-1).clamp_min(-1e30)

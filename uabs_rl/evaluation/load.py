@@ -271,9 +271,9 @@ def evaluate_policies(ev: Evaluation, policies: tuple[str, ...], seed: int = 0,
     (``horizon``: the planner's; ``mpc_horizon``, ``predictor`` and ``sees``: the mpc's
     and the hybrids'; ``hybrid_weight``: the hybrids' λ, :mod:`uabs_rl.evaluation.hybrid`
     and :mod:`uabs_rl.evaluation.leaf`).
-    The planner's, the mpc's and the hybrid's records hold their ``horizon`` and
+    The planner's, the mpc's and the hybrids' records hold their ``horizon`` and
     ``seconds``, the wall time of the rollout of all the windows side by side (the mpc's
-    and the hybrid's also their ``predictor`` and ``sees``, the hybrid's its ``weight``);
+    and the hybrids' also their ``predictor`` and ``sees``, the hybrids' their ``weight``);
     every record holds ``ms_per_decision``, that time per step of one window (the whole
     fleet's decision, amortised over the windows)."""
     results = {}
@@ -298,8 +298,9 @@ def evaluate_policies(ev: Evaluation, policies: tuple[str, ...], seed: int = 0,
                 HybridScore(score, ev.greedy[0].module, hybrid_weight), selector)
         elif name == LEAF:  # the mpc whose paths end in λ V (uabs_rl.evaluation.leaf)
             policy = mpc_policy()
+            leaf = LeafValue(env.base_env, ev.greedy[0].module, hybrid_weight)  # checked
             if hybrid_weight:  # λ = 0: the mpc itself
-                policy[0].leaf = LeafValue(env.base_env, ev.greedy[0].module, hybrid_weight)
+                policy[0].leaf = leaf
         else:
             sites = junction_sites(ev.cfg, env.base_env) if name == "junctions" else None
             policy = baseline_policy(name, env, make_selector(env), seed, horizon=horizon,

@@ -143,7 +143,10 @@ class PlannerScore(TensorDictModuleBase):
     coverage taken out, their service in the priorities, and its path kept d_th from
     their planned positions at steps 2..H); then ``rounds - 1`` more passes replan each
     UABS given all the others' plans. Each path search is a beam search over lattice
-    moves, ``beam`` paths per first move, one per position (the best so far).
+    moves, ``beam`` paths per first move, one per position (the best so far). With
+    :attr:`leaf` set (:mod:`uabs_rl.evaluation.leaf`, ``--policy leaf``) each path kept
+    at the end also earns a learned value of where it ends, and the best of them by
+    that total is the first move's.
 
     With ``coordinated=False`` each UABS plans alone: no other plan takes vehicles out of
     its paths' gains or keeps its path from theirs, and one pass is made (a diagnostic of
@@ -187,7 +190,7 @@ class PlannerScore(TensorDictModuleBase):
         cand = td.get(POSITION)[:, :, None, :] + env.math.moves  # [E, M, 4, 2]
         score = move_scores(cand, w["veh"][0], w["present"][1], env.priority, p.r_b,
                             p.n_beams)
-        if self.horizon > 1:
+        if self.horizon > 1 or self.leaf is not None:  # H = 1: the leaf values alone
             score = score + self.future(td, w, first=score)
         return score
 
@@ -284,7 +287,7 @@ class PlannerScore(TensorDictModuleBase):
             path = beams["path"][:, :, 0]  # the best beam per first move (sorted)
         else:  # each beam's value plus the learned value where it ends; the best of them
             total = beams["value"] + self.leaf(beams["pos"], beams["prio"],
-                                               plan[:, :, -1], u, w)
+                                               plan[:, :, -1], u, w, pos)
             value, best = total.max(-1)  # [E, 4]
             path = beams["path"].gather(2, best[:, :, None, None, None].expand(
                 -1, -1, 1, h, 2)).squeeze(2)
