@@ -15,6 +15,7 @@ from tests.test_observation import AREA, EGO, FLEET, MOVES, traces
 from tests.test_train import smoke
 from uabs_rl.cli.evaluate import main as eval_main
 from uabs_rl.config import ChannelConfig, ConfigError, ScenarioConfig
+from uabs_rl.env.service import move_scores
 from uabs_rl.env.uabs_env import ACTION, UABSEnv
 from uabs_rl.evaluation.baselines import MPC, baseline_policy
 from uabs_rl.evaluation.leaf import LeafValue
@@ -230,3 +231,29 @@ def test_the_benchmark_chooses_lambda_on_validation_and_names_the_leaf(ego_run, 
     assert sweep[0.0] == pytest.approx(sum(mpc["served_fractions"]) / 2)
     assert set(out["policies"]) == {"greedy", "mpc", "learned", "hybrid"}
     assert "hybrid (the learned values at the paths' ends)" in (tmp_path / "log.txt").read_text()
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_table_of_footprint_tests_gives_move_scores_own_numbers(seed):
+    """Candidates up to 3 steps from the table's origin, vehicles anywhere around them
+    (fractional metres, some just inside or outside a footprint's reach of a lattice
+    point): each local map read from the table equals move_scores' at its points."""
+    env = UABSEnv(ScenarioConfig(n_uabs=6, area=AREA, episode_steps=20),
+                  ChannelConfig(los_mode="los"), traces(AREA), n_envs=2, seed=3, obs=EGO)
+    leaf = LeafValue(env, None, 1.0)
+    g = torch.Generator().manual_seed(seed)
+    e, n, v, h = 2, 7, 300, 3
+    origin = torch.tensor([[400.0, 400.0], [380.0, 420.0]])
+    pos = origin[:, None, :] + torch.randint(-h, h + 1, (e, n, 2), generator=g) * 20.0
+    veh = origin[:, :, None] + (torch.rand(e, 2, v, generator=g) - 0.5) * 240.0
+    veh[:, :, :40] = origin[:, :, None] + torch.tensor([31.49, 31.51, 51.5, 50.0]).repeat(10)
+    present = torch.rand(e, v, generator=g) < 0.9
+    prio = torch.randint(0, 30, (e, n, v), generator=g).float()
+    radius = h + env.params.map_radius
+    got = leaf.map_scores(pos, origin, radius, veh, present, prio)
+    cand = pos[:, :, None, :] + env.math.look_offsets
+    for i in range(n):
+        want = move_scores(cand[:, i:i + 1], veh, present, prio[:, i], env.params.r_b,
+                           env.params.n_beams)[:, 0]
+        assert torch.equal(got[:, i], want)
+    assert got.sum() > 0

@@ -37,10 +37,10 @@ from torch import nn
 
 from uabs_rl.config import ConfigError
 from uabs_rl.env import observe
-from uabs_rl.env.channel import beam_cells
+from uabs_rl.env.channel import beam_cells, beam_grid_side, footprint_inside
 from uabs_rl.env.service import beam_sums, move_scores
 from uabs_rl.env.uabs_env import UABSEnv
-from uabs_rl.evaluation.planner import footprint, on_lattice
+from uabs_rl.evaluation.planner import on_lattice
 
 LEAF = "leaf"  # --policy leaf
 
@@ -117,20 +117,36 @@ class LeafValue:
                    veh: torch.Tensor, present: torch.Tensor,
                    priority: torch.Tensor) -> torch.Tensor:
         """``[E, N, C]`` the local maps of candidates ``pos [E, N, 2]`` (what
-        :func:`~uabs_rl.env.service.move_scores` gives at ``pos + look_offsets``): the
-        footprint tests are made once for each lattice point within ``radius`` steps of
-        ``origin [E, 2]`` (per axis), their sums weighted by each candidate's priorities
-        in one product, and each map point read from there. Every point is a lattice
-        value of ``origin`` (the caller checks :func:`on_lattice`) and every sum is of
-        whole priorities, so the numbers are move_scores' own."""
+        :func:`~uabs_rl.env.service.move_scores` gives at ``pos + look_offsets``), from
+        one table of footprint tests for the lattice points within ``radius`` steps of
+        ``origin [E, 2]`` (per axis): each vehicle is tested against the points near it
+        only (those within a footprint's reach, k·r_b for a k x k beam grid, on each
+        axis; none farther can cover it), the table's sums weighted by each candidate's
+        priorities in one product, and each map point read from there. Every point is a
+        lattice value of ``origin`` (the caller checks :func:`on_lattice`), tested as
+        move_scores tests it, and every sum is of whole priorities, so the numbers are
+        move_scores' own."""
         p, env = self.env.params, self.env
+        e, v = veh.shape[0], veh.shape[-1]
         side = 2 * radius + 1
-        k = torch.arange(-radius, radius + 1, device=pos.device, dtype=pos.dtype) * p.step_m
-        gy, gx = torch.meshgrid(k, k, indexing="ij")
-        points = origin[:, None, :] + torch.stack([gx.flatten(), gy.flatten()], dim=-1)
-        inside = footprint(points, veh, p.r_b, p.n_beams)  # [E, side², V]
+        # the lattice columns and rows (steps from origin) near each vehicle
+        near = int((beam_grid_side(p.n_beams) * p.r_b + 1.0) / p.step_m + 0.5)
+        k = torch.arange(-near, near + 1, device=pos.device, dtype=pos.dtype)
+        col = torch.round((veh[:, 0, :] - origin[:, 0:1]) / p.step_m)[..., None] + k  # [E, V, K]
+        row = torch.round((veh[:, 1, :] - origin[:, 1:2]) / p.step_m)[..., None] + k
+        dx = veh[:, 0, :, None] - (origin[:, 0, None, None] + col * p.step_m)  # [E, V, K]
+        dy = veh[:, 1, :, None] - (origin[:, 1, None, None] + row * p.step_m)
+        inside = footprint_inside(dx[:, :, None, :].expand(-1, -1, k.numel(), -1),
+                                  dy[:, :, :, None].expand(-1, -1, -1, k.numel()),
+                                  p.r_b, p.n_beams)  # [E, V, K rows, K cols]
+        ok = ((row >= -radius) & (row <= radius))[..., :, None] & (
+            (col >= -radius) & (col <= radius))[..., None, :]
+        idx = ((row + radius)[..., :, None] * side + (col + radius)[..., None, :]).long()
+        table = torch.zeros(e, v, side * side + 1, device=pos.device)  # + 1: off the table
+        table.scatter_(2, idx.masked_fill(~ok, side * side).flatten(2),
+                       (inside & ok).to(table.dtype).flatten(2))
         weight = torch.where(present[:, None, :], priority.clamp_min(1.0), 0.0)  # [E, N, V]
-        sums = weight @ inside.to(weight.dtype).transpose(1, 2)  # [E, N, side²]
+        sums = weight @ table[..., :-1]  # [E, N, side²]
         cell = torch.round((pos[:, :, None, :] - origin[:, None, None, :]
                             + env.math.look_offsets) / p.step_m).long() + radius  # [E, N, C, 2]
         if cell.numel() and not bool(((cell >= 0) & (cell < side)).all()):
