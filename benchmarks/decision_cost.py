@@ -1,0 +1,57 @@
+"""Compute per fleet decision of several policies, timed in turns in one process.
+
+    python benchmarks/decision_cost.py outputs/runs/generalist_rank5/seed=0 \
+        --policies mpc leaf learned --weight 0.5 --turns 3
+
+Loads the run's ``best.pt`` and its test windows (every one; extra ``key=value``
+overrides as ``uabs-eval`` takes them), then flies each policy over all the windows side
+by side, ``--turns`` times, the order reversed every other turn so that neither policy
+always runs first, at one torch thread (``--threads``). Prints each turn's ms per
+decision (the rollout's wall time per step of one window: the whole fleet's move,
+amortised over the windows) and served fraction, then the median per policy and each
+policy's ratio to the first. ``--weight`` is λ of ``hybrid`` and ``leaf``;
+``--mpc-horizon`` the mpc's and theirs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+from pathlib import Path
+
+import torch
+
+from uabs_rl.evaluation.load import evaluate_policies, load_evaluation
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("run", type=Path, help="a run folder (one member)")
+    ap.add_argument("overrides", nargs="*", help="world overrides, as uabs-eval takes them")
+    ap.add_argument("--policies", nargs="+", default=["mpc", "leaf", "learned"])
+    ap.add_argument("--weight", type=float, default=1.0, help="λ of hybrid and leaf")
+    ap.add_argument("--mpc-horizon", type=int, default=5)
+    ap.add_argument("--turns", type=int, default=3)
+    ap.add_argument("--threads", type=int, default=1)
+    args = ap.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    ev = load_evaluation(args.run, "best", None, "test", args.overrides)
+    ms: dict[str, list[float]] = {p: [] for p in args.policies}
+    for turn in range(args.turns):
+        order = args.policies if turn % 2 == 0 else args.policies[::-1]
+        for name in order:
+            rec = evaluate_policies(ev, (name,), mpc_horizon=args.mpc_horizon,
+                                    hybrid_weight=args.weight)[name][0]
+            ms[name].append(rec["ms_per_decision"])
+            print(f"turn {turn + 1} {name}: {rec['ms_per_decision']:.2f} ms per decision, "
+                  f"served {100 * rec['served_fraction']:.2f} %", flush=True)
+    first = statistics.median(ms[args.policies[0]])
+    print(f"\nmedians over {args.turns} turns, {rec['windows']} windows side by side, "
+          f"{args.threads} torch thread(s):")
+    for name, values in ms.items():
+        med = statistics.median(values)
+        print(f"  {name}: {med:.2f} ms per decision ({med / first:.2f}x {args.policies[0]})")
+
+
+if __name__ == "__main__":
+    main()
