@@ -67,11 +67,15 @@ def nearest_neighbours(pos: torch.Tensor, k: int, scale: float) -> torch.Tensor:
 def egocentric_observation(pos: torch.Tensor, t: torch.Tensor, b: torch.Tensor,
                            look: torch.Tensor, area: torch.Tensor, episode_steps: int,
                            scale: float, neighbours: int, neighbour_scale: float,
-                           edge_scale: float) -> torch.Tensor:
+                           edge_scale: float, near: torch.Tensor | None = None) -> torch.Tensor:
     """The egocentric observation [E, M, 1 + B + scores + 3K + 4] (module docstring);
-    ``neighbour_scale`` and ``edge_scale`` in metres."""
+    ``neighbour_scale`` and ``edge_scale`` in metres. ``near [E, M, 3K]``: the
+    neighbours' part, when the UABS at ``pos`` are not one fleet (candidate positions of
+    one UABS, :mod:`uabs_rl.evaluation.leaf`); default: :func:`nearest_neighbours` of
+    ``pos``."""
     e, m, _ = pos.shape
+    if near is None:
+        near = nearest_neighbours(pos, neighbours, neighbour_scale)
     tt = (t.float() / episode_steps)[:, None, None].expand(e, m, 1)
     edges = (torch.cat([pos, area - pos], dim=-1) / edge_scale).clamp(0.0, 1.0)
-    return torch.cat([tt, b / scale, look / scale,
-                      nearest_neighbours(pos, neighbours, neighbour_scale), edges], dim=-1)
+    return torch.cat([tt, b / scale, look / scale, near, edges], dim=-1)

@@ -108,10 +108,9 @@ class LeafValue:
         near = near.view(e, n, m, -1)[rows, :, u]  # [E, N, 3K]
         bounds = env.state.get("bounds")
         area = env.math.geometry.area if bounds is None else bounds[:, None, :]
-        edges = (torch.cat([pos, area - pos], dim=-1) / (p.edge_range * p.step_m)).clamp(0.0, 1.0)
-        tt = (t.float() / p.episode_steps)[:, None, None].expand(e, n, 1)
-        return torch.cat([tt, b.view(e, n, -1) / p.obs_scale, look.view(e, n, -1) / p.obs_scale,
-                          near, edges], dim=-1)
+        return observe.egocentric_observation(
+            pos, t, b.view(e, n, -1), look.view(e, n, -1), area, p.episode_steps, p.obs_scale,
+            p.neighbours, p.neighbour_range * p.step_m, p.edge_range * p.step_m, near)
 
     def map_scores(self, pos: torch.Tensor, origin: torch.Tensor, radius: int,
                    veh: torch.Tensor, present: torch.Tensor,
