@@ -10,7 +10,8 @@ always runs first, at one torch thread (``--threads``). Prints each turn's ms pe
 decision (the rollout's wall time per step of one window: the whole fleet's move,
 amortised over the windows) and served fraction, then the median per policy and each
 policy's ratio to the first. ``--weight`` is λ of ``hybrid`` and ``leaf``;
-``--mpc-horizon`` the mpc's and theirs.
+``--mpc-horizon`` the mpc's and theirs; a policy written ``name:H`` (``leaf:3``) searches
+H steps instead, so a shorter search with values can be set beside a longer one without.
 """
 
 from __future__ import annotations
@@ -35,15 +36,22 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
+    horizon = {}
+    for spec in args.policies:
+        name, _, h = spec.partition(":")
+        if h and not (h.isdigit() and int(h) >= 1):
+            ap.error(f"{spec}: the horizon after ':' must be an integer >= 1")
+        horizon[spec] = (name, int(h) if h else args.mpc_horizon)
     ev = load_evaluation(args.run, "best", None, "test", args.overrides)
     ms: dict[str, list[float]] = {p: [] for p in args.policies}
     for turn in range(args.turns):
         order = args.policies if turn % 2 == 0 else args.policies[::-1]
-        for name in order:
-            rec = evaluate_policies(ev, (name,), mpc_horizon=args.mpc_horizon,
+        for spec in order:
+            name, h = horizon[spec]
+            rec = evaluate_policies(ev, (name,), mpc_horizon=h,
                                     hybrid_weight=args.weight)[name][0]
-            ms[name].append(rec["ms_per_decision"])
-            print(f"turn {turn + 1} {name}: {rec['ms_per_decision']:.2f} ms per decision, "
+            ms[spec].append(rec["ms_per_decision"])
+            print(f"turn {turn + 1} {spec}: {rec['ms_per_decision']:.2f} ms per decision, "
                   f"served {100 * rec['served_fraction']:.2f} %", flush=True)
     first = statistics.median(ms[args.policies[0]])
     print(f"\nmedians over {args.turns} turns, {rec['windows']} windows side by side, "

@@ -257,3 +257,20 @@ def test_the_table_of_footprint_tests_gives_move_scores_own_numbers(seed):
                            env.params.n_beams)[:, 0]
         assert torch.equal(got[:, i], want)
     assert got.sum() > 0
+
+
+def test_the_cost_benchmark_sets_a_horizon_per_policy(ego_run, capsys):
+    """``benchmarks/decision_cost.py --policies mpc:1 leaf:2``: each entry flown at its own
+    horizon (mpc:1 serves what the 1-step mpc serves), a bad horizon refused before any
+    loading."""
+    bench = load_benchmark("decision_cost")
+    bench.main([str(ego_run / "checkpoints" / "last.pt"), "--policies", "mpc:1", "leaf:2",
+                "--weight", "1", "--turns", "1"])
+    out = capsys.readouterr().out
+    ev = load_evaluation(ego_run, "last", None, "test")
+    one = evaluate_policies(ev, (MPC,), mpc_horizon=1)[MPC][0]["served_fraction"]
+    assert "turn 1 mpc:1: " in out and f"served {100 * one:.2f} %" in out.split("\n")[0]
+    assert "leaf:2:" in out and "x mpc:1)" in out
+    with pytest.raises(SystemExit):
+        bench.main([str(ego_run), "--policies", "mpc:0"])
+    assert "the horizon after ':' must be an integer >= 1" in capsys.readouterr().err
