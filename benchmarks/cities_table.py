@@ -18,12 +18,15 @@ Reads, under the folder given (``docs/results/planning_vs_learning``):
   the generalist's; the mpc with the generalist's leaf values (``--leaf``),
   ``cities/leaf_<city>_<M>/`` (the default grid: ``leaf_home_<M>``).
 
-Prints three markdown tables: the served fraction of every policy, its P_g(5), and the
+Prints four markdown tables: the served fraction of every policy, its P_g(5), the
 paired differences of the learned policy and of each hybrid against the mpc (H = 5,
 constant velocity: the one both were flown beside) and against the best deployable
 planner of the row (the mpc variant that served most on these test windows: chosen on
 the test windows, which favours the planner), each member's mean paired difference over
-the windows, Student-t 95 % CI over the 5 members. A (city, M) without its planners'
+the windows, Student-t 95 % CI over the 5 members; and the same differences against the
+mpc (H = 5) over the windows: the members' mean per window paired with the mpc's,
+Student-t over the windows (which also counts the windows' sampling), with the number of
+windows where it serves more. A (city, M) without its planners'
 folder is left out (said on stderr); one without a learned row or a hybrid has blank
 cells there. A planners' folder flown on another scenario (its ``log.txt``) or a hybrid
 flown beside another mpc (its settings, its per-window values) is refused.
@@ -37,7 +40,9 @@ import json
 import sys
 from pathlib import Path
 
-from uabs_rl.evaluation.stats import paired_over_seeds
+import numpy as np
+
+from uabs_rl.evaluation.stats import paired_difference, paired_over_seeds
 
 PAIRS = [("home", 3), ("home", 6), ("grid6", 3), ("grid6", 6), ("lights60", 3),
          ("lights60", 6), ("lanes75", 3), ("lanes75", 6), ("city", 25)]
@@ -117,6 +122,16 @@ def ci(d: dict | None) -> str:
     return f"{100 * d['diff']:+.2f} [{100 * d['ci_low']:+.2f}, {100 * d['ci_high']:+.2f}]"
 
 
+def over_windows(values: list[list[float]] | None, mpc: list[float]) -> str:
+    """The members' mean per window (``values[member][window]``) paired with ``mpc``'s:
+    its interval over the windows and the windows where it serves more; blank if none."""
+    if not values:
+        return ""
+    mean = np.nanmean(np.asarray(values, dtype=float), axis=0)
+    better = int(np.sum(mean > np.asarray(mpc, dtype=float)))
+    return f"{ci(paired_difference(mean, mpc))}, {better} of {len(mpc)}"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("root", type=Path, help="docs/results/planning_vs_learning")
@@ -124,7 +139,7 @@ def main() -> None:
     learned_csv = args.root / "cities/table.csv"
     learned = ({(r["city"], int(r["M"])): r for r in csv.DictReader(open(learned_csv))}
                if learned_csv.exists() else {})
-    served, pg, diffs = [], [], []
+    served, pg, diffs, windows = [], [], [], []
     for city, m in PAIRS:
         plan, lrn = planners(args.root, city, m), learned.get((city, m))
         hyb, leaf = hybrid(args.root, city, m), hybrid(args.root, city, m, "leaf")
@@ -157,6 +172,9 @@ def main() -> None:
         row += [Path(h["members"][0]).parent.name if h else ""  # the population's folder
                 for h in (hyb, leaf)]
         diffs.append(row)
+        if MPC in plan:
+            mpc5 = plan[MPC]["per_window"]["served_fractions"]
+            windows.append(head + [str(len(mpc5))] + [over_windows(v, mpc5) for v in values])
 
     cols = [short(p) for p in PLANNERS]
     for title, table, learners in (
@@ -177,6 +195,14 @@ def main() -> None:
           "values' run folder |")
     print("|---" * 12 + "|")
     for r in diffs:
+        print("| " + " | ".join(r) + " |")
+    print("\nThe same against the mpc H=5 cv over the windows: the members' mean per window "
+          "paired with the mpc's, points [95 % CI, Student-t over the windows], and the "
+          "windows where it serves more\n")
+    print("| city | M | windows | learned − mpc H=5 cv | hybrid − mpc H=5 cv | "
+          "leaf − mpc H=5 cv |")
+    print("|---" * 6 + "|")
+    for r in windows:
         print("| " + " | ".join(r) + " |")
 
 

@@ -113,3 +113,26 @@ def test_a_folder_holding_the_other_kind_of_hybrid_is_refused(tmp_path, monkeypa
     monkeypatch.setattr(sys, "argv", ["cities_table.py", str(tmp_path)])
     with pytest.raises(SystemExit, match="holds the 'leaf' hybrid, not 'hybrid'"):
         bench.main()
+
+
+def test_the_windows_table_pairs_the_members_mean_per_window_with_the_mpc(
+        tmp_path, monkeypatch, capsys):
+    bench = load_benchmark("cities_table")
+    mpc5 = [x + 0.10 for x in GREEDY]
+    planners(tmp_path / "cities/planners_grid6", 3, {"greedy": GREEDY, "mpc H=5 (cv)": mpc5})
+    (tmp_path / "cities").mkdir(exist_ok=True)
+    (tmp_path / "cities/table.csv").write_text("city,M,learned,pg_learned,other\n")
+    # the members' mean per window: the mpc + 2, −1, 3, 4 points (mean +2; over the 4
+    # windows sd √(14/3), half-width t(0.975, 3) · sd / 2 = 3.437: [−1.44, +5.44]); better
+    # in 3 of the 4 windows. Over the 2 members (+1.75 and +2.25) it reads [−1.18, +5.18].
+    leaf = [[m + d for m, d in zip(mpc5, (0.01, -0.02, 0.02, 0.06), strict=True)],
+            [m + d for m, d in zip(mpc5, (0.03, 0.00, 0.04, 0.02), strict=True)]]
+    hybrid(tmp_path / "cities/leaf_grid6_3", mpc5, [GREEDY, GREEDY], leaf, 1.0)
+    monkeypatch.setattr(sys, "argv", ["cities_table.py", str(tmp_path)])
+    bench.main()
+    out = capsys.readouterr().out
+    table = out[out.index("over the windows: the members' mean"):]
+    row = next(line for line in table.splitlines() if line.startswith("| grid6 | 3 |"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells == ["grid6", "3", "4", "", "", "+2.00 [-1.44, +5.44], 3 of 4"]
+    assert "| +2.00 [-1.18, +5.18] |" in out  # the same over the members
