@@ -247,6 +247,10 @@ def test_the_table_of_footprint_tests_gives_move_scores_own_numbers(seed):
     pos = origin[:, None, :] + torch.randint(-h, h + 1, (e, n, 2), generator=g) * 20.0
     veh = origin[:, :, None] + (torch.rand(e, 2, v, generator=g) - 0.5) * 240.0
     veh[:, :, :40] = origin[:, :, None] + torch.tensor([31.49, 31.51, 51.5, 50.0]).repeat(10)
+    # a city's: most vehicles far from the table (left out of its sums), the windows
+    # keeping different numbers (the fewer padded)
+    veh[0, :, 200:] = origin[0, :, None] + (torch.rand(2, 100, generator=g) - 0.5) * 4000.0
+    veh[1, :, 100:] = origin[1, :, None] + (torch.rand(2, 200, generator=g) - 0.5) * 4000.0
     present = torch.rand(e, v, generator=g) < 0.9
     prio = torch.randint(0, 30, (e, n, v), generator=g).float()
     radius = h + env.params.map_radius
@@ -257,6 +261,34 @@ def test_the_table_of_footprint_tests_gives_move_scores_own_numbers(seed):
                            env.params.n_beams)[:, 0]
         assert torch.equal(got[:, i], want)
     assert got.sum() > 0
+
+
+@pytest.mark.parametrize("reach", [0, 3])
+def test_the_observation_from_a_table_over_the_near_vehicles_is_the_full_ones(reach):
+    """Vehicles over a city (most far from the UABS, the two windows keeping different
+    numbers near it): the observation read from a table over the vehicles near its
+    origin equals the one tested point by point over every vehicle."""
+    env = UABSEnv(ScenarioConfig(n_uabs=6, area=AREA, episode_steps=20),
+                  ChannelConfig(los_mode="los"), traces(AREA), n_envs=2, seed=3, obs=EGO)
+    env.reset()
+    leaf = LeafValue(env, None, 1.0)
+    g = torch.Generator().manual_seed(reach)
+    e, n, v = 2, 9, 600
+    origin = FLEET[:2] + torch.tensor([[0.0, 0.0], [20.0, -40.0]])
+    pos = origin[:, None, :] + torch.randint(-reach, reach + 1, (e, n, 2), generator=g) * 20.0
+    spread = torch.full((v,), 3000.0)
+    spread[: v // 3] = 300.0  # a third within 150 m of the UABS, the rest over 3 km
+    veh = origin[:, :, None] + (torch.rand(e, 2, v, generator=g) - 0.5) * spread
+    veh[1, :, : v // 3] += 1500.0  # window 1: fewer vehicles near its UABS
+    prev = veh + (torch.rand(e, 2, v, generator=g) - 0.5) * 60.0
+    present, prev_present = (torch.rand(2, e, v, generator=g) < 0.9).unbind(0)
+    prio = torch.randint(0, 30, (e, n, v), generator=g).float()
+    args = (pos, torch.tensor([0, 3]), FLEET[None].expand(e, 6, 2), torch.tensor([4, 7]),
+            veh, present, prev, prev_present, prio)
+    want = leaf.observation(*args)
+    got = leaf.observation(*args, origin=origin, reach=reach)
+    assert torch.equal(got, want)
+    assert want[..., 1:10].sum() > 0  # some vehicles under the beams
 
 
 def test_the_cost_benchmark_sets_a_horizon_per_policy(ego_run, capsys):

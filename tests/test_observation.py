@@ -106,6 +106,17 @@ def test_neighbours_are_the_nearest_others_padded_when_fewer():
     assert nearest_neighbours(pos[:, :1], 2, 200.0).abs().sum() == 0  # alone: all padding
 
 
+def test_the_neighbours_of_some_uabs_are_their_rows_among_all():
+    """``of``: the rows of the UABS asked for, each window its own, the same numbers as
+    every UABS's (ties in distance included: a fleet on a lattice)."""
+    g = torch.Generator().manual_seed(0)
+    pos = torch.randint(0, 6, (3, 7, 2), generator=g).float() * 20.0
+    every = nearest_neighbours(pos, 4, 60.0)
+    of = torch.tensor([[6, 0], [2, 2], [5, 1]])
+    assert torch.equal(nearest_neighbours(pos, 4, 60.0, of=of),
+                       every.gather(1, of[..., None].expand(-1, -1, every.shape[-1])))
+
+
 def test_the_parts_are_time_beams_map_neighbours_and_edges():
     """One vehicle 40 m east of a lone UABS: the map scores it from the lattice points
     whose 3 x 3 beam grid (about 31.5 m either way) covers it, the edges say how far the

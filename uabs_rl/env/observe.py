@@ -44,23 +44,30 @@ def fleet_observation(pos: torch.Tensor, t: torch.Tensor, b: torch.Tensor,
     return torch.cat(parts, dim=-1)
 
 
-def nearest_neighbours(pos: torch.Tensor, k: int, scale: float) -> torch.Tensor:
+def nearest_neighbours(pos: torch.Tensor, k: int, scale: float,
+                       of: torch.Tensor | None = None) -> torch.Tensor:
     """[E, M, 3K]: for each UABS, (dx, dy, 1) of its K nearest others, offsets divided
     by ``scale`` (metres) and clipped to [-1, 1], nearest first; ties broken by dx, then
-    dy (never by the UABS's number); (0, 0, 0) for each missing one."""
+    dy (never by the UABS's number); (0, 0, 0) for each missing one. ``of [E, R]``: only
+    these UABS's rows, ``[E, R, 3K]`` (the same numbers as theirs among all M)."""
     e, m, _ = pos.shape
     n = min(k, m - 1)
-    off = pos[:, None, :, :] - pos[:, :, None, :]  # [E, i, j, 2]: j's offset from i
-    dist = off.square().sum(-1).masked_fill(torch.eye(m, dtype=torch.bool,
-                                                      device=pos.device), float("inf"))
+    if of is None:  # every UABS's row
+        rows, me = m, pos
+        itself = torch.eye(m, dtype=torch.bool, device=pos.device)
+    else:
+        rows, me = of.shape[1], pos.gather(1, of[..., None].expand(e, of.shape[1], 2))
+        itself = of[..., None] == torch.arange(m, device=pos.device)  # [E, R, M]
+    off = pos[:, None, :, :] - me[:, :, None, :]  # [E, i, j, 2]: j's offset from i
+    dist = off.square().sum(-1).masked_fill(itself, float("inf"))
     # lexicographic (dist, dx, dy) by stable sorts from the last key to the first
     order = torch.sort(off[..., 1], dim=-1, stable=True).indices
     for key in (off[..., 0], dist):
         order = order.gather(-1, torch.sort(key.gather(-1, order), dim=-1,
                                             stable=True).indices)
-    near = off.gather(2, order[..., :n, None].expand(e, m, n, 2))
-    feats = torch.cat([(near / scale).clamp(-1.0, 1.0), near.new_ones(e, m, n, 1)], -1)
-    pad = feats.new_zeros(e, m, k - n, 3)
+    near = off.gather(2, order[..., :n, None].expand(e, rows, n, 2))
+    feats = torch.cat([(near / scale).clamp(-1.0, 1.0), near.new_ones(e, rows, n, 1)], -1)
+    pad = feats.new_zeros(e, rows, k - n, 3)
     return torch.cat([feats, pad], dim=2).flatten(-2)
 
 

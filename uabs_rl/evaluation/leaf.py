@@ -45,6 +45,24 @@ from uabs_rl.evaluation.planner import on_lattice
 LEAF = "leaf"  # --policy leaf
 
 
+def near_vehicles(origin: torch.Tensor, veh: torch.Tensor, present: torch.Tensor,
+                  priority: torch.Tensor, reach: float
+                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The present vehicles within ``reach`` metres of ``origin [E, 2]`` on each axis:
+    ``veh [E, 2, V]``, ``present [E, V]`` and ``priority [E, N, V]`` cut to them, each
+    window's padded to the most any window keeps (absent there). On a city the local
+    maps and beam sums near one UABS need a few hundred of thousands of vehicles; those
+    left out are under no footprint within reach, and every sum is of whole priorities,
+    so the sums over the rest are the same numbers."""
+    keep = present & ((veh - origin[:, :, None]).abs() <= reach).all(1)  # [E, V]
+    k = int(keep.sum(-1).amax()) if keep.numel() else 0
+    if k == veh.shape[-1]:
+        return veh, present, priority
+    sel = torch.sort(keep.to(torch.uint8), dim=-1, descending=True, stable=True).indices[:, :k]
+    return (veh.gather(2, sel[:, None, :].expand(-1, 2, -1)), keep.gather(1, sel),
+            priority.gather(2, sel[:, None, :].expand(-1, priority.shape[1], -1)))
+
+
 class LeafValue:
     """λ · V at the end of each path of one UABS (module docstring). ``env``: the base
     (untransformed) env the planner plans in; ``qnet``: the run's network, observation to
@@ -78,12 +96,22 @@ class LeafValue:
         numbers)."""
         env, p = self.env, self.env.params
         e, n = pos.shape[:2]
-        m, v = fleet.shape[1], veh.shape[-1]
+        radius = reach + p.map_radius
+        table = origin is not None and on_lattice(origin, p.step_m, radius)
         flat = pos.reshape(e * n, 1, 2)
-        vehs = veh[:, None].expand(e, n, 2, v).reshape(e * n, 2, v)
-        pres = present[:, None].expand(e, n, v).reshape(e * n, v)
-        prio = priority.reshape(e * n, v)
-        # beam sums, as the env's links compute them for one UABS at each candidate
+
+        def per_candidate(veh, present, priority):  # [E·N, 2, V], [E·N, V], [E·N, V]
+            v = veh.shape[-1]
+            return (veh[:, None].expand(e, n, 2, v).reshape(e * n, 2, v),
+                    present[:, None].expand(e, n, v).reshape(e * n, v),
+                    priority.reshape(e * n, v))
+
+        # beam sums, as the env's links compute them for one UABS at each candidate (from
+        # a table: over the vehicles a footprint within reach of its origin can cover)
+        vehs, pres, prio = per_candidate(*(
+            near_vehicles(origin, veh, present, priority,
+                          (reach + self.footprint_steps()) * p.step_m)
+            if table else (veh, present, priority)))
         gx, gy = env.math.links.grid_coordinates(flat, vehs)
         inside, beam = beam_cells(gx, gy, env.math.links.beam_k)
         b = beam_sums(inside & pres[:, None, :], beam, prio, p.n_beams)  # [E·N, 1, B]
@@ -91,21 +119,22 @@ class LeafValue:
         if p.motion_obs:
             moving = (present & prev_present)[:, None, :]
             worlds.append(torch.where(moving, 2 * veh - prev, veh))
-        radius = reach + p.map_radius
-        if origin is not None and on_lattice(origin, p.step_m, radius):
+        if table:  # map_scores keeps the vehicles near the table itself, world by world
             look = torch.cat([self.map_scores(pos, origin, radius, x, present, priority)
                               for x in worlds], dim=-1)
         else:
             cand = flat[:, :, None, :] + env.math.look_offsets  # [E·N, 1, C, 2]
-            look = torch.cat([move_scores(cand, x[:, None].expand(e, n, 2, v).reshape(
-                e * n, 2, v), pres, prio, p.r_b, p.n_beams) for x in worlds], dim=-1)
-        # the nearest others, with u at each candidate
+            look = torch.cat([move_scores(cand, *per_candidate(x, present, priority),
+                                          p.r_b, p.n_beams) for x in worlds], dim=-1)
+        # the nearest others, with u at each candidate (u's row only)
         rows = torch.arange(e, device=pos.device)
+        m = fleet.shape[1]
         full = fleet[:, None].expand(e, n, m, 2).clone()
         full[rows, :, u] = pos
         near = observe.nearest_neighbours(full.reshape(e * n, m, 2), p.neighbours,
-                                          p.neighbour_range * p.step_m)
-        near = near.view(e, n, m, -1)[rows, :, u]  # [E, N, 3K]
+                                          p.neighbour_range * p.step_m,
+                                          of=u.repeat_interleave(n)[:, None])
+        near = near.view(e, n, -1)  # [E, N, 3K]
         bounds = env.state.get("bounds")
         area = env.math.geometry.area if bounds is None else bounds[:, None, :]
         return observe.egocentric_observation(
@@ -126,10 +155,12 @@ class LeafValue:
         move_scores tests it, and every sum is of whole priorities, so the numbers are
         move_scores' own."""
         p, env = self.env.params, self.env
+        near = self.footprint_steps()
+        veh, present, priority = near_vehicles(origin, veh, present, priority,
+                                               (radius + near) * p.step_m)
         e, v = veh.shape[0], veh.shape[-1]
         side = 2 * radius + 1
         # the lattice columns and rows (steps from origin) near each vehicle
-        near = int((beam_grid_side(p.n_beams) * p.r_b + 1.0) / p.step_m + 0.5)
         k = torch.arange(-near, near + 1, device=pos.device, dtype=pos.dtype)
         col = torch.round((veh[:, 0, :] - origin[:, 0:1]) / p.step_m)[..., None] + k  # [E, V, K]
         row = torch.round((veh[:, 1, :] - origin[:, 1:2]) / p.step_m)[..., None] + k
@@ -152,6 +183,12 @@ class LeafValue:
             raise ValueError(f"a candidate lies more than {radius - p.map_radius} lattice "
                              f"steps from the table's origin")
         return sums.gather(2, cell[..., 1] * side + cell[..., 0])
+
+    def footprint_steps(self) -> int:
+        """Lattice steps (per axis, rounded up) beyond which no footprint of a lattice
+        point reaches a vehicle: a k x k beam grid spans k·r_b from its centre."""
+        p = self.env.params
+        return int((beam_grid_side(p.n_beams) * p.r_b + 1.0) / p.step_m + 0.5)
 
     # ------------------------------------------------------------------ the value
     @torch.no_grad()
