@@ -27,8 +27,10 @@ learned(A) − learned(B) with Welch's interval over their members' means.
 Prints a markdown table and writes ``hybrid.json`` (every per-window value, the
 validation sweep, λ*) and ``log.txt`` (what it printed) into ``--out``. ``--mpc-horizon``,
 ``--predictor`` and ``--sees`` set the planner of both the mpc and the hybrid
-(``uabs-eval``'s options); extra ``key=value`` overrides evaluate under other world
-settings, as ``uabs-eval`` takes them.
+(``uabs-eval``'s options); ``--hybrid-horizon H`` lets the hybrid search H steps while
+the mpc beside it keeps ``--mpc-horizon`` (a shorter search with learned values against
+the mpc: its λ = 0 on validation is the mpc at H); extra ``key=value`` overrides evaluate
+under other world settings, as ``uabs-eval`` takes them.
 """
 
 from __future__ import annotations
@@ -56,14 +58,17 @@ LOADED: dict[tuple, Evaluation] = {}  # each member's best.pt, env and traces, p
 
 
 def flown(run: Path, policies: tuple[str, ...], split: str, windows: int | None,
-          args: argparse.Namespace, weight: float = 0.0) -> dict[str, dict]:
-    """Each policy's record on ``split`` (every window, or ``windows``); a member and
-    split are loaded once, for every λ."""
+          args: argparse.Namespace, weight: float = 0.0,
+          horizon: int | None = None) -> dict[str, dict]:
+    """Each policy's record on ``split`` (every window, or ``windows``), the planners'
+    search ``horizon`` steps long (default ``--mpc-horizon``); a member and split are
+    loaded once, for every λ."""
     key = (run, split, windows)
     try:
         if key not in LOADED:
             LOADED[key] = load_evaluation(run, "best", windows, split, args.overrides)
-        out = evaluate_policies(LOADED[key], policies, mpc_horizon=args.mpc_horizon,
+        out = evaluate_policies(LOADED[key], policies,
+                                mpc_horizon=horizon or args.mpc_horizon,
                                 predictor=args.predictor, sees=args.sees, hybrid_weight=weight)
     except ConfigError as e:  # a setting the run cannot take, in one line
         sys.exit(f"error: {run}: {e}")
@@ -109,6 +114,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("overrides", nargs="*", help="world overrides, as uabs-eval takes them")
     ap.add_argument("--weights", type=float, nargs="+", default=[0.0, 0.25, 0.5, 1.0, 2.0])
     ap.add_argument("--mpc-horizon", type=int, default=5)
+    ap.add_argument("--hybrid-horizon", type=int,
+                    help="the hybrid's own search horizon (default: --mpc-horizon); the mpc "
+                         "beside it keeps --mpc-horizon")
     ap.add_argument("--predictor", default="cv")
     ap.add_argument("--sees", default="all")
     ap.add_argument("--eval-windows", type=int, help="validation windows (default: all)")
@@ -126,6 +134,10 @@ def main(argv: list[str] | None = None) -> None:
     args.sees = parse_sees(args.sees)
     if any(not w >= 0 for w in args.weights):
         ap.error("--weights must be >= 0")
+    if args.hybrid_horizon is None:
+        args.hybrid_horizon = args.mpc_horizon
+    if args.hybrid_horizon < 1:
+        ap.error("--hybrid-horizon must be >= 1")
     runs = RunFolder(args.run).members()
     args.out.mkdir(parents=True, exist_ok=True)
     log = open(args.out / "log.txt", "w")
@@ -142,8 +154,9 @@ def main(argv: list[str] | None = None) -> None:
     for w in args.weights:
         # λ = 0 is the mpc, which no member's network enters: flown once, as on test
         members = runs[:1] if w == 0 else runs
-        per = [float(np.nanmean(flown(r, (hybrid,), "eval", args.eval_windows, args, w)
-                                [hybrid]["served_fractions"])) for r in members]
+        per = [float(np.nanmean(flown(r, (hybrid,), "eval", args.eval_windows, args, w,
+                                      args.hybrid_horizon)[hybrid]["served_fractions"]))
+               for r in members]
         per = per * len(runs) if w == 0 else per
         sweep[w] = per
         say(f"validation  λ = {w:g}: served {pct(float(np.mean(per)))} % (members: "
@@ -152,12 +165,14 @@ def main(argv: list[str] | None = None) -> None:
     say(f"λ* = {best:g} (chosen on validation)")
     # 2. test
     fixed = flown(runs[0], ("greedy", "mpc"), "test", None, args)
-    per_member = [flown(r, ("learned", hybrid), "test", None, args, best) for r in runs]
+    per_member = [flown(r, ("learned", hybrid), "test", None, args, best, args.hybrid_horizon)
+                  for r in runs]
     for m in per_member:  # the table and hybrid.json name either hybrid "hybrid"
         m["hybrid"] = m.pop(hybrid)
     rows, out = [], {"weights": sweep, "best_weight": best, "members": [str(r) for r in runs],
                      "hybrid": hybrid,
-                     "mpc_horizon": args.mpc_horizon, "predictor": args.predictor,
+                     "mpc_horizon": args.mpc_horizon, "hybrid_horizon": args.hybrid_horizon,
+                     "predictor": args.predictor,
                      "sees": args.sees, "overrides": args.overrides, "policies": {}}
     for name in ("greedy", "mpc"):
         rec = fixed[name]
@@ -180,7 +195,8 @@ def main(argv: list[str] | None = None) -> None:
     say("")
     kind = "the learned values at the paths' ends" if args.leaf else "Q at the first move"
     say(f"test split, every window; {n} member(s); mpc H = {args.mpc_horizon} "
-        f"({args.predictor}, sees {args.sees}); hybrid ({kind}) λ* = {best:g}")
+        f"({args.predictor}, sees {args.sees}); hybrid ({kind}) λ* = {best:g}"
+        + (f", H = {args.hybrid_horizon}" if args.hybrid_horizon != args.mpc_horizon else ""))
     say("| policy | served % [95 % CI] | P_g % [95 % CI] | − mpc, served pt | − mpc, P_g pt "
         "| ms per decision |")
     say("|---|---|---|---|---|---|")

@@ -233,6 +233,26 @@ def test_the_benchmark_chooses_lambda_on_validation_and_names_the_leaf(ego_run, 
     assert "hybrid (the learned values at the paths' ends)" in (tmp_path / "log.txt").read_text()
 
 
+def test_the_benchmark_flies_a_shorter_leaf_beside_the_mpc(ego_run, tmp_path):
+    """``--hybrid-horizon 2``: the leaf searches 2 steps (at λ = 0 the mpc at H = 2, on
+    validation and test), the mpc beside it keeps its 5."""
+    bench = load_benchmark("hybrid")
+    bench.main([str(ego_run), "--leaf", "--weights", "0", "--hybrid-horizon", "2",
+                "--eval-windows", "2", "--out", str(tmp_path)])
+    out = json.loads((tmp_path / "hybrid.json").read_text())
+    assert (out["mpc_horizon"], out["hybrid_horizon"]) == (5, 2)
+    fly = lambda split, windows, h: evaluate_policies(  # noqa: E731
+        load_evaluation(ego_run, "best", windows, split), (MPC,), mpc_horizon=h)[MPC][0]
+    short, long = fly("test", None, 2), fly("test", None, 5)
+    assert short["served_fractions"] != long["served_fractions"]  # the two differ here
+    assert out["weights"]["0.0"][0] == pytest.approx(
+        sum(fly("eval", 2, 2)["served_fractions"]) / 2)
+    assert out["policies"]["hybrid"]["served"][0] == short["served_fractions"]
+    assert out["policies"]["mpc"]["served"] == long["served_fractions"]
+    assert "hybrid (the learned values at the paths' ends) λ* = 0, H = 2" in (
+        tmp_path / "log.txt").read_text()
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_the_table_of_footprint_tests_gives_move_scores_own_numbers(seed):
     """Candidates up to 3 steps from the table's origin, vehicles anywhere around them
