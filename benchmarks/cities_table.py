@@ -16,7 +16,9 @@ Reads, under the folder given (``docs/results/planning_vs_learning``):
   M = 3, with the 3DQN's Q-values), ``cities/hybrid_<city>/`` (M = 3) and
   ``cities/hybrid_<city>_<M>/`` (other fleets; the city's ``cities/hybrid_city/``), with
   the generalist's; the mpc with the generalist's leaf values (``--leaf``),
-  ``cities/leaf_<city>_<M>/`` (the default grid: ``leaf_home_<M>``).
+  ``cities/leaf_<city>_<M>/`` (the default grid: ``leaf_home_<M>``), and its variants,
+  ``cities/leaf_<variant>_<city>_<M>/`` (another horizon, another population's values:
+  each flown beside an mpc of the planners' folder, which it must match).
 
 Prints four markdown tables: the served fraction of every policy, its P_g(5), the
 paired differences of the learned policy and of each hybrid against the mpc (H = 5,
@@ -26,7 +28,8 @@ the test windows, which favours the planner), each member's mean paired differen
 the windows, Student-t 95 % CI over the 5 members; and the same differences against the
 mpc (H = 5) over the windows: the members' mean per window paired with the mpc's,
 Student-t over the windows (which also counts the windows' sampling), with the number of
-windows where it serves more. A (city, M) without its planners'
+windows where it serves more; then one row per leaf variant, against the same mpc and the
+best mpc. A (city, M) without its planners'
 folder is left out (said on stderr); one without a learned row or a hybrid has blank
 cells there. A planners' folder flown on another scenario (its ``log.txt``) or a hybrid
 flown beside another mpc (its settings, its per-window values) is refused.
@@ -104,6 +107,24 @@ def check_mpc(hyb: dict | None, plan: dict, city: str, m: int) -> None:
                  f"other settings, windows or masks")
 
 
+def variants(root: Path, city: str, m: int, plan: dict) -> list[dict]:
+    """The leaf variants of (city, M), ``cities/leaf_<variant>_<city>_<M>/``, each checked
+    flown beside the planners' mpc of its settings (the same per-window values)."""
+    out = []
+    for folder in sorted((root / "cities").glob(f"leaf_*_{city}_{m}")):
+        if not (folder / "hybrid.json").exists():
+            continue
+        j = json.loads((folder / "hybrid.json").read_text())
+        name = f"mpc H={j['mpc_horizon']} ({j['predictor']})"
+        if (j.get("hybrid") != "leaf" or j.get("sees") != "all" or name not in plan
+                or j["policies"]["mpc"]["served"]
+                != plan[name]["per_window"]["served_fractions"]):
+            sys.exit(f"{folder}: not a leaf flown beside the planners' {name} of {city}:{m} "
+                     f"(other settings, windows or masks)")
+        out.append(j | {"folder": folder.name})
+    return out
+
+
 def mean_cell(hyb: dict | None, key: str) -> str:
     """A hybrid's mean over members and windows, with its λ*; blank if absent."""
     if hyb is None:
@@ -139,7 +160,7 @@ def main() -> None:
     learned_csv = args.root / "cities/table.csv"
     learned = ({(r["city"], int(r["M"])): r for r in csv.DictReader(open(learned_csv))}
                if learned_csv.exists() else {})
-    served, pg, diffs, windows = [], [], [], []
+    served, pg, diffs, windows, extra = [], [], [], [], []
     for city, m in PAIRS:
         plan, lrn = planners(args.root, city, m), learned.get((city, m))
         hyb, leaf = hybrid(args.root, city, m), hybrid(args.root, city, m, "leaf")
@@ -175,6 +196,15 @@ def main() -> None:
         if MPC in plan:
             mpc5 = plan[MPC]["per_window"]["served_fractions"]
             windows.append(head + [str(len(mpc5))] + [over_windows(v, mpc5) for v in values])
+            for j in variants(args.root, city, m, plan):
+                v = j["policies"]["hybrid"]["served"]
+                b = plan[best]["per_window"]["served_fractions"]
+                extra.append(head + [
+                    j["folder"], Path(j["members"][0]).parent.name,
+                    str(j.get("hybrid_horizon", j["mpc_horizon"])), f"{j['best_weight']:g}",
+                    mean_cell(j, "served").split(" (")[0],
+                    ci(paired_over_seeds(v, [mpc5] * len(v))), over_windows(v, mpc5),
+                    ci(paired_over_seeds(v, [b] * len(v))) + f" ({short(best)})"])
 
     cols = [short(p) for p in PLANNERS]
     for title, table, learners in (
@@ -204,6 +234,14 @@ def main() -> None:
     print("|---" * 6 + "|")
     for r in windows:
         print("| " + " | ".join(r) + " |")
+    if extra:
+        print("\nLeaf variants (`cities/leaf_<variant>_<city>_<M>/`): served fraction, "
+              "points [95 % CI]; − mpc H=5 cv over seeds and over the windows, as above\n")
+        print("| city | M | folder | values' run folder | leaf H | λ* | served % | leaf − mpc "
+              "H=5 cv | over the windows | leaf − best mpc |")
+        print("|---" * 10 + "|")
+        for r in extra:
+            print("| " + " | ".join(r) + " |")
 
 
 if __name__ == "__main__":

@@ -136,3 +136,28 @@ def test_the_windows_table_pairs_the_members_mean_per_window_with_the_mpc(
     cells = [c.strip() for c in row.strip("|").split("|")]
     assert cells == ["grid6", "3", "4", "", "", "+2.00 [-1.44, +5.44], 3 of 4"]
     assert "| +2.00 [-1.18, +5.18] |" in out  # the same over the members
+
+
+def test_a_leaf_variant_gets_its_row_against_the_mpc_it_was_flown_beside(
+        tmp_path, monkeypatch, capsys):
+    bench = load_benchmark("cities_table")
+    mpc5 = [x + 0.10 for x in GREEDY]
+    planners(tmp_path / "cities/planners_grid6", 3, {"greedy": GREEDY, "mpc H=5 (cv)": mpc5})
+    (tmp_path / "cities/table.csv").write_text("city,M,learned,pg_learned,other\n")
+    hybrid(tmp_path / "cities/leaf_h3_grid6_3", mpc5, [GREEDY],
+           [[x + 0.02 for x in mpc5], [x + 0.04 for x in mpc5]], 1.0)
+    spec = json.loads((tmp_path / "cities/leaf_h3_grid6_3/hybrid.json").read_text())
+    spec["hybrid_horizon"] = 3
+    (tmp_path / "cities/leaf_h3_grid6_3/hybrid.json").write_text(json.dumps(spec))
+    monkeypatch.setattr(sys, "argv", ["cities_table.py", str(tmp_path)])
+    bench.main()
+    row = next(line for line in capsys.readouterr().out.splitlines()
+               if "leaf_h3_grid6_3" in line)
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[:7] == ["grid6", "3", "leaf_h3_grid6_3", "generalist_rank5", "3", "1", "48.00"]
+    assert cells[7].startswith("+3.00 [") and cells[8] == "+3.00 [+3.00, +3.00], 4 of 4"
+    assert cells[9].startswith("+3.00 [") and cells[9].endswith("(mpc H=5 cv)")
+    # flown beside an mpc the planners' folder does not hold: refused
+    hybrid(tmp_path / "cities/leaf_h2_grid6_3", GREEDY, [GREEDY], [GREEDY], 0.0)
+    with pytest.raises(SystemExit, match="leaf_h2_grid6_3: not a leaf flown beside"):
+        bench.main()
