@@ -211,38 +211,35 @@ def main() -> None:
             ("Served fraction, %", served,
              ["generalist", "3DQN (default grid's)", "hybrid", "leaf"]),
             ("P_g(5), %", pg, ["generalist", "hybrid", "leaf"])):
-        print(f"{title} (test windows; learned, hybrid and leaf: the mean over 5 seeds)\n")
-        print("| city | M | " + " | ".join(cols + learners) + " |")
-        print("|---" * (len(cols) + len(learners) + 2) + "|")
-        for r in table:
-            print("| " + " | ".join(r) + " |")
-        print()
-    print("Paired differences on the test windows, served fraction, points [95 % CI, "
-          "Student-t over the 5 members]\n")
-    print("| city | M | best mpc (on test) | served % | learned − mpc H=5 cv | learned − "
-          "best mpc | hybrid − mpc H=5 cv | hybrid − best mpc | leaf − mpc H=5 cv | "
-          "leaf − best mpc | learned (the hybrid's Q-values: its run folder) | the leaf "
-          "values' run folder |")
-    print("|---" * 12 + "|")
-    for r in diffs:
-        print("| " + " | ".join(r) + " |")
-    print("\nThe same against the mpc H=5 cv over the windows: the members' mean per window "
-          "paired with the mpc's, points [95 % CI, Student-t over the windows], and the "
-          "windows where it serves more\n")
-    print("| city | M | windows | learned − mpc H=5 cv | hybrid − mpc H=5 cv | "
-          "leaf − mpc H=5 cv |")
-    print("|---" * 6 + "|")
-    for r in windows:
-        print("| " + " | ".join(r) + " |")
+        markdown(f"{title} (test windows; learned, hybrid and leaf: the mean over 5 seeds)",
+                 ["city", "M", *cols, *learners], table, first=table is served)
+    markdown("Paired differences on the test windows, served fraction, points [95 % CI, "
+             "Student-t over the 5 members]",
+             ["city", "M", "best mpc (on test)", "served %", "learned − mpc H=5 cv",
+              "learned − best mpc", "hybrid − mpc H=5 cv", "hybrid − best mpc",
+              "leaf − mpc H=5 cv", "leaf − best mpc",
+              "learned (the hybrid's Q-values: its run folder)",
+              "the leaf values' run folder"], diffs)
+    markdown("The same against the mpc H=5 cv over the windows: the members' mean per "
+             "window paired with the mpc's, points [95 % CI, Student-t over the windows], "
+             "and the windows where it serves more",
+             ["city", "M", "windows", "learned − mpc H=5 cv", "hybrid − mpc H=5 cv",
+              "leaf − mpc H=5 cv"], windows)
     if extra:
-        print("\nLeaf variants (`cities/leaf_<variant>_<city>_<M>/`): served fraction, "
-              "points [95 % CI]; − mpc H=5 cv over seeds and over the windows, as above\n")
-        print("| city | M | folder | values' run folder | leaf H | λ* | served % | leaf − mpc "
-              "H=5 cv | over the windows | leaf − best mpc |")
-        print("|---" * 10 + "|")
-        for r in extra:
-            print("| " + " | ".join(r) + " |")
+        markdown("Leaf variants (`cities/leaf_<variant>_<city>_<M>/`): served fraction, "
+                 "points [95 % CI]; − mpc H=5 cv over seeds and over the windows, as above",
+                 ["city", "M", "folder", "values' run folder", "leaf H", "λ*", "served %",
+                  "leaf − mpc H=5 cv", "over the windows", "leaf − best mpc"], extra)
 
+
+def markdown(title: str, header: list[str], rows: list[list[str]],
+             first: bool = False) -> None:
+    """A titled markdown table, a blank line before it unless it is the ``first``."""
+    print(("" if first else "\n") + f"{title}\n")
+    print("| " + " | ".join(header) + " |")
+    print("|---" * len(header) + "|")
+    for r in rows:
+        print("| " + " | ".join(r) + " |")
 
 if __name__ == "__main__":
     main()
