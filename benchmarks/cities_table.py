@@ -8,7 +8,9 @@ Reads, under the folder given (``docs/results/planning_vs_learning``):
 
 * the planners, flown by ``benchmarks/planning_vs_learning.py`` (greedy, the oracle, the
   mpc at H = 1, 5, 10 with both predictors, the clairvoyant planner at H = 5 and 10): the
-  default grid's in ``road/``, each other city's in ``cities/planners_<city>/``;
+  default grid's in ``road/``, each other city's in ``cities/planners_<city>/``; an mpc
+  that folder lacks, from ``uabs-eval --policy mpc ... --out cities/mpc_<variant>_<city>_<M>``
+  (its ``eval.json``: the test split of that city at that M);
 * the learned policies, ``cities/table.csv`` of ``benchmarks/generalization.py`` (the
   generalist and the 3DQN trained on the default grid at M = 3, flown on each grid at
   M = 3, 5 seeds each);
@@ -72,9 +74,22 @@ def planners(root: Path, city: str, m: int) -> dict[str, dict]:
         sys.exit(f"{folder} was flown on {flown.split()[0]!r}, not scenario={city}")
     rows = {r["policy"]: r for r in csv.DictReader(open(folder / "table.csv"))
             if r["mode"] == "rank" and int(r["n_uabs"]) == m}
-    return {r["policy"]: {**rows[r["policy"]], "per_window": r}
+    plan = {r["policy"]: {**rows[r["policy"]], "per_window": r}
             for r in json.loads((folder / "per_window.json").read_text())
             if r["mode"] == "rank" and r["n_uabs"] == m and r["policy"] in rows}
+    for extra in sorted((root / "cities").glob(f"mpc_*_{city}_{m}/eval.json")):
+        j = json.loads(extra.read_text())
+        rec = j["policies"].get("mpc", {})
+        name = f"mpc H={rec.get('horizon')} ({rec.get('predictor')})"
+        if (j["split"] != "test" or j["scenario"] != city or rec.get("sees") != "all"
+                or f"scenario.n_uabs={m}" not in j["overrides"] or name not in PLANNERS
+                or plan and len(rec["served_fractions"]) != len(
+                    next(iter(plan.values()))["per_window"]["served_fractions"])):
+            sys.exit(f"{extra.parent} is not an mpc on {city}'s test windows at M = {m}")
+        plan.setdefault(name, {"served": rec["served_fraction"], "pg": rec["pg"],
+                               "per_window": {"served_fractions": rec["served_fractions"],
+                                              "pgs": rec["pgs"]}})
+    return plan
 
 
 def hybrid(root: Path, city: str, m: int, kind: str = "hybrid") -> dict | None:

@@ -161,3 +161,34 @@ def test_a_leaf_variant_gets_its_row_against_the_mpc_it_was_flown_beside(
     hybrid(tmp_path / "cities/leaf_h2_grid6_3", GREEDY, [GREEDY], [GREEDY], 0.0)
     with pytest.raises(SystemExit, match="leaf_h2_grid6_3: not a leaf flown beside"):
         bench.main()
+
+
+def test_an_mpc_flown_by_uabs_eval_joins_the_planners_of_its_city(tmp_path, monkeypatch,
+                                                                   capsys):
+    bench = load_benchmark("cities_table")
+    mpc5 = [x + 0.10 for x in GREEDY]
+    planners(tmp_path / "cities/planners_grid6", 3, {"greedy": GREEDY, "mpc H=5 (cv)": mpc5})
+    (tmp_path / "cities/table.csv").write_text("city,M,learned,pg_learned,other\n")
+    mpc10 = [x + 0.13 for x in GREEDY]  # 3 points above H = 5: the best mpc
+    folder = tmp_path / "cities/mpc_h10_grid6_3"
+    folder.mkdir()
+    spec = {"split": "test", "scenario": "grid6", "overrides": ["scenario=grid6",
+                                                                "scenario.n_uabs=3"],
+            "policies": {"mpc": {"horizon": 10, "predictor": "cv", "sees": "all",
+                                 "served_fraction": sum(mpc10) / 4, "pg": 0.5,
+                                 "served_fractions": mpc10, "pgs": mpc10}}}
+    (folder / "eval.json").write_text(json.dumps(spec))
+    hybrid(tmp_path / "cities/leaf_grid6_3", mpc5, [GREEDY], [[x + 0.04 for x in mpc5]], 1.0)
+    monkeypatch.setattr(sys, "argv", ["cities_table.py", str(tmp_path)])
+    bench.main()
+    out = capsys.readouterr().out
+    assert "| grid6 | 3 | 35.00 |" in out  # greedy, then ... the mpc at H = 10's column
+    assert "| 48.00 |" in out.splitlines()[4]
+    row = next(line for line in out.splitlines() if line.startswith("| grid6 | 3 | mpc"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[2:4] == ["mpc H=10 cv", "48.00"]
+    assert cells[8].startswith("+4.00 [") and cells[9].startswith("+1.00 [")
+    spec["overrides"] = ["scenario=grid6", "scenario.n_uabs=6"]  # another fleet: refused
+    (folder / "eval.json").write_text(json.dumps(spec))
+    with pytest.raises(SystemExit, match="mpc_h10_grid6_3 is not an mpc on grid6's test"):
+        bench.main()
