@@ -51,9 +51,9 @@ def near_vehicles(origin: torch.Tensor, veh: torch.Tensor, present: torch.Tensor
     """The present vehicles within ``reach`` metres of ``origin [E, 2]`` on each axis:
     ``veh [E, 2, V]``, ``present [E, V]`` and ``priority [E, N, V]`` cut to them, each
     window's padded to the most any window keeps (absent there). On a city the local
-    maps and beam sums near one UABS need a few hundred of thousands of vehicles; those
-    left out are under no footprint within reach, and every sum is of whole priorities,
-    so the sums over the rest are the same numbers."""
+    maps and beam sums near one UABS need a few hundred of its thousands of vehicles;
+    those left out are under no footprint within reach, and every sum is of whole
+    priorities, so the sums over the rest are the same numbers."""
     keep = present & ((veh - origin[:, :, None]).abs() <= reach).all(1)  # [E, V]
     k = int(keep.sum(-1).amax()) if keep.numel() else 0
     if k == veh.shape[-1]:
