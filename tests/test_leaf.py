@@ -254,11 +254,13 @@ def test_the_benchmark_flies_a_shorter_leaf_beside_the_mpc(ego_run, tmp_path):
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_the_table_of_footprint_tests_gives_move_scores_own_numbers(seed):
+@pytest.mark.parametrize("altitude", [100.0, 80.0])
+def test_the_table_of_footprint_tests_gives_move_scores_own_numbers(seed, altitude):
     """Candidates up to 3 steps from the table's origin, vehicles anywhere around them
     (fractional metres, some just inside or outside a footprint's reach of a lattice
-    point): each local map read from the table equals move_scores' at its points."""
-    env = UABSEnv(ScenarioConfig(n_uabs=6, area=AREA, episode_steps=20),
+    point): each local map read from the table equals move_scores' at its points. At
+    80 m a footprint spans 1.4 lattice steps from its centre (1.75 at 100 m)."""
+    env = UABSEnv(ScenarioConfig(n_uabs=6, area=AREA, episode_steps=20, altitude=altitude),
                   ChannelConfig(los_mode="los"), traces(AREA), n_envs=2, seed=3, obs=EGO)
     leaf = LeafValue(env, None, 1.0)
     g = torch.Generator().manual_seed(seed)
@@ -284,11 +286,14 @@ def test_the_table_of_footprint_tests_gives_move_scores_own_numbers(seed):
 
 
 @pytest.mark.parametrize("reach", [0, 3])
-def test_the_observation_from_a_table_over_the_near_vehicles_is_the_full_ones(reach):
+@pytest.mark.parametrize("altitude", [100.0, 80.0])
+def test_the_observation_from_a_table_over_the_near_vehicles_is_the_full_ones(reach,
+                                                                             altitude):
     """Vehicles over a city (most far from the UABS, the two windows keeping different
     numbers near it): the observation read from a table over the vehicles near its
-    origin equals the one tested point by point over every vehicle."""
-    env = UABSEnv(ScenarioConfig(n_uabs=6, area=AREA, episode_steps=20),
+    origin equals the one tested point by point over every vehicle (at 80 m a footprint
+    spans 1.4 lattice steps from its centre, 1.75 at 100 m)."""
+    env = UABSEnv(ScenarioConfig(n_uabs=6, area=AREA, episode_steps=20, altitude=altitude),
                   ChannelConfig(los_mode="los"), traces(AREA), n_envs=2, seed=3, obs=EGO)
     env.reset()
     leaf = LeafValue(env, None, 1.0)

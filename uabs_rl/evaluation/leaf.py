@@ -110,7 +110,7 @@ class LeafValue:
         # a table: over the vehicles a footprint within reach of its origin can cover)
         vehs, pres, prio = per_candidate(*(
             near_vehicles(origin, veh, present, priority,
-                          (reach + self.footprint_steps()) * p.step_m)
+                          reach * p.step_m + self.footprint_reach())
             if table else (veh, present, priority)))
         gx, gy = env.math.links.grid_coordinates(flat, vehs)
         inside, beam = beam_cells(gx, gy, env.math.links.beam_k)
@@ -155,9 +155,9 @@ class LeafValue:
         move_scores tests it, and every sum is of whole priorities, so the numbers are
         move_scores' own."""
         p, env = self.env.params, self.env
-        near = self.footprint_steps()
         veh, present, priority = near_vehicles(origin, veh, present, priority,
-                                               (radius + near) * p.step_m)
+                                               radius * p.step_m + self.footprint_reach())
+        near = int(self.footprint_reach() / p.step_m + 0.5)
         e, v = veh.shape[0], veh.shape[-1]
         side = 2 * radius + 1
         # the lattice columns and rows (steps from origin) near each vehicle
@@ -184,11 +184,11 @@ class LeafValue:
                              f"steps from the table's origin")
         return sums.gather(2, cell[..., 1] * side + cell[..., 0])
 
-    def footprint_steps(self) -> int:
-        """Lattice steps (per axis, rounded up) beyond which no footprint of a lattice
-        point reaches a vehicle: a k x k beam grid spans k·r_b from its centre."""
+    def footprint_reach(self) -> float:
+        """Metres (per axis) beyond which no footprint reaches a vehicle: a k x k beam
+        grid spans k·r_b from its centre; 1 m more, as a margin."""
         p = self.env.params
-        return int((beam_grid_side(p.n_beams) * p.r_b + 1.0) / p.step_m + 0.5)
+        return beam_grid_side(p.n_beams) * p.r_b + 1.0
 
     # ------------------------------------------------------------------ the value
     @torch.no_grad()
