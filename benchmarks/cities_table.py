@@ -101,6 +101,12 @@ def hybrid(root: Path, city: str, m: int, kind: str = "hybrid") -> dict | None:
         name = "hybrid"
     else:
         name = f"cities/hybrid_{city}" + ("" if m == 3 or city == "city" else f"_{m}")
+    return load(root, name, kind)
+
+
+def load(root: Path, name: str, kind: str) -> dict | None:
+    """The ``hybrid.json`` of folder ``name`` (under ``root``), checked to hold ``kind``;
+    None if absent."""
     path = root / name / "hybrid.json"
     if not path.exists():
         return None
@@ -111,32 +117,31 @@ def hybrid(root: Path, city: str, m: int, kind: str = "hybrid") -> dict | None:
     return j | {"folder": name}
 
 
-def check_mpc(hyb: dict | None, plan: dict, city: str, m: int) -> None:
-    """Exit unless ``hyb`` (if any) was flown beside the planners' mpc H=5 (cv) itself."""
+def own_mpc(hyb: dict) -> str:
+    """The planners' name of the mpc ``hyb`` was flown beside (``mpc H=5 (cv)``)."""
+    return f"mpc H={hyb.get('mpc_horizon')} ({hyb.get('predictor')})"
+
+
+def check_mpc(hyb: dict | None, plan: dict, city: str, m: int, name: str = MPC) -> None:
+    """Exit unless ``hyb`` (if any) was flown beside the planners' mpc ``name`` itself
+    (its settings, its per-window values)."""
     if hyb is not None and (
-            (hyb.get("mpc_horizon"), hyb.get("predictor"), hyb.get("sees")) != (5, "cv", "all")
-            or MPC not in plan
-            or hyb["policies"]["mpc"]["served"] != plan[MPC]["per_window"]["served_fractions"]
-            or hyb["policies"]["mpc"]["pg"] != plan[MPC]["per_window"]["pgs"]):
-        sys.exit(f"{hyb['folder']}'s mpc is not the planners' {MPC} of {city}:{m}: "
+            (own_mpc(hyb), hyb.get("sees")) != (name, "all") or name not in plan
+            or hyb["policies"]["mpc"]["served"] != plan[name]["per_window"]["served_fractions"]
+            or hyb["policies"]["mpc"]["pg"] != plan[name]["per_window"]["pgs"]):
+        sys.exit(f"{hyb['folder']}'s mpc is not the planners' {name} of {city}:{m}: "
                  f"other settings, windows or masks")
 
 
 def variants(root: Path, city: str, m: int, plan: dict) -> list[dict]:
     """The leaf variants of (city, M), ``cities/leaf_<variant>_<city>_<M>/``, each checked
-    flown beside the planners' mpc of its settings (the same per-window values)."""
+    flown beside the planners' mpc of its own settings."""
     out = []
     for folder in sorted((root / "cities").glob(f"leaf_*_{city}_{m}")):
-        if not (folder / "hybrid.json").exists():
-            continue
-        j = json.loads((folder / "hybrid.json").read_text())
-        name = f"mpc H={j['mpc_horizon']} ({j['predictor']})"
-        if (j.get("hybrid") != "leaf" or j.get("sees") != "all" or name not in plan
-                or j["policies"]["mpc"]["served"]
-                != plan[name]["per_window"]["served_fractions"]):
-            sys.exit(f"{folder}: not a leaf flown beside the planners' {name} of {city}:{m} "
-                     f"(other settings, windows or masks)")
-        out.append(j | {"folder": folder.name})
+        j = load(root, f"cities/{folder.name}", "leaf")
+        if j is not None:
+            check_mpc(j, plan, city, m, own_mpc(j))
+            out.append(j)
     return out
 
 
@@ -215,7 +220,7 @@ def main() -> None:
                 v = j["policies"]["hybrid"]["served"]
                 b = plan[best]["per_window"]["served_fractions"]
                 extra.append(head + [
-                    j["folder"], Path(j["members"][0]).parent.name,
+                    Path(j["folder"]).name, Path(j["members"][0]).parent.name,
                     str(j.get("hybrid_horizon", j["mpc_horizon"])), f"{j['best_weight']:g}",
                     mean_cell(j, "served").split(" (")[0],
                     ci(paired_over_seeds(v, [mpc5] * len(v))), over_windows(v, mpc5),
@@ -255,6 +260,7 @@ def markdown(title: str, header: list[str], rows: list[list[str]],
     print("|---" * len(header) + "|")
     for r in rows:
         print("| " + " | ".join(r) + " |")
+
 
 if __name__ == "__main__":
     main()

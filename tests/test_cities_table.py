@@ -159,7 +159,8 @@ def test_a_leaf_variant_gets_its_row_against_the_mpc_it_was_flown_beside(
     assert cells[9].startswith("+3.00 [") and cells[9].endswith("(mpc H=5 cv)")
     # flown beside an mpc the planners' folder does not hold: refused
     hybrid(tmp_path / "cities/leaf_h2_grid6_3", GREEDY, [GREEDY], [GREEDY], 0.0)
-    with pytest.raises(SystemExit, match="leaf_h2_grid6_3: not a leaf flown beside"):
+    with pytest.raises(SystemExit,
+                       match=r"leaf_h2_grid6_3's mpc is not the planners' mpc H=5 \(cv\)"):
         bench.main()
 
 
