@@ -252,14 +252,15 @@ def test_step_samples_keep_the_agents_and_add_the_team_reward():
         buf.update_priority(info["index"], torch.ones(6))
 
 
-def test_population_replay_equals_each_members_own_buffer():
+@pytest.mark.parametrize("unit,agents", [("agent", 1), ("agent", 3), ("step", 3)])
+def test_population_replay_equals_each_members_own_buffer(unit, agents):
     """Stacked storage, one push and one gather for all members: the same transitions,
     samples and saved state as each member's own buffer, through the ring's wrap."""
     seeds = [4, 5, 6]
-    pop = TransitionReplay(7, 2, 4, 1, seeds, batch_size=5)
-    solo = [TransitionReplay(7, 2, 4, 1, [s], batch_size=5) for s in seeds]
+    pop = TransitionReplay(7, 2, 4, agents, seeds, batch_size=5, unit=unit)
+    solo = [TransitionReplay(7, 2, 4, agents, [s], batch_size=5, unit=unit) for s in seeds]
     for step in range(6):  # 3 transitions per member a step: wraps twice
-        blocks = [steps(3, 1, 10 * step + p) for p in range(3)]
+        blocks = [steps(3, agents, 10 * step + p) for p in range(3)]
         pop.extend({k: torch.cat([b[k] for b in blocks]) for k in blocks[0]})
         for buf, b in zip(solo, blocks, strict=True):
             buf.extend(b)
@@ -271,7 +272,7 @@ def test_population_replay_equals_each_members_own_buffer():
         a, b = pop.member_state_dict(p), buf.state_dict()
         assert a["written"] == b["written"] == 18
         assert all(torch.equal(a["data"][k], b["data"][k]) for k in b["data"])
-    fresh = TransitionReplay(7, 2, 4, 1, seeds, batch_size=5)  # a resumed population's
+    fresh = TransitionReplay(7, 2, 4, agents, seeds, batch_size=5, unit=unit)  # resumed
     for p, buf in enumerate(solo):
         fresh.load_member(p, buf.state_dict())
     assert all(torch.equal(fresh.data[k], pop.data[k]) for k in pop.data)

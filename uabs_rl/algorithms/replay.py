@@ -172,9 +172,14 @@ class TransitionReplay:
         self.fields = (self.data if unit == "step" else
                        {k: v.flatten(1, 2) for k, v in self.data.items()})
         self.fields0 = {k: v[0] for k, v in self.fields.items()}
+        # every member's fields as one [P·S·M, ...] view (a population's sample: one
+        # index_select per field at member p's offset, half the time of indexing [P, S·M]
+        # with a row and a column index; the same copies)
+        self.flat = {k: v.flatten(0, 1) for k, v in self.fields.items()}
+        self.offsets = (torch.arange(self.members, device=dev)[:, None]
+                        * next(iter(self.fields.values())).shape[1])
         self.written = 0  # env steps written per member
         self.generators = [torch.Generator(device=dev).manual_seed(s) for s in seeds]
-        self.rows = torch.arange(self.members, device=dev)[:, None]
         self.samplers: list[Priorities] = []
         if priority_alpha is not None:  # one sampler per member, drawing from its generator
             items = self.slots * (n_agents if unit == "agent" else 1)
@@ -233,7 +238,9 @@ class TransitionReplay:
         if self.members == 1:
             out = {k: v.index_select(0, index[0]) for k, v in self.fields0.items()}
         else:
-            out = {k: v[self.rows, index] for k, v in self.fields.items()}
+            flat = (index + self.offsets).flatten()
+            out = {k: v.index_select(0, flat).view(*index.shape, *v.shape[1:])
+                   for k, v in self.flat.items()}
         if self.unit == "step":  # with the team reward, the sum of the agents' rewards
             out["team_reward"] = out["reward"].sum(-1)
         return out
