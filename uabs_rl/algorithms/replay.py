@@ -172,18 +172,18 @@ class TransitionReplay:
         self.fields = (self.data if unit == "step" else
                        {k: v.flatten(1, 2) for k, v in self.data.items()})
         self.fields0 = {k: v[0] for k, v in self.fields.items()}
-        # every member's fields as one [P·S·M, ...] view (a population's sample: one
-        # index_select per field at member p's offset, half the time of indexing [P, S·M]
+        # storage positions per member: what a sample indexes (S·M per agent, S per step)
+        self.items = self.slots * (n_agents if unit == "agent" else 1)
+        # every member's fields as one [P·items, ...] view (a population's sample: one
+        # index_select per field at member p's offset, half the time of indexing [P, items]
         # with a row and a column index; the same copies)
         self.flat = {k: v.flatten(0, 1) for k, v in self.fields.items()}
-        self.offsets = (torch.arange(self.members, device=dev)[:, None]
-                        * next(iter(self.fields.values())).shape[1])
+        self.offsets = torch.arange(self.members, device=dev)[:, None] * self.items
         self.written = 0  # env steps written per member
         self.generators = [torch.Generator(device=dev).manual_seed(s) for s in seeds]
         self.samplers: list[Priorities] = []
         if priority_alpha is not None:  # one sampler per member, drawing from its generator
-            items = self.slots * (n_agents if unit == "agent" else 1)
-            self.samplers = [Priorities(items, priority_alpha, priority_beta, g)
+            self.samplers = [Priorities(self.items, priority_alpha, priority_beta, g)
                              for g in self.generators]
 
     # ------------------------------------------------------------------ sizes
