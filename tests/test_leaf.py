@@ -331,3 +331,42 @@ def test_the_cost_benchmark_sets_a_horizon_per_policy(ego_run, capsys):
     with pytest.raises(SystemExit):
         bench.main([str(ego_run), "--policies", "mpc:0"])
     assert "the horizon after ':' must be an integer >= 1" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("h", [1, 3])
+def test_the_vehicles_a_value_reads_are_all_the_planner_keeps_for_it(h):
+    """A city's spread (a third of the vehicles near the UABS, the rest over 4 km, the
+    windows keeping different numbers): the observations at the ends of a UABS's paths
+    over the vehicles ``reads`` marks (cut as the planner cuts each search's world) are
+    those over every vehicle, bit for bit, and the cut leaves most vehicles out."""
+    from uabs_rl.evaluation.planner import near_sets, one_uabs, sub_world
+
+    env = UABSEnv(ScenarioConfig(n_uabs=6, area=AREA, episode_steps=20),
+                  ChannelConfig(los_mode="los"), traces(AREA), n_envs=2, seed=3, obs=EGO)
+    env.reset()
+    g = torch.Generator().manual_seed(h)
+    e, a, b, v = 2, 4, 5, 400
+    origin = FLEET[:2] + torch.tensor([[0.0, 0.0], [20.0, -40.0]])
+    ends = origin[:, None, None, :] + torch.randint(-h, h + 1, (e, a, b, 2), generator=g) * 20.0
+    spread = torch.full((v,), 4000.0)
+    spread[: v // 3] = 500.0
+    start = origin[:, :, None] + (torch.rand(e, 2, v, generator=g) - 0.5) * spread
+    start[1, :, : v // 3] += 150.0  # window 1: fewer near
+    speed = (torch.rand(e, 2, v, generator=g) - 0.5) * 30.0
+    steps = [start + k * speed for k in range(h + 1)]
+    w = {"veh": torch.stack(steps[1:]), "now": steps[0],
+         "present": torch.rand(h + 1, e, v, generator=g) < 0.9}
+    prio = torch.randint(0, 30, (e, a, b, v), generator=g).float()
+    u = torch.tensor([0, 3])
+    fleet = FLEET[None].expand(e, 6, 2)
+    full, cut = Recorder([0.0, 1.0, 2.0, 3.0]), Recorder([0.0, 1.0, 2.0, 3.0])
+    LeafValue(env, full, 1.0)(ends, prio, fleet, u, w, origin)
+    leaf = LeafValue(env, cut, 1.0)
+    sel, valid = near_sets(leaf.reads(origin[:, None], w))  # one UABS per window
+    rows = torch.arange(e)
+    wu = one_uabs(sub_world(w, sel, valid), rows, torch.zeros(e, dtype=torch.long))
+    idx = sel[:, 0]
+    leaf(ends, prio.gather(-1, idx[:, None, None].expand(e, a, b, -1)), fleet, u, wu, origin)
+    assert torch.equal(cut.seen[0], full.seen[0])
+    assert full.seen[0][..., 1:10].sum() > 0  # some vehicles under the beams
+    assert idx.shape[-1] < v // 2 and not bool(valid.all())  # most left out; one padded

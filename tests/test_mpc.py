@@ -442,7 +442,22 @@ class Checked(TensorDictModuleBase):
     (("masking=rank",), True), (("masking=flat", "scenario.n_uabs=6"), True),
     (("masking=rank", "scenario.lattice=false"), False)])
 def test_the_footprint_table_gives_the_first_searchs_scores_bit_for_bit(trace_cache,
+                                                                          monkeypatch,
                                                                           overrides, exact):
+    """The fast search (tables of footprint tests where the lattice is exact, each UABS
+    over the vehicles it can reach: a few of the traffic here, the cut made at most
+    steps) gives the scores of the search over every vehicle, tested one by one."""
+    from uabs_rl.evaluation import planner
+
+    sizes = []
+
+    def spy(keep):
+        out = real(keep)
+        sizes.append((keep.shape[-1] if out is None else out[0].shape[-1], keep.shape[-1]))
+        return out
+
+    real = planner.near_sets
+    monkeypatch.setattr(planner, "near_sets", spy)
     cfg, env = eval_env(trace_cache, *overrides)
     base, h = env.base_env, 4
     env.set_seed(0)
@@ -458,6 +473,29 @@ def test_the_footprint_table_gives_the_first_searchs_scores_bit_for_bit(trace_ca
             TensorDictSequential(checked, make_selector(env)))
         assert checked.steps == cfg.scenario.episode_steps > 0
         assert rec["collisions"] == 0
+    cut = [k < v for k, v in sizes]
+    assert len(cut) == 2 * cfg.scenario.episode_steps and sum(cut) > len(cut) // 2
+
+
+def test_the_cut_to_the_vehicles_in_reach_can_be_turned_off(trace_cache, monkeypatch):
+    """``cut = False``: every UABS searches every vehicle (no sets made), the same moves."""
+    from uabs_rl.evaluation import planner
+
+    cfg, env = eval_env(trace_cache, "masking=rank")
+    actions = []
+    for cut in (True, False):
+        calls = []
+        monkeypatch.setattr(planner, "near_sets",
+                            lambda keep, real=planner.near_sets: calls.append(1) or real(keep))
+        score = PlannerScore(env.base_env, 3, torch.Generator().manual_seed(0),
+                             predictor=ConstantVelocity())
+        score.cut = cut
+        _, td = Evaluator(env, cfg.train.eval_seed).evaluate(
+            TensorDictSequential(score, make_selector(env)))
+        actions.append(td.get(ACTION))
+        assert bool(calls) is cut
+        monkeypatch.undo()
+    assert torch.equal(*actions)
 
 
 def test_a_table_over_its_budget_is_not_built_and_the_scores_stay(trace_cache, monkeypatch):
@@ -494,3 +532,4 @@ def test_lattice_offsets_index_and_exactness_by_hand():
     assert on_lattice(torch.tensor([[9.0, 1819.5]]), 20.0, 5)
     assert not on_lattice(torch.tensor([[9.1, 1819.5]]), 20.0, 5)  # 9.1 + 20 rounds
     assert not on_lattice(torch.tensor([[0.0, 1e8]]), 20.0, 1)  # float32 steps of 8 there
+

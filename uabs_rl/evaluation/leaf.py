@@ -37,10 +37,10 @@ from torch import nn
 
 from uabs_rl.config import ConfigError
 from uabs_rl.env import observe
-from uabs_rl.env.channel import beam_cells, beam_grid_side, footprint_inside
+from uabs_rl.env.channel import beam_cells, footprint_inside
 from uabs_rl.env.service import beam_sums, move_scores
 from uabs_rl.env.uabs_env import UABSEnv
-from uabs_rl.evaluation.planner import on_lattice
+from uabs_rl.evaluation.planner import axis_reach, on_lattice
 
 LEAF = "leaf"  # --policy leaf
 
@@ -185,10 +185,41 @@ class LeafValue:
         return sums.gather(2, cell[..., 1] * side + cell[..., 0])
 
     def footprint_reach(self) -> float:
-        """Metres (per axis) beyond which no footprint reaches a vehicle: a k x k beam
-        grid spans k·r_b from its centre; 1 m more, as a margin."""
+        """Metres (per axis) beyond which no footprint reaches a vehicle
+        (:func:`~uabs_rl.evaluation.planner.axis_reach`)."""
         p = self.env.params
-        return beam_grid_side(p.n_beams) * p.r_b + 1.0
+        return axis_reach(p.r_b, p.n_beams)
+
+    def horizon_worlds(self, w: dict[str, torch.Tensor]) -> tuple[torch.Tensor, ...]:
+        """The vehicles the value at a path's end sees, in the planner's world ``w``:
+        at the horizon ``veh [E, 2, V]`` / ``present [E, V]`` and one step before
+        ``prev`` / ``prev_present`` (``w["now"]``, else the env's, at H = 1)."""
+        h = w["veh"].shape[0]
+        veh, present = w["veh"][h - 1], w["present"][h]
+        if h > 1:
+            prev, prev_present = w["veh"][h - 2], w["present"][h - 1]
+        else:
+            prev = w["now"] if "now" in w else self.env.vehicles(0)[0]
+            prev_present = w["present"][0]
+        return veh, present, prev, prev_present
+
+    def reads(self, origin: torch.Tensor, w: dict[str, torch.Tensor]) -> torch.Tensor:
+        """``[E, M, V]`` the vehicles the values of the paths of a UABS at ``origin [E,
+        M, 2]`` can read (a superset): present at the horizon H, at or extrapolated one
+        step from a point within H + map_radius lattice steps plus a footprint's reach
+        of the origin, per axis (the ends lie within H moves, their local maps
+        map_radius steps further). The planner searches over these and its own."""
+        p = self.env.params
+        veh, present, prev, prev_present = self.horizon_worlds(w)
+        reach = (w["veh"].shape[0] + p.map_radius) * p.step_m + self.footprint_reach()
+        worlds = [veh]
+        if p.motion_obs:
+            worlds.append(torch.where((present & prev_present)[:, None, :], 2 * veh - prev, veh))
+        near = torch.zeros(*origin.shape[:2], veh.shape[-1], dtype=torch.bool,
+                           device=origin.device)
+        for x in worlds:
+            near |= (x[:, None] - origin[..., None]).abs().amax(2) <= reach
+        return near & present[:, None, :]
 
     # ------------------------------------------------------------------ the value
     @torch.no_grad()
@@ -204,11 +235,7 @@ class LeafValue:
         e, a, b = leaf.shape[:3]
         h = w["veh"].shape[0]
         t = env.state["t"] + h
-        veh, present = w["veh"][h - 1], w["present"][h]
-        if h > 1:
-            prev, prev_present = w["veh"][h - 2], w["present"][h - 1]
-        else:
-            prev, prev_present = env.vehicles(0)[0], w["present"][0]
+        veh, present, prev, prev_present = self.horizon_worlds(w)
         pos = leaf.reshape(e, a * b, 2)
         obs = self.observation(pos, u, fleet, t, veh, present, prev, prev_present,
                                priority.reshape(e, a * b, -1), origin, h)

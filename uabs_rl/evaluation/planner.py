@@ -26,7 +26,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
 from uabs_rl.config import ConfigError
-from uabs_rl.env.channel import footprint_inside
+from uabs_rl.env.channel import beam_grid_side, footprint_inside
 from uabs_rl.env.service import SCORE_BLOCK, move_scores
 from uabs_rl.env.uabs_env import BEAM_PRIORITY, MASK, POSITION, UABSEnv
 from uabs_rl.evaluation.predict import Predictor, TrueFuture
@@ -113,6 +113,57 @@ def footprint_table(pos: torch.Tensor, veh: torch.Tensor, step: torch.Tensor, r_
     return out
 
 
+def axis_reach(r_b: float, n_beams: int) -> float:
+    """Metres, per axis, beyond which no footprint of a UABS reaches a vehicle: a k x k
+    beam grid of pitch 2 r_b spans k·r_b from its centre; 1 m more, as a margin."""
+    return beam_grid_side(n_beams) * r_b + 1.0
+
+
+def near_sets(keep: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """The vehicles ``keep [E, M, V]`` marks for each UABS, as indices ``sel [E, M, K]``
+    (in ascending order, each set padded to the largest, K, with vehicles it does not
+    keep) and ``valid [E, M, K]`` (False on the padding); None when some set keeps every
+    vehicle (nothing to cut)."""
+    v = keep.shape[-1]
+    k = max(1, int(keep.sum(-1).amax())) if keep.numel() else v
+    if k >= v:
+        return None
+    sel = torch.sort(keep.to(torch.uint8), dim=-1, descending=True, stable=True).indices[..., :k]
+    return sel, keep.gather(-1, sel)
+
+
+def sub_world(w: dict[str, torch.Tensor], sel: torch.Tensor,
+              valid: torch.Tensor) -> dict[str, torch.Tensor]:
+    """The world ``w`` (:meth:`PlannerScore.world`; ``now [E, 2, V]`` too, where given)
+    cut to the vehicles ``sel [E, M, K]`` of each UABS (:func:`near_sets`): positions
+    ``veh [H, E, M, 2, K]``, presence ``present [H+1, E, M, K]`` (False on the padding)
+    and ``now [E, M, 2, K]``; the per-window entries as they are."""
+    e, m, k = sel.shape
+    out = dict(w)
+    h, v = w["veh"].shape[0], w["veh"].shape[-1]
+    out["veh"] = w["veh"][:, :, None].expand(h, e, m, 2, v).gather(
+        -1, sel[None, :, :, None, :].expand(h, e, m, 2, k))
+    n = w["present"].shape[0]
+    out["present"] = w["present"][:, :, None].expand(n, e, m, v).gather(
+        -1, sel[None].expand(n, e, m, k)) & valid
+    if "now" in w:
+        out["now"] = w["now"][:, None].expand(e, m, 2, v).gather(
+            -1, sel[:, :, None, :].expand(e, m, 2, k))
+    return out
+
+
+def one_uabs(w: dict[str, torch.Tensor], rows: torch.Tensor,
+             u: torch.Tensor) -> dict[str, torch.Tensor]:
+    """UABS ``u [E]``'s world of :func:`sub_world` (window ``rows [E]``), laid out as a
+    whole world: ``veh [H, E, 2, K]``, ``present [H+1, E, K]``, ``now [E, 2, K]``."""
+    out = dict(w)
+    out["veh"] = w["veh"][:, rows, u]
+    out["present"] = w["present"][:, rows, u]
+    if "now" in w:
+        out["now"] = w["now"][rows, u]
+    return out
+
+
 def next_priority(p: torch.Tensor, served: torch.Tensor, present: torch.Tensor,
                   prev_present: torch.Tensor, start: torch.Tensor) -> torch.Tensor:
     """Priorities one step on (docs/model.md §4, as ``service.update_service``): + 1
@@ -174,6 +225,9 @@ class PlannerScore(TensorDictModuleBase):
         self.predictor = predictor if predictor is not None else TrueFuture()
         # learned values at the paths' ends (uabs_rl.evaluation.leaf; None: the search alone)
         self.leaf: Callable[..., torch.Tensor] | None = None
+        # each UABS's search over the vehicles it can reach only (see future); False: over
+        # every vehicle (the same scores, bit for bit; tests compare the two)
+        self.cut = True
         self.in_keys, self.out_keys = [POSITION, MASK, BEAM_PRIORITY], [ACTION_VALUE]
 
     def forward(self, td: TensorDictBase) -> TensorDictBase:
@@ -214,7 +268,15 @@ class PlannerScore(TensorDictModuleBase):
         (:func:`on_lattice`) the footprint tests are made once per decision, for each
         UABS and each such position (:func:`footprint_table`), and every search looks
         its candidates up there (:class:`Lookup`: the same booleans as testing them one
-        by one)."""
+        by one).
+
+        Each UABS's search reads only the vehicles it can reach (:meth:`reachable`: at
+        step k, within k moves plus a footprint's reach of it, per axis; with
+        :attr:`leaf`, also those the value at a path's end reads): on a city a few
+        hundred of its thousands. The vehicles left out are under no footprint a path of
+        that UABS can take, every sum is of whole priorities (exact in any order), and
+        a plan's coverage is written back to every vehicle, so the scores are those of
+        the search over all of them, bit for bit (``tests/test_mpc.py``)."""
         p = self.env.params
         pos, allowed = td.get(POSITION), td.get(MASK)
         e, m = pos.shape[:2]
@@ -222,13 +284,29 @@ class PlannerScore(TensorDictModuleBase):
         w = self.world() if w is None else w
         moves = self.env.math.moves
         step = moves.abs().amax()
-        table = (footprint_table(pos, w["veh"], step, p.r_b, p.n_beams)
-                 if on_lattice(pos, float(step), self.horizon)
-                 and table_bytes(e, m, self.horizon, w["veh"].shape[-1]) <= TABLE_BYTES
-                 else None)
         if first is None:  # [E, M, 4]
             first = move_scores(pos[:, :, None, :] + moves, w["veh"][0], w["present"][1],
                                 self.env.priority, p.r_b, p.n_beams)
+        n_veh = w["veh"].shape[-1]
+        keep = self.reachable(pos, w, float(step))
+        cut = None if keep is None else near_sets(keep)
+        if cut is None:  # every UABS over every vehicle
+            ws, prio, k = w, None, n_veh
+        else:  # UABS u over its vehicles sel[:, u] only
+            sel, valid = cut
+            if self.leaf is not None and "now" not in w:  # the leaf's step t, at H = 1
+                w = {**w, "now": self.env.vehicles(0)[0]}
+            ws, k = sub_world(w, sel, valid), sel.shape[-1]
+            prio = self.env.priority.gather(1, sel.flatten(1)).view(sel.shape)  # [E, M, K]
+        table = None
+        if (on_lattice(pos, float(step), self.horizon)
+                and table_bytes(e, m, self.horizon, k) <= TABLE_BYTES):
+            if cut is None:
+                table = footprint_table(pos, w["veh"], step, p.r_b, p.n_beams)
+            else:  # each UABS's table over its own vehicles
+                flat = footprint_table(pos.reshape(e * m, 1, 2),
+                                       ws["veh"].flatten(1, 2), step, p.r_b, p.n_beams)
+                table = [t.view(e, m, *t.shape[2:]) for t in flat]
         order = rank_order(td.get(BEAM_PRIORITY))  # [E, M]
         plan = pos[:, :, None, :].expand(e, m, self.horizon, 2).clone()  # [E, M, H, 2]
         cover = torch.zeros(e, m, self.horizon, w["veh"].shape[-1], dtype=torch.bool,
@@ -244,38 +322,72 @@ class PlannerScore(TensorDictModuleBase):
             own = cover[rows, u]  # [E, H, V]; the others cover where covers > own
             look = None if table is None else Lookup(pos[rows, u], step,
                                                     [t[rows, u] for t in table])
-            value, path = self.search(pos[rows, u], plan, others, covers > own, w, look, u)
+            oth = covers > own
+            if cut is None:
+                wu, prio_u = w, None
+            else:  # u's vehicles only
+                idx = sel[rows, u]  # [E, K]
+                wu, prio_u = one_uabs(ws, rows, u), prio[rows, u]
+                oth = oth.gather(2, idx[:, None, :].expand(-1, self.horizon, -1))
+            value, path = self.search(pos[rows, u], plan, others, oth, wu, look, u, prio_u)
             out[rows, u] = value
             if not self.coordinated:  # no plan is kept: the next UABS plans alone too
                 continue
             total = value + first[rows, u]
             best = total.masked_fill(~allowed[rows, u], -math.inf).argmax(-1)  # [E]
             plan[rows, u] = path[rows, best]
-            new = (footprint_path(plan[rows, u], w["veh"], p.r_b, p.n_beams)
+            new = (footprint_path(plan[rows, u], wu["veh"], p.r_b, p.n_beams)
                    if look is None else look.path(plan[rows, u]))
+            if cut is not None:  # back to every vehicle: u's path covers none of the rest
+                new = torch.zeros_like(own).scatter_(
+                    2, idx[:, None, :].expand(-1, self.horizon, -1),
+                    new & valid[rows, u][:, None, :])
             covers += new.int() - own.int()
             cover[rows, u] = new
             planned[rows, u] = True
         return out
 
+    def reachable(self, pos: torch.Tensor, w: dict[str, torch.Tensor],
+                  step: float) -> torch.Tensor | None:
+        """``[E, M, V]`` the vehicles each UABS's search can read: present at a step k of
+        the horizon within k lattice steps plus :func:`axis_reach` of the UABS at ``pos
+        [E, M, 2]``, per axis (a path is within k moves of it at step k), and, with a
+        :attr:`leaf`, those its values read (its ``reads``). None: every vehicle (a
+        leaf that does not say what it reads, or :attr:`cut` off)."""
+        if not self.cut or (self.leaf is not None and not hasattr(self.leaf, "reads")):
+            return None
+        p = self.env.params
+        fp = axis_reach(p.r_b, p.n_beams)
+        keep = torch.zeros(*pos.shape[:2], w["veh"].shape[-1], dtype=torch.bool,
+                           device=pos.device)
+        for k in range(w["veh"].shape[0]):  # step k + 1
+            far = (w["veh"][k][:, None] - pos[..., None]).abs().amax(2)  # [E, M, V]
+            keep |= (far <= (k + 1) * step + fp) & w["present"][k + 1][:, None]
+        if self.leaf is not None:
+            keep |= self.leaf.reads(pos, w)
+        return keep
+
     def search(self, pos: torch.Tensor, plan: torch.Tensor, others: torch.Tensor,
                oth_cover: torch.Tensor, w: dict[str, torch.Tensor],
-               look: Lookup | None = None,
-               u: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+               look: Lookup | None = None, u: torch.Tensor | None = None,
+               priority: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Beam search of one UABS, ``u [E]``, at ``pos [E, 2]`` given the plans ``plan
         [E, M, H, 2]`` of ``others [E, M]`` and the vehicles they cover, ``oth_cover
         [E, H, V]``: ``(value [E, 4], path [E, 4, H, 2])``, the best value of steps 2..H
         (plus, with :attr:`leaf`, the learned value at the path's end) and its path
         (positions at steps 1..H) per first move. A first move with no path that keeps
         d_th gets a value just below the others'. ``look``: its footprint tests, made in
-        advance (:class:`Lookup`; default: tested here)."""
+        advance (:class:`Lookup`; default: tested here). The vehicles are those of the
+        world ``w`` (all, or the ones u can reach), ``priority [E, V]`` their current
+        priorities (default: the env's, every vehicle)."""
         p, geo, h = self.env.params, self.env.math.geometry, self.horizon
         moves = self.env.math.moves
         e = pos.shape[0]
         first = pos[:, None, :] + moves  # [E, 4, 2]
         own = (footprint(first, w["veh"][0], p.r_b, p.n_beams) if look is None
                else look(first, 1))  # [E, 4, V]
-        prio = next_priority(self.env.priority[:, None, :], own | oth_cover[:, None, 0],
+        now = self.env.priority if priority is None else priority
+        prio = next_priority(now[:, None, :], own | oth_cover[:, None, 0],
                              w["present"][1], w["present"][0], w["start"][0])
         beams = {"pos": first[:, :, None, :], "prio": prio[:, :, None, :],
                  "value": torch.zeros(e, 4, 1, device=pos.device),
