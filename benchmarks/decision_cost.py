@@ -11,7 +11,12 @@ decision (the rollout's wall time per step of one window: the whole fleet's move
 amortised over the windows) and served fraction, then the median per policy and each
 policy's ratio to the first. ``--weight`` is λ of ``hybrid`` and ``leaf``;
 ``--mpc-horizon`` the mpc's and theirs; a policy written ``name:H`` (``leaf:3``) searches
-H steps instead, so a shorter search with values can be set beside a longer one without.
+H steps instead, so a shorter search with values can be set beside a longer one without;
+``name:H:all`` searches over every vehicle instead of those each UABS can reach (the
+same moves at the cost of the search before that cut, ``PlannerScore.cut``).
+
+    python benchmarks/decision_cost.py RUN scenario=city scenario.n_uabs=25 \
+        --policies mpc:5:all mpc:5 leaf:3:all leaf:3 leaf:2 --turns 2
 """
 
 from __future__ import annotations
@@ -38,18 +43,21 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_num_threads(args.threads)
     horizon = {}
     for spec in args.policies:
-        name, _, h = spec.partition(":")
+        name, _, rest = spec.partition(":")
+        h, _, every = rest.partition(":")
         if h and not (h.isdigit() and int(h) >= 1):
             ap.error(f"{spec}: the horizon after ':' must be an integer >= 1")
-        horizon[spec] = (name, int(h) if h else args.mpc_horizon)
+        if every not in ("", "all"):
+            ap.error(f"{spec}: after the horizon only ':all' (every vehicle) is known")
+        horizon[spec] = (name, int(h) if h else args.mpc_horizon, every != "all")
     ev = load_evaluation(args.run, "best", None, "test", args.overrides)
     ms: dict[str, list[float]] = {p: [] for p in args.policies}
     for turn in range(args.turns):
         order = args.policies if turn % 2 == 0 else args.policies[::-1]
         for spec in order:
-            name, h = horizon[spec]
+            name, h, cut = horizon[spec]
             rec = evaluate_policies(ev, (name,), mpc_horizon=h,
-                                    hybrid_weight=args.weight)[name][0]
+                                    hybrid_weight=args.weight, cut=cut)[name][0]
             ms[spec].append(rec["ms_per_decision"])
             print(f"turn {turn + 1} {spec}: {rec['ms_per_decision']:.2f} ms per decision, "
                   f"served {100 * rec['served_fraction']:.2f} %", flush=True)

@@ -6,6 +6,7 @@ keeps every guarantee; a fleet-frame network is refused with the fix."""
 from __future__ import annotations
 
 import json
+import re
 
 import pytest
 import torch
@@ -322,15 +323,19 @@ def test_the_cost_benchmark_sets_a_horizon_per_policy(ego_run, capsys):
     loading."""
     bench = load_benchmark("decision_cost")
     bench.main([str(ego_run / "checkpoints" / "last.pt"), "--policies", "mpc:1", "leaf:2",
-                "--weight", "1", "--turns", "1"])
+                "leaf:2:all", "--weight", "1", "--turns", "1"])
     out = capsys.readouterr().out
     ev = load_evaluation(ego_run, "last", None, "test")
     one = evaluate_policies(ev, (MPC,), mpc_horizon=1)[MPC][0]["served_fraction"]
     assert "turn 1 mpc:1: " in out and f"served {100 * one:.2f} %" in out.split("\n")[0]
     assert "leaf:2:" in out and "x mpc:1)" in out
-    with pytest.raises(SystemExit):
-        bench.main([str(ego_run), "--policies", "mpc:0"])
-    assert "the horizon after ':' must be an integer >= 1" in capsys.readouterr().err
+    served = re.findall(r"turn 1 leaf:2(?::all)?: .* served ([0-9.]+) %", out)
+    assert len(served) == 2 and served[0] == served[1]  # every vehicle: the same moves
+    for bad, says in (("mpc:0", "the horizon after ':' must be an integer >= 1"),
+                      ("mpc:2:some", "only ':all' (every vehicle) is known")):
+        with pytest.raises(SystemExit):
+            bench.main([str(ego_run), "--policies", bad])
+        assert says in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("h", [1, 3])

@@ -485,8 +485,8 @@ def test_the_cut_to_the_vehicles_in_reach_can_be_turned_off(trace_cache, monkeyp
     actions = []
     for cut in (True, False):
         calls = []
-        monkeypatch.setattr(planner, "near_sets",
-                            lambda keep, real=planner.near_sets: calls.append(1) or real(keep))
+        monkeypatch.setattr(planner, "near_sets", lambda keep, real=planner.near_sets,
+                            calls=calls: calls.append(1) or real(keep))
         score = PlannerScore(env.base_env, 3, torch.Generator().manual_seed(0),
                              predictor=ConstantVelocity())
         score.cut = cut

@@ -265,12 +265,13 @@ def default_out_dir(path: Path, overrides: list[str] | None = None) -> Path:
 
 def evaluate_policies(ev: Evaluation, policies: tuple[str, ...], seed: int = 0,
                       horizon: int = 1, mpc_horizon: int = 5, predictor: str = "cv",
-                      sees: str | float = "all", hybrid_weight: float = 1.0
-                      ) -> dict[str, tuple[dict[str, Any], Any]]:
+                      sees: str | float = "all", hybrid_weight: float = 1.0,
+                      cut: bool = True) -> dict[str, tuple[dict[str, Any], Any]]:
     """Records and rollouts of each policy on the same held-out windows and masks
     (``horizon``: the planner's; ``mpc_horizon``, ``predictor`` and ``sees``: the mpc's
     and the hybrids'; ``hybrid_weight``: the hybrids' λ, :mod:`uabs_rl.evaluation.hybrid`
-    and :mod:`uabs_rl.evaluation.leaf`).
+    and :mod:`uabs_rl.evaluation.leaf`); ``cut=False``: the mpc's and the hybrids' searches
+    over every vehicle (``PlannerScore.cut``: the same moves, the cost of before).
     The planner's, the mpc's and the hybrids' records hold their ``horizon`` and
     ``seconds``, the wall time of the rollout of all the windows side by side (the mpc's
     and the hybrids' also their ``predictor`` and ``sees``, the hybrids' their ``weight``);
@@ -284,8 +285,10 @@ def evaluate_policies(ev: Evaluation, policies: tuple[str, ...], seed: int = 0,
         if not made:
             made["predictor"] = make_predictor(predictor, sees, ev.cfg.scenario,
                                                env.base_env.device)
-        return baseline_policy(MPC, env, make_selector(env), seed, horizon=mpc_horizon,
-                               predictor=made["predictor"])
+        policy = baseline_policy(MPC, env, make_selector(env), seed, horizon=mpc_horizon,
+                                 predictor=made["predictor"])
+        policy[0].cut = cut
+        return policy
 
     for name in policies:
         if name == "learned":
