@@ -10,6 +10,7 @@ import re
 
 import pytest
 import torch
+from tensordict.nn import TensorDictSequential
 
 from tests.conftest import load_benchmark
 from tests.test_observation import AREA, EGO, FLEET, MOVES, traces
@@ -21,7 +22,7 @@ from uabs_rl.env.uabs_env import ACTION, UABSEnv
 from uabs_rl.evaluation.baselines import MPC, baseline_policy
 from uabs_rl.evaluation.leaf import LeafValue
 from uabs_rl.evaluation.load import evaluate_policies, load_evaluation
-from uabs_rl.evaluation.planner import PlannerScore, on_lattice
+from uabs_rl.evaluation.planner import PlannerScore, near_sets, on_lattice, one_uabs, sub_world
 from uabs_rl.evaluation.predict import ConstantVelocity, TrueFuture, observed
 from uabs_rl.safety.make import make_selector
 from uabs_rl.training.resume import run
@@ -344,8 +345,6 @@ def test_the_vehicles_a_value_reads_are_all_the_planner_keeps_for_it(h):
     windows keeping different numbers): the observations at the ends of a UABS's paths
     over the vehicles ``reads`` marks (cut as the planner cuts each search's world) are
     those over every vehicle, bit for bit, and the cut leaves most vehicles out."""
-    from uabs_rl.evaluation.planner import near_sets, one_uabs, sub_world
-
     env = UABSEnv(ScenarioConfig(n_uabs=6, area=AREA, episode_steps=20),
                   ChannelConfig(los_mode="los"), traces(AREA), n_envs=2, seed=3, obs=EGO)
     env.reset()
@@ -375,3 +374,38 @@ def test_the_vehicles_a_value_reads_are_all_the_planner_keeps_for_it(h):
     assert torch.equal(cut.seen[0], full.seen[0])
     assert full.seen[0][..., 1:10].sum() > 0  # some vehicles under the beams
     assert idx.shape[-1] < v // 2 and not bool(valid.all())  # most left out; one padded
+
+
+@pytest.mark.parametrize("h", [1, 3])
+def test_the_leaf_searching_the_vehicles_in_reach_scores_as_over_every_vehicle(
+        ego_run, monkeypatch, h):
+    """The mpc with leaf values (λ = 100: the values decide), each UABS's search cut to
+    the vehicles in its reach and those its values read, scores every move as the
+    search over every vehicle does, at every step, bit for bit (at H = 1 the values'
+    motion half reads the vehicles at step t), with the cut made at most steps."""
+    from tests.test_mpc import Checked
+    from uabs_rl.evaluation import planner
+
+    sizes = []
+
+    def spy(keep):
+        out = real(keep)
+        sizes.append(out is not None)
+        return out
+
+    real = planner.near_sets
+    monkeypatch.setattr(planner, "near_sets", spy)
+    ev = load_evaluation(ego_run, "last", 3, "test")
+    env = ev.evaluator.env
+    scores = []
+    for cut in (True, False):
+        score = PlannerScore(env.base_env, h, torch.Generator().manual_seed(0),
+                             predictor=ConstantVelocity())
+        score.leaf, score.cut = LeafValue(env.base_env, ev.greedy[0].module, 100.0), cut
+        scores.append(score)
+    checked = Checked(*scores)
+    rec, _ = ev.evaluator.evaluate(TensorDictSequential(checked, make_selector(env)),
+                                   ev.episode, ev.env_steps)
+    steps = env.base_env.params.episode_steps
+    assert checked.steps == steps and rec["collisions"] == rec["proximity"] == 0
+    assert len(sizes) == steps and sum(sizes) > steps // 2

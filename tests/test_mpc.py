@@ -532,4 +532,3 @@ def test_lattice_offsets_index_and_exactness_by_hand():
     assert on_lattice(torch.tensor([[9.0, 1819.5]]), 20.0, 5)
     assert not on_lattice(torch.tensor([[9.1, 1819.5]]), 20.0, 5)  # 9.1 + 20 rounds
     assert not on_lattice(torch.tensor([[0.0, 1e8]]), 20.0, 1)  # float32 steps of 8 there
-

@@ -271,7 +271,8 @@ def evaluate_policies(ev: Evaluation, policies: tuple[str, ...], seed: int = 0,
     (``horizon``: the planner's; ``mpc_horizon``, ``predictor`` and ``sees``: the mpc's
     and the hybrids'; ``hybrid_weight``: the hybrids' λ, :mod:`uabs_rl.evaluation.hybrid`
     and :mod:`uabs_rl.evaluation.leaf`); ``cut=False``: the mpc's and the hybrids' searches
-    over every vehicle (``PlannerScore.cut``: the same moves, the cost of before).
+    over every vehicle instead of those each UABS can reach (``PlannerScore.cut``: the
+    same moves at a higher cost; the planner's own search always cuts).
     The planner's, the mpc's and the hybrids' records hold their ``horizon`` and
     ``seconds``, the wall time of the rollout of all the windows side by side (the mpc's
     and the hybrids' also their ``predictor`` and ``sees``, the hybrids' their ``weight``);

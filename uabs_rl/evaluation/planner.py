@@ -276,7 +276,10 @@ class PlannerScore(TensorDictModuleBase):
         hundred of its thousands. The vehicles left out are under no footprint a path of
         that UABS can take, every sum is of whole priorities (exact in any order), and
         a plan's coverage is written back to every vehicle, so the scores are those of
-        the search over all of them, bit for bit (``tests/test_mpc.py``)."""
+        the search over all of them, bit for bit (``tests/test_mpc.py``). (The coverage
+        written back leaves out the vehicles absent at a step, which the search over
+        every vehicle marks too: ``cover`` and ``covers`` are read only where a vehicle
+        is present.)"""
         p = self.env.params
         pos, allowed = td.get(POSITION), td.get(MASK)
         e, m = pos.shape[:2]
@@ -289,19 +292,20 @@ class PlannerScore(TensorDictModuleBase):
                                 self.env.priority, p.r_b, p.n_beams)
         n_veh = w["veh"].shape[-1]
         keep = self.reachable(pos, w, float(step))
-        cut = None if keep is None else near_sets(keep)
-        if cut is None:  # every UABS over every vehicle
+        sets = None if keep is None else near_sets(keep)
+        if sets is None:  # every UABS over every vehicle
             ws, prio, k = w, None, n_veh
         else:  # UABS u over its vehicles sel[:, u] only
-            sel, valid = cut
-            if self.leaf is not None and "now" not in w:  # the leaf's step t, at H = 1
+            sel, valid = sets
+            if self.leaf is not None and self.horizon == 1 and "now" not in w:
+                # the leaf's step t (its motion half at H = 1)
                 w = {**w, "now": self.env.vehicles(0)[0]}
             ws, k = sub_world(w, sel, valid), sel.shape[-1]
             prio = self.env.priority.gather(1, sel.flatten(1)).view(sel.shape)  # [E, M, K]
         table = None
         if (on_lattice(pos, float(step), self.horizon)
                 and table_bytes(e, m, self.horizon, k) <= TABLE_BYTES):
-            if cut is None:
+            if sets is None:
                 table = footprint_table(pos, w["veh"], step, p.r_b, p.n_beams)
             else:  # each UABS's table over its own vehicles
                 flat = footprint_table(pos.reshape(e * m, 1, 2),
@@ -323,7 +327,7 @@ class PlannerScore(TensorDictModuleBase):
             look = None if table is None else Lookup(pos[rows, u], step,
                                                     [t[rows, u] for t in table])
             oth = covers > own
-            if cut is None:
+            if sets is None:
                 wu, prio_u = w, None
             else:  # u's vehicles only
                 idx = sel[rows, u]  # [E, K]
@@ -338,7 +342,9 @@ class PlannerScore(TensorDictModuleBase):
             plan[rows, u] = path[rows, best]
             new = (footprint_path(plan[rows, u], wu["veh"], p.r_b, p.n_beams)
                    if look is None else look.path(plan[rows, u]))
-            if cut is not None:  # back to every vehicle: u's path covers none of the rest
+            if sets is not None:  # back to every vehicle: u's path covers none of the rest
+                # (nor, unlike footprint_path over every vehicle, one absent at that step:
+                # every reader of cover/covers masks them by presence at the same step)
                 new = torch.zeros_like(own).scatter_(
                     2, idx[:, None, :].expand(-1, self.horizon, -1),
                     new & valid[rows, u][:, None, :])
