@@ -41,7 +41,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
-    horizon = {}
+    specs = {}  # name:H[:all] -> (name, H, whether the search is cut)
     for spec in args.policies:
         name, _, rest = spec.partition(":")
         h, _, every = rest.partition(":")
@@ -49,13 +49,13 @@ def main(argv: list[str] | None = None) -> None:
             ap.error(f"{spec}: the horizon after ':' must be an integer >= 1")
         if every not in ("", "all"):
             ap.error(f"{spec}: after the horizon only ':all' (every vehicle) is known")
-        horizon[spec] = (name, int(h) if h else args.mpc_horizon, every != "all")
+        specs[spec] = (name, int(h) if h else args.mpc_horizon, every != "all")
     ev = load_evaluation(args.run, "best", None, "test", args.overrides)
     ms: dict[str, list[float]] = {p: [] for p in args.policies}
     for turn in range(args.turns):
         order = args.policies if turn % 2 == 0 else args.policies[::-1]
         for spec in order:
-            name, h, cut = horizon[spec]
+            name, h, cut = specs[spec]
             rec = evaluate_policies(ev, (name,), mpc_horizon=h,
                                     hybrid_weight=args.weight, cut=cut)[name][0]
             ms[spec].append(rec["ms_per_decision"])

@@ -40,7 +40,7 @@ from uabs_rl.env import observe
 from uabs_rl.env.channel import beam_cells, footprint_inside
 from uabs_rl.env.service import beam_sums, move_scores
 from uabs_rl.env.uabs_env import UABSEnv
-from uabs_rl.evaluation.planner import axis_reach, on_lattice
+from uabs_rl.evaluation.planner import axis_reach, near_sets, on_lattice, within
 
 LEAF = "leaf"  # --policy leaf
 
@@ -54,12 +54,11 @@ def near_vehicles(origin: torch.Tensor, veh: torch.Tensor, present: torch.Tensor
     maps and beam sums near one UABS need a few hundred of its thousands of vehicles;
     those left out are under no footprint within reach, and every sum is of whole
     priorities, so the sums over the rest are the same numbers."""
-    keep = present & ((veh - origin[:, :, None]).abs() <= reach).all(1)  # [E, V]
-    k = int(keep.sum(-1).amax()) if keep.numel() else 0
-    if k == veh.shape[-1]:
+    sets = near_sets(present & within(veh, origin[:, None], reach)[:, 0])  # over [E, V]
+    if sets is None:
         return veh, present, priority
-    sel = torch.sort(keep.to(torch.uint8), dim=-1, descending=True, stable=True).indices[:, :k]
-    return (veh.gather(2, sel[:, None, :].expand(-1, 2, -1)), keep.gather(1, sel),
+    sel, valid = sets
+    return (veh.gather(2, sel[:, None, :].expand(-1, 2, -1)), valid,
             priority.gather(2, sel[:, None, :].expand(-1, priority.shape[1], -1)))
 
 
@@ -218,7 +217,7 @@ class LeafValue:
         near = torch.zeros(*origin.shape[:2], veh.shape[-1], dtype=torch.bool,
                            device=origin.device)
         for x in worlds:
-            near |= (x[:, None] - origin[..., None]).abs().amax(2) <= reach
+            near |= within(x, origin, reach)
         return near & present[:, None, :]
 
     # ------------------------------------------------------------------ the value

@@ -119,11 +119,17 @@ def axis_reach(r_b: float, n_beams: int) -> float:
     return beam_grid_side(n_beams) * r_b + 1.0
 
 
+def within(veh: torch.Tensor, origin: torch.Tensor, reach: float) -> torch.Tensor:
+    """``[E, M, V]`` True where vehicle ``veh [E, 2, V]`` lies within ``reach`` metres of
+    ``origin [E, M, 2]`` on each axis."""
+    return (veh[:, None] - origin[..., None]).abs().amax(2) <= reach
+
+
 def near_sets(keep: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
-    """The vehicles ``keep [E, M, V]`` marks for each UABS, as indices ``sel [E, M, K]``
-    (in ascending order, each set padded to the largest, K, with vehicles it does not
-    keep) and ``valid [E, M, K]`` (False on the padding); None when some set keeps every
-    vehicle (nothing to cut)."""
+    """The vehicles ``keep [..., V]`` marks for each UABS (``[E, M, V]``; or each window,
+    ``[E, V]``), as indices ``sel [..., K]`` (in ascending order, each set padded to the
+    largest, K, with vehicles it does not keep) and ``valid [..., K]`` (False on the
+    padding); None when some set keeps every vehicle (nothing to cut)."""
     v = keep.shape[-1]
     k = max(1, int(keep.sum(-1).amax())) if keep.numel() else v
     if k >= v:
@@ -367,8 +373,7 @@ class PlannerScore(TensorDictModuleBase):
         keep = torch.zeros(*pos.shape[:2], w["veh"].shape[-1], dtype=torch.bool,
                            device=pos.device)
         for k in range(w["veh"].shape[0]):  # step k + 1
-            far = (w["veh"][k][:, None] - pos[..., None]).abs().amax(2)  # [E, M, V]
-            keep |= (far <= (k + 1) * step + fp) & w["present"][k + 1][:, None]
+            keep |= within(w["veh"][k], pos, (k + 1) * step + fp) & w["present"][k + 1][:, None]
         if self.leaf is not None:
             keep |= self.leaf.reads(pos, w)
         return keep
