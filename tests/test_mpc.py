@@ -438,6 +438,23 @@ class Checked(TensorDictModuleBase):
         return td
 
 
+def spy_on_the_cut(monkeypatch) -> list[tuple[int, int]]:
+    """Records each call of the planner's cut to the vehicles in reach
+    (``planner.near_sets``) as ``(K, V)``: the vehicles kept per UABS (V where nothing is
+    cut) and the vehicles there are."""
+    from uabs_rl.evaluation import planner
+
+    sizes, real = [], planner.near_sets
+
+    def spy(keep, *args):
+        out = real(keep, *args)
+        sizes.append((keep.shape[-1] if out is None else out[0].shape[-1], keep.shape[-1]))
+        return out
+
+    monkeypatch.setattr(planner, "near_sets", spy)
+    return sizes
+
+
 @pytest.mark.parametrize("overrides, exact", [
     (("masking=rank",), True), (("masking=flat", "scenario.n_uabs=6"), True),
     (("masking=rank", "scenario.lattice=false"), False)])
@@ -447,17 +464,7 @@ def test_the_footprint_table_gives_the_first_searchs_scores_bit_for_bit(trace_ca
     """The fast search (tables of footprint tests where the lattice is exact, each UABS
     over the vehicles it can reach: a few of the traffic here, the cut made at most
     steps) gives the scores of the search over every vehicle, tested one by one."""
-    from uabs_rl.evaluation import planner
-
-    sizes = []
-
-    def spy(keep):
-        out = real(keep)
-        sizes.append((keep.shape[-1] if out is None else out[0].shape[-1], keep.shape[-1]))
-        return out
-
-    real = planner.near_sets
-    monkeypatch.setattr(planner, "near_sets", spy)
+    sizes = spy_on_the_cut(monkeypatch)
     cfg, env = eval_env(trace_cache, *overrides)
     base, h = env.base_env, 4
     env.set_seed(0)
@@ -479,14 +486,10 @@ def test_the_footprint_table_gives_the_first_searchs_scores_bit_for_bit(trace_ca
 
 def test_the_cut_to_the_vehicles_in_reach_can_be_turned_off(trace_cache, monkeypatch):
     """``cut = False``: every UABS searches every vehicle (no sets made), the same moves."""
-    from uabs_rl.evaluation import planner
-
     cfg, env = eval_env(trace_cache, "masking=rank")
     actions = []
     for cut in (True, False):
-        calls = []
-        monkeypatch.setattr(planner, "near_sets", lambda keep, real=planner.near_sets,
-                            calls=calls: calls.append(1) or real(keep))
+        calls = spy_on_the_cut(monkeypatch)
         score = PlannerScore(env.base_env, 3, torch.Generator().manual_seed(0),
                              predictor=ConstantVelocity())
         score.cut = cut

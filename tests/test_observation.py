@@ -188,6 +188,25 @@ def test_compiled_scores_take_every_vehicle_in_one_graph():
     assert torch.equal(compiled(*args), service.move_scores(*args))
 
 
+def test_the_near_sets_are_ascending_padded_and_declined_where_most_are_kept():
+    """One selection serves the env's scores, the planner's cut and the leaf's maps:
+    each set's vehicles in ascending order, padded to the largest set with vehicles it
+    does not keep (flagged invalid); none made where a set keeps every vehicle, or more
+    than the share ``most``."""
+    from uabs_rl.env.service import near_sets
+
+    keep = torch.tensor([[0, 1, 0, 1, 0, 0, 0, 0], [1, 0, 1, 0, 0, 0, 0, 1]], dtype=torch.bool)
+    sel, valid = near_sets(keep)
+    assert sel.tolist() == [[1, 3, 0], [0, 2, 7]]
+    assert valid.tolist() == [[True, True, False], [True, True, True]]
+    assert near_sets(keep, most=0.5) is not None  # 3 of 8
+    keep[1, 3:5] = True  # 5 of 8
+    assert near_sets(keep, most=0.5) is None and near_sets(keep) is not None
+    keep[0] = True
+    assert near_sets(keep) is None
+    assert near_sets(torch.zeros(2, 3, 0, dtype=torch.bool)) is None
+
+
 @pytest.mark.parametrize("block", [1, 37, 1 << 30])
 def test_scores_from_the_near_vehicles_equal_the_scores_over_all(monkeypatch, block):
     """Over a district (vehicles spread far beyond the footprints' reach) each UABS's

@@ -38,9 +38,9 @@ from torch import nn
 from uabs_rl.config import ConfigError
 from uabs_rl.env import observe
 from uabs_rl.env.channel import beam_cells, footprint_inside
-from uabs_rl.env.service import beam_sums, move_scores
+from uabs_rl.env.service import beam_sums, move_scores, near_sets
 from uabs_rl.env.uabs_env import UABSEnv
-from uabs_rl.evaluation.planner import axis_reach, near_sets, on_lattice, within
+from uabs_rl.evaluation.planner import axis_reach, on_lattice, within
 
 LEAF = "leaf"  # --policy leaf
 

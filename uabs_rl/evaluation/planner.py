@@ -27,7 +27,7 @@ from tensordict.nn import TensorDictModuleBase
 
 from uabs_rl.config import ConfigError
 from uabs_rl.env.channel import beam_grid_side, footprint_inside
-from uabs_rl.env.service import SCORE_BLOCK, move_scores
+from uabs_rl.env.service import SCORE_BLOCK, move_scores, near_sets
 from uabs_rl.env.uabs_env import BEAM_PRIORITY, MASK, POSITION, UABSEnv
 from uabs_rl.evaluation.predict import Predictor, TrueFuture
 from uabs_rl.safety.rules import ACTION_VALUE, rank_order
@@ -123,19 +123,6 @@ def within(veh: torch.Tensor, origin: torch.Tensor, reach: float) -> torch.Tenso
     """``[E, M, V]`` True where vehicle ``veh [E, 2, V]`` lies within ``reach`` metres of
     ``origin [E, M, 2]`` on each axis."""
     return (veh[:, None] - origin[..., None]).abs().amax(2) <= reach
-
-
-def near_sets(keep: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
-    """The vehicles ``keep [..., V]`` marks for each UABS (``[E, M, V]``; or each window,
-    ``[E, V]``), as indices ``sel [..., K]`` (in ascending order, each set padded to the
-    largest, K, with vehicles it does not keep) and ``valid [..., K]`` (False on the
-    padding); None when some set keeps every vehicle (nothing to cut)."""
-    v = keep.shape[-1]
-    k = max(1, int(keep.sum(-1).amax())) if keep.numel() else v
-    if k >= v:
-        return None
-    sel = torch.sort(keep.to(torch.uint8), dim=-1, descending=True, stable=True).indices[..., :k]
-    return sel, keep.gather(-1, sel)
 
 
 def sub_world(w: dict[str, torch.Tensor], sel: torch.Tensor,
