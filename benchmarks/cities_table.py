@@ -47,20 +47,25 @@ from pathlib import Path
 
 import numpy as np
 
+from uabs_rl.evaluation.baselines import MPC as MPC_NAME
+from uabs_rl.evaluation.baselines import PLANNER, policy_label
 from uabs_rl.evaluation.stats import paired_difference, paired_over_seeds
 
 PAIRS = [("home", 3), ("home", 6), ("grid6", 3), ("grid6", 6), ("lights60", 3),
          ("lights60", 6), ("lanes75", 3), ("lanes75", 6), ("city", 25)]
-PLANNERS = ["greedy", "oracle", *(f"mpc H={h} ({p})" for p in ("cv", "road") for h in (1, 5, 10)),
-            "planner H=5 (clairvoyant)", "planner H=10 (clairvoyant)"]
-SHORT = {"planner H=5 (clairvoyant)": "clairvoyant H=5",
-         "planner H=10 (clairvoyant)": "clairvoyant H=10"}
-MPC = "mpc H=5 (cv)"
+PLANNERS = ["greedy", "oracle",
+            *(policy_label(MPC_NAME, h, p) for p in ("cv", "road") for h in (1, 5, 10)),
+            policy_label(PLANNER, 5), policy_label(PLANNER, 10)]
+MPC = policy_label(MPC_NAME, 5, "cv")
 
 
 def short(policy: str) -> str:
-    """``mpc H=5 (cv)`` -> ``mpc H=5 cv``; the clairvoyant planner's name."""
-    return SHORT.get(policy, policy.replace(" (", " ").rstrip(")"))
+    """``mpc H=5 (cv)`` -> ``mpc H=5 cv``; ``planner H=5 (clairvoyant)`` ->
+    ``clairvoyant H=5``."""
+    name, _, rest = policy.partition(" (")
+    if name.startswith(PLANNER + " ") and rest == "clairvoyant)":
+        return "clairvoyant" + name[len(PLANNER):]
+    return policy.replace(" (", " ").rstrip(")")
 
 
 def planners(root: Path, city: str, m: int) -> dict[str, dict]:
@@ -80,7 +85,7 @@ def planners(root: Path, city: str, m: int) -> dict[str, dict]:
     for extra in sorted((root / "cities").glob(f"mpc_*_{city}_{m}/eval.json")):
         j = json.loads(extra.read_text())
         rec = j["policies"].get("mpc", {})
-        name = f"mpc H={rec.get('horizon')} ({rec.get('predictor')})"
+        name = policy_label(MPC_NAME, rec.get("horizon"), rec.get("predictor"))
         if (j["split"] != "test" or j["scenario"] != city or rec.get("sees") != "all"
                 or f"scenario.n_uabs={m}" not in j["overrides"] or name not in PLANNERS
                 or plan and len(rec["served_fractions"]) != len(
@@ -119,7 +124,7 @@ def load(root: Path, name: str, kind: str) -> dict | None:
 
 def own_mpc(hyb: dict) -> str:
     """The planners' name of the mpc ``hyb`` was flown beside (``mpc H=5 (cv)``)."""
-    return f"mpc H={hyb.get('mpc_horizon')} ({hyb.get('predictor')})"
+    return policy_label(MPC_NAME, hyb.get("mpc_horizon"), hyb.get("predictor"))
 
 
 def check_mpc(hyb: dict | None, plan: dict, city: str, m: int, name: str = MPC) -> None:

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from uabs_rl.env.service import vehicles_at
-from uabs_rl.evaluation.baselines import MPC, baseline_policy
+from uabs_rl.evaluation.baselines import MPC, baseline_policy, policy_label
 from uabs_rl.evaluation.load import load_evaluation
 from uabs_rl.evaluation.planner import footprint
 from uabs_rl.evaluation.predict import ConstantVelocity
@@ -72,8 +72,7 @@ def main() -> None:
                                  predictor=ConstantVelocity() if name == MPC else None,
                                  coordinated=coordinated)
         served, share = flown(first, policy)
-        label = (f"mpc H={args.mpc_horizon} (cv{'' if coordinated else ', uncoordinated'})"
-                 if name == MPC else name)
+        label = policy_label(name, args.mpc_horizon, "cv", coordinated=coordinated)
         rows.append((label, f"{100 * served:.2f}", f"{100 * share:.2f}"))
     learned = [flown(ev, ev.greedy) for ev in
                [first, *(load_evaluation(r, "best", None, "test") for r in runs[1:])]]

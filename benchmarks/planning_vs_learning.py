@@ -53,7 +53,7 @@ from pathlib import Path
 import torch
 
 from uabs_rl.config import compose
-from uabs_rl.evaluation.baselines import baseline_policy
+from uabs_rl.evaluation.baselines import MPC, PLANNER, baseline_policy, policy_label
 from uabs_rl.evaluation.evaluator import Evaluator, make_eval_env
 from uabs_rl.evaluation.predict import Within, make_predictor, prediction_error
 from uabs_rl.evaluation.stats import paired_difference, paired_over_seeds, t_interval
@@ -88,10 +88,7 @@ def evaluate(mode: str, m: int, horizons: list[int], ceiling: list[int], sees: l
         t0 = time.perf_counter()
         rec, _ = ev.evaluate(policy)
         sec = time.perf_counter() - t0
-        alone = "" if coordinated else ", uncoordinated"
-        label = (name if name in ("greedy", "oracle") else
-                 f"mpc H={h} ({pred}{'' if s == 'all' else f', sees {s} m'}{alone})"
-                 if name == "mpc" else f"planner H={h} (clairvoyant{alone})")
+        label = policy_label(name, h, pred, s, coordinated)
         row = {"mode": mode, "n_uabs": m, "policy": label, "horizon": h,
                "predictor": pred or "", "sees": s, "windows": rec["windows"],
                "ms_per_decision": 1000 * sec / (rec["windows"] * cfg.scenario.episode_steps),
@@ -152,7 +149,7 @@ def paired(rows: list[dict], log) -> None:
             continue
         if name != "mpc":
             continue
-        ceiling = by.get((mode, m, f"planner H={h} (clairvoyant)"))
+        ceiling = by.get((mode, m, policy_label(PLANNER, h)))
         if ceiling is not None:
             line(r, ceiling, f"{label} - planner H={h}")
         if "(road" in label:
@@ -165,8 +162,7 @@ def paired_learned(rows: list[dict], hybrid_dir: Path, log) -> None:
     """learned − every policy of ``rows`` on the same windows (module docstring)."""
     record = json.loads((hybrid_dir / "hybrid.json").read_text())
     flown = record["policies"]
-    sees = "" if record["sees"] == "all" else f", sees {record['sees']:g} m"
-    label = f"mpc H={record['mpc_horizon']} ({record['predictor']}{sees})"  # as evaluate's
+    label = policy_label(MPC, record["mpc_horizon"], record["predictor"], record["sees"])
     mpc = [r for r in rows if r["policy"] == label
            and r["served_fractions"] == flown["mpc"]["served"]
            and r["pgs"] == flown["mpc"]["pg"]]

@@ -36,6 +36,21 @@ PLANNER = "planner"  # the receding-horizon planning reference (uabs_rl.evaluati
 MPC = "mpc"  # the same planner fed by a predictor (uabs_rl.evaluation.predict): deployable
 
 
+def policy_label(name: str, horizon: int | None = None, predictor: str | None = None,
+                 sees: str | float = "all", coordinated: bool = True) -> str:
+    """A baseline's name in the benchmarks' tables and per-window files, by which they
+    are matched across runs: ``greedy``, ``mpc H=5 (cv)`` (with ``, sees 80 m`` where it
+    sees only that far, ``, uncoordinated`` where each UABS plans alone) or ``planner
+    H=5 (clairvoyant)`` (the planner over the true future)."""
+    alone = "" if coordinated else ", uncoordinated"
+    if name == MPC:
+        seen = "" if sees == "all" else f", sees {float(sees):g} m"
+        return f"mpc H={horizon} ({predictor}{seen}{alone})"
+    if name == PLANNER:
+        return f"planner H={horizon} (clairvoyant{alone})"
+    return name
+
+
 class CoverageScore(TensorDictModuleBase):
     """Scores each move by the priority under the UABS's footprints after it, with a
     tiny seeded jitter that breaks ties at random (no drift towards action 0)."""
