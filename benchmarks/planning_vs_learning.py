@@ -11,6 +11,7 @@ with Student-t 95 % CIs over the windows and the compute per decision.
     python benchmarks/planning_vs_learning.py --paired DIR --learned HYBRID_DIR
     python benchmarks/planning_vs_learning.py --scenario grid6 --fleets 3 6 --out DIR
     python benchmarks/planning_vs_learning.py --scenario city --fleets 25 --horizons 1 5
+    python benchmarks/planning_vs_learning.py --horizons 5 --beams 16 8 4 --ceiling 5
 
 ``--scenario NAME`` flies a preset of ``conf/scenario`` (a held-out grid, the city)
 instead of the default grid: its test traces, its network for ``--predictors road``.
@@ -34,6 +35,10 @@ clairvoyant planner of horizon above 1 with its UABS planning alone
 gains), paired with the coordinated one (run too if ``--predictors`` or ``--sees`` left
 it out): what coordinating the fleet's plans is worth.
 
+``--beams 16 8 4`` flies each mpc with each beam width (the paths its search keeps per
+first move; ``PlannerScore.beam``, ``uabs-eval --mpc-beam``), each narrower one paired
+with the same mpc at the default width (16).
+
 ``--paired DIR --learned HYBRID_DIR`` pairs a population's learned policy, as
 ``benchmarks/hybrid.py`` flew it on the test windows into ``HYBRID_DIR``, with every
 policy of ``DIR`` flown on the same windows under the same masks and fleet (found by
@@ -46,6 +51,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import re
 import sys
 import time
 from pathlib import Path
@@ -55,6 +61,7 @@ import torch
 from uabs_rl.config import compose
 from uabs_rl.evaluation.baselines import MPC, PLANNER, baseline_policy, policy_label
 from uabs_rl.evaluation.evaluator import Evaluator, make_eval_env
+from uabs_rl.evaluation.planner import BEAM
 from uabs_rl.evaluation.predict import Within, make_predictor, prediction_error
 from uabs_rl.evaluation.stats import paired_difference, paired_over_seeds, t_interval
 from uabs_rl.safety.make import make_selector
@@ -62,7 +69,8 @@ from uabs_rl.safety.make import make_selector
 
 def evaluate(mode: str, m: int, horizons: list[int], ceiling: list[int], sees: list[str],
              log, predictors: tuple[str, ...] = ("cv",), uncoordinated: bool = False,
-             scenario: str | None = None) -> tuple[list[dict], list[dict]]:
+             scenario: str | None = None,
+             beams: tuple[int, ...] = (BEAM,)) -> tuple[list[dict], list[dict]]:
     over = [] if scenario is None else [f"scenario={scenario}"]
     cfg = compose("config", over + [f"masking={mode}", f"scenario.n_uabs={m}"])
     env = make_eval_env(cfg, split="test")
@@ -70,26 +78,27 @@ def evaluate(mode: str, m: int, horizons: list[int], ceiling: list[int], sees: l
     if scenario is not None:
         log(f"scenario={scenario}, {mode} masks, M={m}: its test traces")
     made = {pred: make_predictor(pred, "all", cfg.scenario) for pred in predictors}
-    runs = [("greedy", 1, None, "all", True), ("oracle", 1, None, "all", True)]
-    runs += [("mpc", h, pred, s, True) for pred in predictors for s in sees for h in horizons]
-    runs += [("planner", h, "true", "all", True) for h in ceiling]
+    runs = [("greedy", 1, None, "all", True, BEAM), ("oracle", 1, None, "all", True, BEAM)]
+    runs += [("mpc", h, pred, s, True, b) for pred in predictors for s in sees
+             for h in horizons for b in beams]
+    runs += [("planner", h, "true", "all", True, BEAM) for h in ceiling]
     if uncoordinated:  # each beside its coordinated self (added if not asked for)
         for name, pred, hs in (("mpc", "cv", horizons), ("planner", "true", ceiling)):
-            together = [(name, h, pred, "all", True) for h in hs if h > 1]
+            together = [(name, h, pred, "all", True, BEAM) for h in hs if h > 1]
             runs += [r for r in together if r not in runs]
-            runs += [(name, h, pred, "all", False) for h in hs if h > 1]
+            runs += [(name, h, pred, "all", False, BEAM) for h in hs if h > 1]
     rows, greedy = [], None
-    for name, h, pred, s, coordinated in runs:
+    for name, h, pred, s, coordinated, beam in runs:
         predictor = ((made.get(pred) or make_predictor(pred, "all", cfg.scenario)
                       if s == "all" else Within(made[pred], float(s)))
                      if name == "mpc" else None)
         policy = baseline_policy(name, env, make_selector(env), 0, horizon=h,
-                                 predictor=predictor, coordinated=coordinated)
+                                 predictor=predictor, coordinated=coordinated, beam=beam)
         t0 = time.perf_counter()
         rec, _ = ev.evaluate(policy)
         sec = time.perf_counter() - t0
-        label = policy_label(name, h, pred, s, coordinated)
-        row = {"mode": mode, "n_uabs": m, "policy": label, "horizon": h,
+        label = policy_label(name, h, pred, s, coordinated, beam)
+        row = {"mode": mode, "n_uabs": m, "policy": label, "horizon": h, "beam": beam,
                "predictor": pred or "", "sees": s, "windows": rec["windows"],
                "ms_per_decision": 1000 * sec / (rec["windows"] * cfg.scenario.episode_steps),
                "collisions": rec["collisions"], "proximity": rec["proximity"],
@@ -156,6 +165,10 @@ def paired(rows: list[dict], log) -> None:
             cv = by.get((mode, m, label.replace("(road", "(cv")))
             if cv is not None:
                 line(r, cv, f"{label} - {cv['policy']}")
+        if ", beam " in label:  # against the same mpc at the default beam
+            wide = by.get((mode, m, re.sub(r", beam \d+", "", label)))
+            if wide is not None:
+                line(r, wide, f"{label} - {wide['policy']}")
 
 
 def paired_learned(rows: list[dict], hybrid_dir: Path, log) -> None:
@@ -194,6 +207,8 @@ def main() -> None:
     ap.add_argument("--sees", nargs="+", default=["all"], help="all or radii in metres")
     ap.add_argument("--predictors", nargs="+", default=["cv"], choices=("cv", "road"),
                     help="the mpc's predictors (default cv)")
+    ap.add_argument("--beams", type=int, nargs="+", default=[BEAM],
+                    help=f"the mpc's beam widths, paths kept per first move (default {BEAM})")
     ap.add_argument("--uncoordinated", action="store_true",
                     help="also each mpc (cv) and planner with its UABS planning alone")
     ap.add_argument("--scenario", metavar="NAME",
@@ -207,6 +222,8 @@ def main() -> None:
     args = ap.parse_args()
     if args.learned is not None and args.paired is None:
         ap.error("--learned goes with --paired DIR")
+    if min(args.beams) < 1:
+        ap.error(f"--beams must be >= 1, got {min(args.beams)}")
     if args.paired is not None:
         rows = json.loads((args.paired / "per_window.json").read_text())
         paired(rows, print)
@@ -225,7 +242,8 @@ def main() -> None:
     for mode in args.modes:
         for m in args.fleets:
             r, e = evaluate(mode, m, args.horizons, args.ceiling, args.sees, log,
-                            tuple(args.predictors), args.uncoordinated, args.scenario)
+                            tuple(args.predictors), args.uncoordinated, args.scenario,
+                            tuple(args.beams))
             rows += r
             errs += e
     paired(rows, log)

@@ -201,8 +201,8 @@ def test_uabs_eval_leaf_reports_its_settings(ego_run, tmp_path, capsys):
     text = capsys.readouterr().out
     rec = json.loads((out / "eval.json").read_text())["policies"]["leaf"]
     assert (rec["horizon"], rec["predictor"], rec["weight"]) == (2, "cv", 0.5)
-    assert "leaf: horizon 2, predictor cv, sees every vehicle, weight 0.5 of the learned " \
-           "leaf values; " in text
+    assert "leaf: horizon 2, beam 16, predictor cv, sees every vehicle, weight 0.5 of the " \
+           "learned leaf values; " in text
 
 
 def test_a_fleet_frame_network_is_refused_with_the_fix(trace_cache, tmp_path, capsys):
@@ -318,13 +318,22 @@ def test_the_observation_from_a_table_over_the_near_vehicles_is_the_full_ones(re
     assert want[..., 1:10].sum() > 0  # some vehicles under the beams
 
 
-def test_the_cost_benchmark_sets_a_horizon_per_policy(ego_run, capsys):
+def test_the_cost_benchmark_sets_a_horizon_per_policy(ego_run, capsys, monkeypatch):
     """``benchmarks/decision_cost.py --policies mpc:1 leaf:2``: each entry flown at its own
-    horizon (mpc:1 serves what the 1-step mpc serves), a bad horizon refused before any
-    loading."""
+    horizon (mpc:1 serves what the 1-step mpc serves), search (``:all``) and beam
+    (``:b4``), a bad horizon refused before any loading."""
     bench = load_benchmark("decision_cost")
+    asked = []
+
+    def spy(*args, **kwargs):
+        asked.append((kwargs["mpc_horizon"], kwargs["cut"], kwargs["beam"]))
+        return evaluate_policies(*args, **kwargs)
+
+    monkeypatch.setattr(bench, "evaluate_policies", spy)
     bench.main([str(ego_run / "checkpoints" / "last.pt"), "--policies", "mpc:1", "leaf:2",
-                "leaf:2:all", "--weight", "1", "--turns", "1"])
+                "leaf:2:all", "mpc:2:b4", "leaf:2:all:b3", "--weight", "1", "--turns", "1"])
+    assert asked == [(1, True, None), (2, True, None), (2, False, None), (2, True, 4),
+                     (2, False, 3)]
     out = capsys.readouterr().out
     ev = load_evaluation(ego_run, "last", None, "test")
     one = evaluate_policies(ev, (MPC,), mpc_horizon=1)[MPC][0]["served_fraction"]
@@ -333,7 +342,8 @@ def test_the_cost_benchmark_sets_a_horizon_per_policy(ego_run, capsys):
     served = re.findall(r"turn 1 leaf:2(?::all)?: .* served ([0-9.]+) %", out)
     assert len(served) == 2 and served[0] == served[1]  # every vehicle: the same moves
     for bad, says in (("mpc:0", "the horizon after ':' must be an integer >= 1"),
-                      ("mpc:2:some", "only ':all' (every vehicle) is known")):
+                      ("mpc:2:some", "only ':all' (every vehicle) and ':bB'"),
+                      ("mpc:2:b0", "(a beam of B >= 1 paths) are known")):
         with pytest.raises(SystemExit):
             bench.main([str(ego_run), "--policies", bad])
         assert says in capsys.readouterr().err

@@ -21,7 +21,7 @@ from uabs_rl.cli.evaluate import main as eval_main
 from uabs_rl.env.params import EnvParams
 from uabs_rl.env.service import move_scores
 from uabs_rl.env.uabs_env import ACTION, BEAM_PRIORITY, MASK, POSITION, UABSEnv
-from uabs_rl.evaluation.baselines import baseline_policy
+from uabs_rl.evaluation.baselines import MPC, baseline_policy
 from uabs_rl.evaluation.evaluator import Evaluator
 from uabs_rl.evaluation.planner import (
     PlannerScore,
@@ -233,18 +233,35 @@ def smoke_run(trace_cache, tmp_path_factory):
     return run_dir
 
 
+def test_the_beam_width_reaches_the_search_and_names_the_policy(trace_cache):
+    """``beam`` (``uabs-eval --mpc-beam``): the paths the mpc's and the planner's search
+    keep per first move, named in a table's label only where it is not the default."""
+    from uabs_rl.evaluation.baselines import policy_label
+    from uabs_rl.evaluation.planner import BEAM
+
+    _, env = eval_env(trace_cache, "masking=rank")
+    for name in (MPC, "planner"):
+        assert baseline_policy(name, env, make_selector(env), horizon=3)[0].beam == BEAM == 16
+        assert baseline_policy(name, env, make_selector(env), horizon=3, beam=4)[0].beam == 4
+    assert policy_label(MPC, 5, "cv", beam=4) == "mpc H=5 (cv, beam 4)"
+    assert policy_label(MPC, 5, "cv", beam=BEAM) == policy_label(MPC, 5, "cv") == "mpc H=5 (cv)"
+    assert policy_label("planner", 5, beam=8) == "planner H=5 (clairvoyant, beam 8)"
+    with pytest.raises(ValueError, match="the beam must keep at least one path, got 0"):
+        PlannerScore(env.base_env, 3, torch.Generator(), beam=0)
+
+
 def test_uabs_eval_mpc_reports_its_settings_and_compute(smoke_run, tmp_path, capsys):
     run_dir = smoke_run
     out = tmp_path / "ev"
     assert eval_main([str(run_dir), "--checkpoint", "last", "--policy", "greedy",
                       "--policy", "mpc", "--mpc-horizon", "3", "--sees", "150",
-                      "--windows", "2", "--out", str(out)]) == 0
+                      "--mpc-beam", "4", "--windows", "2", "--out", str(out)]) == 0
     text = capsys.readouterr().out
     res = json.loads((out / "eval.json").read_text())
     mpc = res["policies"]["mpc"]
-    assert (mpc["horizon"], mpc["predictor"], mpc["sees"]) == (3, "cv", 150.0)
+    assert (mpc["horizon"], mpc["beam"], mpc["predictor"], mpc["sees"]) == (3, 4, "cv", 150.0)
     assert mpc["ms_per_decision"] > 0 and res["policies"]["greedy"]["ms_per_decision"] > 0
-    assert "mpc: horizon 3, predictor cv, sees the vehicles within 150 m; " in text
+    assert "mpc: horizon 3, beam 4, predictor cv, sees the vehicles within 150 m; " in text
     assert "compute per decision (the whole fleet, ms per step" in text
     # the whole evaluation's time and this process's peak memory, as a number of MiB
     assert re.search(r"^evaluated 2 policies in \d+\.\d s, peak memory [1-9]\d* MiB$", text,
@@ -254,6 +271,9 @@ def test_uabs_eval_mpc_reports_its_settings_and_compute(smoke_run, tmp_path, cap
     assert e.value.code == 2
     assert "--sees must be 'all' or a distance >= 0 in metres, got 'near'" in \
         capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:
+        eval_main([str(run_dir), "--policy", "mpc", "--mpc-beam", "0"])
+    assert e.value.code == 2 and "--mpc-beam must be >= 1, got 0" in capsys.readouterr().err
 
 
 def test_uabs_eval_looks_at_the_cpus_every_step_unless_omp_fixes_its_threads(

@@ -37,12 +37,17 @@ MPC = "mpc"  # the same planner fed by a predictor (uabs_rl.evaluation.predict):
 
 
 def policy_label(name: str, horizon: int | None = None, predictor: str | None = None,
-                 sees: str | float = "all", coordinated: bool = True) -> str:
+                 sees: str | float = "all", coordinated: bool = True,
+                 beam: int | None = None) -> str:
     """A baseline's name in the benchmarks' tables and per-window files, by which they
     are matched across runs: ``greedy``, ``mpc H=5 (cv)`` (with ``, sees 80 m`` where it
-    sees only that far, ``, uncoordinated`` where each UABS plans alone) or ``planner
-    H=5 (clairvoyant)`` (the planner over the true future)."""
+    sees only that far, ``, uncoordinated`` where each UABS plans alone, ``, beam 4``
+    where its search keeps another number of paths than planner.BEAM) or ``planner H=5
+    (clairvoyant)`` (the planner over the true future)."""
+    from uabs_rl.evaluation.planner import BEAM
+
     alone = "" if coordinated else ", uncoordinated"
+    alone += "" if beam in (None, BEAM) else f", beam {beam}"
     if name == MPC:
         seen = "" if sees == "all" else f", sees {float(sees):g} m"
         return f"mpc H={horizon} ({predictor}{seen}{alone})"
@@ -73,14 +78,16 @@ class CoverageScore(TensorDictModuleBase):
 def baseline_policy(name: str, env: TransformedEnv, selector: MaskedActionSelector,
                     seed: int = 0, horizon: int = 1,
                     sites: torch.Tensor | None = None,
-                    predictor=None, coordinated: bool = True) -> TensorDictModuleBase:
+                    predictor=None, coordinated: bool = True,
+                    beam: int | None = None) -> TensorDictModuleBase:
     """The baseline ``name`` (one of BASELINES, HEURISTICS, PLANNER or MPC) as a policy
     for ``env`` (a transformed UABS env). ``horizon``: the planner's and the mpc's;
     ``sites [M, 2]``: the junctions heuristic's sites
     (:func:`uabs_rl.evaluation.planner.junction_sites`); ``predictor``: the mpc's
     (:mod:`uabs_rl.evaluation.predict`, default constant velocity seeing every vehicle);
-    ``coordinated=False``: the planner's and the mpc's UABS plan alone (PlannerScore)."""
-    from uabs_rl.evaluation.planner import ClusterScore, PlannerScore, SiteScore
+    ``coordinated=False``: the planner's and the mpc's UABS plan alone; ``beam``: the
+    paths their beam search keeps per first move (PlannerScore; default planner.BEAM)."""
+    from uabs_rl.evaluation.planner import BEAM, ClusterScore, PlannerScore, SiteScore
     from uabs_rl.evaluation.predict import ConstantVelocity
 
     names = (*BASELINES, *HEURISTICS, PLANNER, MPC)
@@ -95,10 +102,11 @@ def baseline_policy(name: str, env: TransformedEnv, selector: MaskedActionSelect
         selector.generator = gen
         return selector
     base = env.base_env
+    beam = BEAM if beam is None else beam
     if name == PLANNER:
-        score = PlannerScore(base, horizon, gen, coordinated=coordinated)
+        score = PlannerScore(base, horizon, gen, coordinated=coordinated, beam=beam)
     elif name == MPC:
-        score = PlannerScore(base, horizon, gen, coordinated=coordinated,
+        score = PlannerScore(base, horizon, gen, coordinated=coordinated, beam=beam,
                              predictor=predictor if predictor is not None else ConstantVelocity())
     elif name == "kmeans":
         score = ClusterScore(base, gen)

@@ -113,6 +113,9 @@ def footprint_table(pos: torch.Tensor, veh: torch.Tensor, step: torch.Tensor, r_
     return out
 
 
+BEAM = 16  # paths the beam search keeps per first move, by default (PlannerScore.beam)
+
+
 def axis_reach(r_b: float, n_beams: int) -> float:
     """Metres, per axis, beyond which no footprint of a UABS reaches a vehicle: a k x k
     beam grid of pitch 2 r_b spans k·r_b from its centre; 1 m more, as a margin."""
@@ -203,7 +206,7 @@ class PlannerScore(TensorDictModuleBase):
     """
 
     def __init__(self, env: UABSEnv, horizon: int, generator: torch.Generator,
-                 beam: int = 16, rounds: int = 2, predictor: Predictor | None = None,
+                 beam: int = BEAM, rounds: int = 2, predictor: Predictor | None = None,
                  coordinated: bool = True):
         super().__init__()
         if horizon < 1:
@@ -212,6 +215,8 @@ class PlannerScore(TensorDictModuleBase):
             raise ConfigError(f"the planning horizon {horizon} is longer than an episode "
                               f"({env.params.episode_steps} steps): choose at most "
                               f"{env.params.episode_steps}.")
+        if beam < 1:
+            raise ValueError(f"the beam must keep at least one path, got {beam}")
         self.env, self.horizon, self.generator = env, horizon, generator
         self.beam, self.rounds = beam, rounds if coordinated else 1
         self.coordinated = coordinated
