@@ -39,11 +39,12 @@ it out): what coordinating the fleet's plans is worth.
 first move; ``PlannerScore.beam``, ``uabs-eval --mpc-beam``), each narrower one paired
 with the same mpc at the default width (16).
 
-``--paired DIR --learned HYBRID_DIR`` pairs a population's learned policy, as
-``benchmarks/hybrid.py`` flew it on the test windows into ``HYBRID_DIR``, with every
-policy of ``DIR`` flown on the same windows under the same masks and fleet (found by
-the mpc's per-window values, which must be equal in both): learned − policy, each
-member's mean paired difference over the windows, Student-t over the members.
+``--paired DIR --learned HYBRID_DIR`` pairs a population's learned policy, and the
+hybrid or leaf at its λ*, as ``benchmarks/hybrid.py`` flew them on the test windows into
+``HYBRID_DIR``, with every policy of ``DIR`` flown on the same windows under the same
+masks and fleet (found by the mpc's per-window values, which must be equal in both):
+learned − policy and hybrid − policy, each member's mean paired difference over the
+windows, Student-t over the members.
 """
 
 from __future__ import annotations
@@ -183,18 +184,23 @@ def paired_learned(rows: list[dict], hybrid_dir: Path, log) -> None:
         sys.exit(f"{hybrid_dir}'s mpc is none of this folder's {label} rows: other "
                  f"windows, masks or fleet; nothing to pair")
     mode, m = mpc[0]["mode"], mpc[0]["n_uabs"]
-    learned = flown["learned"]
-    for r in rows:
-        if (r["mode"], r["n_uabs"]) != (mode, m):
+    # the learned policy, then the hybrid (Q at the first move) or leaf it flew at λ*
+    hyb = (f"{record['hybrid']} H={record.get('hybrid_horizon', record['mpc_horizon'])} "
+           f"λ={record['best_weight']:g}")
+    for what, mine in (("learned", flown["learned"]), (hyb, flown.get("hybrid"))):
+        if mine is None:
             continue
-        parts = []
-        for metric, key, mine in (("served", "served_fractions", "served"),
-                                  ("P_g", "pgs", "pg")):
-            d = paired_over_seeds(learned[mine], [r[key]] * len(learned[mine]))
-            parts.append(f"{metric} {100 * d['diff']:+.2f} [{100 * d['ci_low']:+.2f}, "
-                         f"{100 * d['ci_high']:+.2f}]")
-        log(f"{mode} M={m} learned ({len(learned['served'])} members) - {r['policy']}: "
-            f"{', '.join(parts)} points")
+        for r in rows:
+            if (r["mode"], r["n_uabs"]) != (mode, m):
+                continue
+            parts = []
+            for metric, key, col in (("served", "served_fractions", "served"),
+                                     ("P_g", "pgs", "pg")):
+                d = paired_over_seeds(mine[col], [r[key]] * len(mine[col]))
+                parts.append(f"{metric} {100 * d['diff']:+.2f} [{100 * d['ci_low']:+.2f}, "
+                             f"{100 * d['ci_high']:+.2f}]")
+            log(f"{mode} M={m} {what} ({len(mine['served'])} members) - {r['policy']}: "
+                f"{', '.join(parts)} points")
 
 
 def main() -> None:

@@ -193,3 +193,35 @@ def test_an_mpc_flown_by_uabs_eval_joins_the_planners_of_its_city(tmp_path, monk
     (folder / "eval.json").write_text(json.dumps(spec))
     with pytest.raises(SystemExit, match="mpc_h10_grid6_3 is not an mpc on grid6's test"):
         bench.main()
+
+
+def test_the_paired_script_pairs_the_learned_policy_and_the_leaf_with_each_planner(
+        tmp_path):
+    """``planning_vs_learning.py --paired DIR --learned HYBRID_DIR``: learned − each
+    policy of DIR and the hybrid (here a 2-step leaf at λ* = 1) − each, the members'
+    mean paired differences over the windows; a folder whose mpc is another refused."""
+    bench = load_benchmark("planning_vs_learning")
+    mpc, narrow = [0.30, 0.40], [0.20, 0.40]
+    rows = [{"mode": "rank", "n_uabs": 3, "policy": "mpc H=5 (cv)",
+             "served_fractions": mpc, "pgs": mpc},
+            {"mode": "rank", "n_uabs": 3, "policy": "mpc H=5 (cv, beam 4)",
+             "served_fractions": narrow, "pgs": narrow}]
+    folder = tmp_path / "leaf_h2"
+    folder.mkdir()
+    flown = [[0.35, 0.45], [0.36, 0.46]]
+    (folder / "hybrid.json").write_text(json.dumps({
+        "hybrid": "leaf", "hybrid_horizon": 2, "best_weight": 1.0, "mpc_horizon": 5,
+        "predictor": "cv", "sees": "all", "policies": {
+            "mpc": {"served": mpc, "pg": mpc},
+            "learned": {"served": [mpc, mpc], "pg": [mpc, mpc]},
+            "hybrid": {"served": flown, "pg": flown}}}))
+    lines = []
+    bench.paired_learned(rows, folder, lines.append)
+    assert len(lines) == 4
+    assert lines[0].startswith("rank M=3 learned (2 members) - mpc H=5 (cv): served +0.00")
+    # (0.15 + 0.05) / 2 and (0.16 + 0.06) / 2 above the narrower mpc: 10.5 points
+    assert lines[3].startswith("rank M=3 leaf H=2 λ=1 (2 members) - mpc H=5 (cv, beam 4): "
+                               "served +10.50 [")
+    rows[0]["served_fractions"] = narrow
+    with pytest.raises(SystemExit, match="mpc is none of this folder's"):
+        bench.paired_learned(rows, folder, lines.append)
