@@ -37,7 +37,7 @@ it out): what coordinating the fleet's plans is worth.
 
 ``--beams 16 8 4`` flies each mpc with each beam width (the paths its search keeps per
 first move; ``PlannerScore.beam``, ``uabs-eval --mpc-beam``), each narrower one paired
-with the same mpc at the default width (16).
+with the same mpc at the default width (16, flown too if not asked for).
 
 ``--paired DIR --learned HYBRID_DIR`` pairs a population's learned policy, and the
 hybrid or leaf at its λ*, as ``benchmarks/hybrid.py`` flew them on the test windows into
@@ -185,7 +185,8 @@ def paired_learned(rows: list[dict], hybrid_dir: Path, log) -> None:
                  f"windows, masks or fleet; nothing to pair")
     mode, m = mpc[0]["mode"], mpc[0]["n_uabs"]
     # the learned policy, then the hybrid (Q at the first move) or leaf it flew at λ*
-    hyb = (f"{record['hybrid']} H={record.get('hybrid_horizon', record['mpc_horizon'])} "
+    hyb = (f"{record.get('hybrid', 'hybrid')} "  # files before --leaf have no such key
+           f"H={record.get('hybrid_horizon', record['mpc_horizon'])} "
            f"λ={record['best_weight']:g}")
     for what, mine in (("learned", flown["learned"]), (hyb, flown.get("hybrid"))):
         if mine is None:
@@ -230,6 +231,9 @@ def main() -> None:
         ap.error("--learned goes with --paired DIR")
     if min(args.beams) < 1:
         ap.error(f"--beams must be >= 1, got {min(args.beams)}")
+    # each width once, the default among them: the narrower ones are paired with it
+    args.beams = list(dict.fromkeys([BEAM, *args.beams] if BEAM not in args.beams
+                                    else args.beams))
     if args.paired is not None:
         rows = json.loads((args.paired / "per_window.json").read_text())
         paired(rows, print)

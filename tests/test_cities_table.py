@@ -222,6 +222,13 @@ def test_the_paired_script_pairs_the_learned_policy_and_the_leaf_with_each_plann
     # (0.15 + 0.05) / 2 and (0.16 + 0.06) / 2 above the narrower mpc: 10.5 points
     assert lines[3].startswith("rank M=3 leaf H=2 λ=1 (2 members) - mpc H=5 (cv, beam 4): "
                                "served +10.50 [")
+    # a folder written before --leaf (no "hybrid" key): its hybrid named so
+    record = json.loads((folder / "hybrid.json").read_text())
+    del record["hybrid"], record["hybrid_horizon"]
+    (folder / "hybrid.json").write_text(json.dumps(record))
+    lines = []
+    bench.paired_learned(rows, folder, lines.append)
+    assert lines[2].startswith("rank M=3 hybrid H=5 λ=1 (2 members) - mpc H=5 (cv): ")
     rows[0]["served_fractions"] = narrow
     with pytest.raises(SystemExit, match="mpc is none of this folder's"):
         bench.paired_learned(rows, folder, lines.append)
