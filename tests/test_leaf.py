@@ -386,6 +386,41 @@ def test_the_vehicles_a_value_reads_are_all_the_planner_keeps_for_it(h):
     assert idx.shape[-1] < v // 2 and not bool(valid.all())  # most left out; one padded
 
 
+def test_the_tables_kept_through_a_planning_step_score_as_tables_made_anew(ego_run):
+    """Inside a planning step each UABS's local-map tables are made once and read again
+    in the second round (the same origin, the same world): every move scored as by a
+    leaf that makes every table anew, at every step, bit for bit, with half the tables
+    made; outside a step nothing is kept."""
+    from tests.test_mpc import Checked
+
+    made = []
+
+    class Counted(LeafValue):
+        def map_table(self, *args):
+            made.append(self.tag)
+            return super().map_table(*args)
+
+    class Anew(Counted):
+        def map_scores(self, *args, key=None):
+            return super().map_scores(*args)
+
+    ev = load_evaluation(ego_run, "last", 3, "test")
+    env = ev.evaluator.env
+    scores = []
+    for kind, tag in ((Counted, "kept"), (Anew, "anew")):
+        score = PlannerScore(env.base_env, 3, torch.Generator().manual_seed(0),
+                             predictor=ConstantVelocity())
+        score.leaf = kind(env.base_env, ev.greedy[0].module, 100.0)
+        score.leaf.tag = tag
+        scores.append(score)
+    checked = Checked(*scores)
+    rec, _ = ev.evaluator.evaluate(TensorDictSequential(checked, make_selector(env)),
+                                   ev.episode, ev.env_steps)
+    assert checked.steps == env.base_env.params.episode_steps and rec["collisions"] == 0
+    assert 2 * made.count("kept") == made.count("anew") > 0
+    assert scores[0].leaf.tables is None
+
+
 @pytest.mark.parametrize("h", [1, 3])
 def test_the_leaf_searching_the_vehicles_in_reach_scores_as_over_every_vehicle(
         ego_run, monkeypatch, h):

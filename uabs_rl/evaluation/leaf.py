@@ -58,8 +58,13 @@ def near_vehicles(origin: torch.Tensor, veh: torch.Tensor, present: torch.Tensor
     if sets is None:
         return veh, present, priority
     sel, valid = sets
-    return (veh.gather(2, sel[:, None, :].expand(-1, 2, -1)), valid,
-            priority.gather(2, sel[:, None, :].expand(-1, priority.shape[1], -1)))
+    return veh.gather(2, sel[:, None, :].expand(-1, 2, -1)), valid, cut_priority(priority, sel)
+
+
+def cut_priority(priority: torch.Tensor, sel: torch.Tensor | None) -> torch.Tensor:
+    """``priority [E, N, V]`` at the vehicles ``sel [E, K]`` (all where None)."""
+    return priority if sel is None else priority.gather(
+        2, sel[:, None, :].expand(-1, priority.shape[1], -1))
 
 
 class LeafValue:
@@ -77,13 +82,17 @@ class LeafValue:
         if not weight >= 0:
             raise ValueError(f"the leaf values' weight must be >= 0, got {weight}")
         self.env, self.qnet, self.weight = env, qnet, float(weight)
+        # the local maps' tables of footprint tests, per UABS and world, kept through one
+        # planning step (its rounds search each UABS from the same position in the same
+        # world): None outside a step (PlannerScore.future opens and closes it)
+        self.tables: dict | None = None
 
     # ------------------------------------------------------------------ the observation
     def observation(self, pos: torch.Tensor, u: torch.Tensor, fleet: torch.Tensor,
                     t: torch.Tensor, veh: torch.Tensor, present: torch.Tensor,
                     prev: torch.Tensor, prev_present: torch.Tensor,
                     priority: torch.Tensor, origin: torch.Tensor | None = None,
-                    reach: int = 0) -> torch.Tensor:
+                    reach: int = 0, key: tuple | None = None) -> torch.Tensor:
         """[E, N, obs_dim]: the egocentric observation of UABS ``u [E]`` at ``pos [E, N,
         2]`` (N candidate positions), the others at ``fleet [E, M, 2]`` (u's own entry
         is replaced), at step ``t [E]``, with the vehicles at ``veh [E, 2, V]`` /
@@ -92,7 +101,7 @@ class LeafValue:
         path. With ``origin [E, 2]``, every candidate within ``reach`` lattice steps of
         it (per axis) and every such point exact (:func:`on_lattice`), the local maps
         are read from one table of footprint tests (:meth:`map_scores`: the same
-        numbers)."""
+        numbers), kept under ``key`` while :attr:`tables` is open."""
         env, p = self.env, self.env.params
         e, n = pos.shape[:2]
         radius = reach + p.map_radius
@@ -119,8 +128,9 @@ class LeafValue:
             moving = (present & prev_present)[:, None, :]
             worlds.append(torch.where(moving, 2 * veh - prev, veh))
         if table:  # map_scores keeps the vehicles near the table itself, world by world
-            look = torch.cat([self.map_scores(pos, origin, radius, x, present, priority)
-                              for x in worlds], dim=-1)
+            look = torch.cat([self.map_scores(pos, origin, radius, x, present, priority,
+                                              key=None if key is None else (key, i))
+                              for i, x in enumerate(worlds)], dim=-1)
         else:
             cand = flat[:, :, None, :] + env.math.look_offsets  # [E·N, 1, C, 2]
             look = torch.cat([move_scores(cand, *per_candidate(x, present, priority),
@@ -142,25 +152,58 @@ class LeafValue:
 
     def map_scores(self, pos: torch.Tensor, origin: torch.Tensor, radius: int,
                    veh: torch.Tensor, present: torch.Tensor,
-                   priority: torch.Tensor) -> torch.Tensor:
+                   priority: torch.Tensor, key: tuple | None = None) -> torch.Tensor:
         """``[E, N, C]`` the local maps of candidates ``pos [E, N, 2]`` (what
         :func:`~uabs_rl.env.service.move_scores` gives at ``pos + look_offsets``), from
         one table of footprint tests for the lattice points within ``radius`` steps of
-        ``origin [E, 2]`` (per axis): each vehicle is tested against the points near it
-        only (those within a footprint's reach, k·r_b for a k x k beam grid, on each
-        axis; none farther can cover it), the table's sums weighted by each candidate's
-        priorities in one product, and each map point read from there. Every point is a
-        lattice value of ``origin`` (the caller checks :func:`on_lattice`), tested as
-        move_scores tests it, and every sum is of whole priorities, so the numbers are
-        move_scores' own."""
+        ``origin [E, 2]`` (:meth:`map_table`), the table's sums weighted by each
+        candidate's priorities in one product, and each map point read from there. Every
+        point is a lattice value of ``origin`` (the caller checks :func:`on_lattice`),
+        tested as move_scores tests it, and every sum is of whole priorities, so the
+        numbers are move_scores' own. With ``key`` (a UABS's and a world's) inside a
+        planning step (:attr:`tables` open), the table is made once and read again by
+        the next call with that key: the second round's search of that UABS, from the
+        same origin in the same world."""
         p, env = self.env.params, self.env
-        veh, present, priority = near_vehicles(origin, veh, present, priority,
-                                               radius * p.step_m + self.footprint_reach())
+        kept = None if key is None or self.tables is None else self.tables.get(key)
+        if kept is None:
+            kept = self.map_table(origin, radius, veh, present)
+            if key is not None and self.tables is not None:
+                self.tables[key] = kept
+        sel, present, table = kept
+        side = 2 * radius + 1
+        weight = torch.where(present[:, None, :], cut_priority(priority, sel).clamp_min(1.0),
+                             0.0)  # [E, N, V]
+        sums = weight @ table[..., :-1]  # [E, N, side²]
+        cell = torch.round((pos[:, :, None, :] - origin[:, None, None, :]
+                            + env.math.look_offsets) / p.step_m).long() + radius  # [E, N, C, 2]
+        if cell.numel() and not bool(((cell >= 0) & (cell < side)).all()):
+            raise ValueError(f"a candidate lies more than {radius - p.map_radius} lattice "
+                             f"steps from the table's origin")
+        return sums.gather(2, cell[..., 1] * side + cell[..., 0])
+
+    def map_table(self, origin: torch.Tensor, radius: int, veh: torch.Tensor,
+                  present: torch.Tensor) -> tuple[torch.Tensor | None, torch.Tensor,
+                                                  torch.Tensor]:
+        """The footprint tests of :meth:`map_scores`: ``(sel, present, table)``, the
+        vehicles within reach of the lattice points within ``radius`` steps of ``origin
+        [E, 2]`` (:func:`near_sets` of the present ones: indices ``sel [E, K]``, None
+        for all), their presence ``[E, K]`` and ``table [E, K, side² + 1]``, 1 where a
+        footprint of that point covers the vehicle (the last column: off the table).
+        Each vehicle is tested against the points near it only (within a footprint's
+        reach, k·r_b for a k x k beam grid, on each axis; none farther can cover it)."""
+        p = self.env.params
+        reach = radius * p.step_m + self.footprint_reach()
+        sets = near_sets(present & within(veh, origin[:, None], reach)[:, 0])  # over [E, V]
+        sel = None
+        if sets is not None:
+            sel, present = sets
+            veh = veh.gather(2, sel[:, None, :].expand(-1, 2, -1))
         near = int(self.footprint_reach() / p.step_m + 0.5)
         e, v = veh.shape[0], veh.shape[-1]
         side = 2 * radius + 1
         # the lattice columns and rows (steps from origin) near each vehicle
-        k = torch.arange(-near, near + 1, device=pos.device, dtype=pos.dtype)
+        k = torch.arange(-near, near + 1, device=origin.device, dtype=origin.dtype)
         col = torch.round((veh[:, 0, :] - origin[:, 0:1]) / p.step_m)[..., None] + k  # [E, V, K]
         row = torch.round((veh[:, 1, :] - origin[:, 1:2]) / p.step_m)[..., None] + k
         dx = veh[:, 0, :, None] - (origin[:, 0, None, None] + col * p.step_m)  # [E, V, K]
@@ -171,17 +214,10 @@ class LeafValue:
         ok = ((row >= -radius) & (row <= radius))[..., :, None] & (
             (col >= -radius) & (col <= radius))[..., None, :]
         idx = ((row + radius)[..., :, None] * side + (col + radius)[..., None, :]).long()
-        table = torch.zeros(e, v, side * side + 1, device=pos.device)  # + 1: off the table
+        table = torch.zeros(e, v, side * side + 1, device=origin.device)
         table.scatter_(2, idx.masked_fill(~ok, side * side).flatten(2),
                        (inside & ok).to(table.dtype).flatten(2))
-        weight = torch.where(present[:, None, :], priority.clamp_min(1.0), 0.0)  # [E, N, V]
-        sums = weight @ table[..., :-1]  # [E, N, side²]
-        cell = torch.round((pos[:, :, None, :] - origin[:, None, None, :]
-                            + env.math.look_offsets) / p.step_m).long() + radius  # [E, N, C, 2]
-        if cell.numel() and not bool(((cell >= 0) & (cell < side)).all()):
-            raise ValueError(f"a candidate lies more than {radius - p.map_radius} lattice "
-                             f"steps from the table's origin")
-        return sums.gather(2, cell[..., 1] * side + cell[..., 0])
+        return sel, present, table
 
     def footprint_reach(self) -> float:
         """Metres (per axis) beyond which no footprint reaches a vehicle
@@ -237,7 +273,8 @@ class LeafValue:
         veh, present, prev, prev_present = self.horizon_worlds(w)
         pos = leaf.reshape(e, a * b, 2)
         obs = self.observation(pos, u, fleet, t, veh, present, prev, prev_present,
-                               priority.reshape(e, a * b, -1), origin, h)
+                               priority.reshape(e, a * b, -1), origin, h,
+                               key=tuple(u.tolist()))  # u's tables, kept for its next round
         q = self.qnet(obs)  # [E, A·B, 4]
         legal = env.math.geometry.boundary_mask(pos, env.state.get("bounds"))
         value = q.masked_fill(~legal, -torch.inf).amax(-1).clamp_min(-1e30)

@@ -317,38 +317,45 @@ class PlannerScore(TensorDictModuleBase):
         # [E, H, V] how many plans cover each vehicle (a UABS not planned yet covers none)
         planned = torch.zeros(e, m, dtype=torch.bool, device=pos.device)
         out = torch.zeros(e, m, 4, device=pos.device)
-        for r in range(self.rounds * m):
-            u = order[:, r % m]
-            others = planned.clone()
-            others[rows, u] = False
-            own = cover[rows, u]  # [E, H, V]; the others cover where covers > own
-            look = None if table is None else Lookup(pos[rows, u], step,
-                                                    [t[rows, u] for t in table])
-            oth = covers > own
-            if sets is None:
-                wu, prio_u = w, None
-            else:  # u's vehicles only
-                idx = sel[rows, u]  # [E, K]
-                wu, prio_u = one_uabs(ws, rows, u), prio[rows, u]
-                oth = oth.gather(2, idx[:, None, :].expand(-1, self.horizon, -1))
-            value, path = self.search(pos[rows, u], plan, others, oth, wu, look, u, prio_u)
-            out[rows, u] = value
-            if not self.coordinated:  # no plan is kept: the next UABS plans alone too
-                continue
-            total = value + first[rows, u]
-            best = total.masked_fill(~allowed[rows, u], -math.inf).argmax(-1)  # [E]
-            plan[rows, u] = path[rows, best]
-            new = (footprint_path(plan[rows, u], wu["veh"], p.r_b, p.n_beams)
-                   if look is None else look.path(plan[rows, u]))
-            if sets is not None:  # back to every vehicle: u's path covers none of the rest
-                # (nor, unlike footprint_path over every vehicle, one absent at that step:
-                # every reader of cover/covers masks them by presence at the same step)
-                new = torch.zeros_like(own).scatter_(
-                    2, idx[:, None, :].expand(-1, self.horizon, -1),
-                    new & valid[rows, u][:, None, :])
-            covers += new.int() - own.int()
-            cover[rows, u] = new
-            planned[rows, u] = True
+        keeps = self.leaf is not None and hasattr(self.leaf, "tables")
+        if keeps:  # the leaf's tables of this step, per UABS: each is searched every round
+            self.leaf.tables = {}
+        try:
+            for r in range(self.rounds * m):
+                u = order[:, r % m]
+                others = planned.clone()
+                others[rows, u] = False
+                own = cover[rows, u]  # [E, H, V]; the others cover where covers > own
+                look = None if table is None else Lookup(pos[rows, u], step,
+                                                        [t[rows, u] for t in table])
+                oth = covers > own
+                if sets is None:
+                    wu, prio_u = w, None
+                else:  # u's vehicles only
+                    idx = sel[rows, u]  # [E, K]
+                    wu, prio_u = one_uabs(ws, rows, u), prio[rows, u]
+                    oth = oth.gather(2, idx[:, None, :].expand(-1, self.horizon, -1))
+                value, path = self.search(pos[rows, u], plan, others, oth, wu, look, u, prio_u)
+                out[rows, u] = value
+                if not self.coordinated:  # no plan is kept: the next UABS plans alone too
+                    continue
+                total = value + first[rows, u]
+                best = total.masked_fill(~allowed[rows, u], -math.inf).argmax(-1)  # [E]
+                plan[rows, u] = path[rows, best]
+                new = (footprint_path(plan[rows, u], wu["veh"], p.r_b, p.n_beams)
+                       if look is None else look.path(plan[rows, u]))
+                if sets is not None:  # back to every vehicle: u's path covers none of the rest
+                    # (nor, unlike footprint_path over every vehicle, one absent at that step:
+                    # every reader of cover/covers masks them by presence at the same step)
+                    new = torch.zeros_like(own).scatter_(
+                        2, idx[:, None, :].expand(-1, self.horizon, -1),
+                        new & valid[rows, u][:, None, :])
+                covers += new.int() - own.int()
+                cover[rows, u] = new
+                planned[rows, u] = True
+        finally:
+            if keeps:
+                self.leaf.tables = None
         return out
 
     def reachable(self, pos: torch.Tensor, w: dict[str, torch.Tensor],
