@@ -129,7 +129,7 @@ class LeafValue:
             worlds.append(torch.where(moving, 2 * veh - prev, veh))
         if table:  # map_scores keeps the vehicles near the table itself, world by world
             look = torch.cat([self.map_scores(pos, origin, radius, x, present, priority,
-                                              key=None if key is None else (key, i))
+                                              key=None if key is None else (key, i, radius))
                               for i, x in enumerate(worlds)], dim=-1)
         else:
             cand = flat[:, :, None, :] + env.math.look_offsets  # [E·N, 1, C, 2]
