@@ -46,19 +46,19 @@ LEAF = "leaf"  # --policy leaf
 
 
 def near_vehicles(origin: torch.Tensor, veh: torch.Tensor, present: torch.Tensor,
-                  priority: torch.Tensor, reach: float
-                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                  reach: float) -> tuple[torch.Tensor | None, torch.Tensor, torch.Tensor]:
     """The present vehicles within ``reach`` metres of ``origin [E, 2]`` on each axis:
-    ``veh [E, 2, V]``, ``present [E, V]`` and ``priority [E, N, V]`` cut to them, each
-    window's padded to the most any window keeps (absent there). On a city the local
-    maps and beam sums near one UABS need a few hundred of its thousands of vehicles;
-    those left out are under no footprint within reach, and every sum is of whole
-    priorities, so the sums over the rest are the same numbers."""
+    ``(sel, veh, present)``, their indices ``sel [E, K]`` (None: every vehicle, nothing
+    cut) and ``veh [E, 2, V]``, ``present [E, V]`` cut to them, each window's padded to
+    the most any window keeps (absent there; :func:`cut_priority` cuts the priorities
+    alike). On a city the local maps and beam sums near one UABS need a few hundred of
+    its thousands of vehicles; those left out are under no footprint within reach, and
+    every sum is of whole priorities, so the sums over the rest are the same numbers."""
     sets = near_sets(present & within(veh, origin[:, None], reach)[:, 0])  # over [E, V]
     if sets is None:
-        return veh, present, priority
+        return None, veh, present
     sel, valid = sets
-    return veh.gather(2, sel[:, None, :].expand(-1, 2, -1)), valid, cut_priority(priority, sel)
+    return sel, veh.gather(2, sel[:, None, :].expand(-1, 2, -1)), valid
 
 
 def cut_priority(priority: torch.Tensor, sel: torch.Tensor | None) -> torch.Tensor:
@@ -116,10 +116,10 @@ class LeafValue:
 
         # beam sums, as the env's links compute them for one UABS at each candidate (from
         # a table: over the vehicles a footprint within reach of its origin can cover)
-        vehs, pres, prio = per_candidate(*(
-            near_vehicles(origin, veh, present, priority,
-                          reach * p.step_m + self.footprint_reach())
-            if table else (veh, present, priority)))
+        sel, near, pres = (near_vehicles(origin, veh, present,
+                                         reach * p.step_m + self.footprint_reach())
+                           if table else (None, veh, present))
+        vehs, pres, prio = per_candidate(near, pres, cut_priority(priority, sel))
         gx, gy = env.math.links.grid_coordinates(flat, vehs)
         inside, beam = beam_cells(gx, gy, env.math.links.beam_k)
         b = beam_sums(inside & pres[:, None, :], beam, prio, p.n_beams)  # [E·N, 1, B]
@@ -187,18 +187,14 @@ class LeafValue:
                                                   torch.Tensor]:
         """The footprint tests of :meth:`map_scores`: ``(sel, present, table)``, the
         vehicles within reach of the lattice points within ``radius`` steps of ``origin
-        [E, 2]`` (:func:`near_sets` of the present ones: indices ``sel [E, K]``, None
+        [E, 2]`` (:func:`near_vehicles`, the present ones: indices ``sel [E, K]``, None
         for all), their presence ``[E, K]`` and ``table [E, K, side² + 1]``, 1 where a
         footprint of that point covers the vehicle (the last column: off the table).
         Each vehicle is tested against the points near it only (within a footprint's
         reach, k·r_b for a k x k beam grid, on each axis; none farther can cover it)."""
         p = self.env.params
-        reach = radius * p.step_m + self.footprint_reach()
-        sets = near_sets(present & within(veh, origin[:, None], reach)[:, 0])  # over [E, V]
-        sel = None
-        if sets is not None:
-            sel, present = sets
-            veh = veh.gather(2, sel[:, None, :].expand(-1, 2, -1))
+        sel, veh, present = near_vehicles(origin, veh, present,
+                                          radius * p.step_m + self.footprint_reach())
         near = int(self.footprint_reach() / p.step_m + 0.5)
         e, v = veh.shape[0], veh.shape[-1]
         side = 2 * radius + 1
