@@ -29,8 +29,11 @@ validation sweep, λ*) and ``log.txt`` (what it printed) into ``--out``. ``--mpc
 ``--predictor`` and ``--sees`` set the planner of both the mpc and the hybrid
 (``uabs-eval``'s options); ``--hybrid-horizon H`` lets the hybrid search H steps while
 the mpc beside it keeps ``--mpc-horizon`` (a shorter search with learned values against
-the mpc: its λ = 0 on validation is the mpc at H); extra ``key=value`` overrides evaluate
-under other world settings, as ``uabs-eval`` takes them.
+the mpc: its λ = 0 on validation is the mpc at H); ``--mpc-beam B`` sets the paths both
+searches keep per first move (``uabs-eval --mpc-beam``, default planner.BEAM) and
+``--hybrid-beam B`` the hybrid's alone (a narrower mpc beside the default hybrid, say);
+extra ``key=value`` overrides evaluate under other world settings, as ``uabs-eval`` takes
+them.
 """
 
 from __future__ import annotations
@@ -47,6 +50,7 @@ from uabs_rl.config import ConfigError
 from uabs_rl.evaluation.hybrid import HYBRID
 from uabs_rl.evaluation.leaf import LEAF
 from uabs_rl.evaluation.load import Evaluation, evaluate_policies, load_evaluation
+from uabs_rl.evaluation.planner import BEAM
 from uabs_rl.evaluation.predict import parse_sees
 from uabs_rl.evaluation.stats import paired_over_seeds, t_interval, welch_difference
 from uabs_rl.runs.layout import RunFolder
@@ -59,17 +63,19 @@ LOADED: dict[tuple, Evaluation] = {}  # each member's best.pt, env and traces, p
 
 def flown(run: Path, policies: tuple[str, ...], split: str, windows: int | None,
           args: argparse.Namespace, weight: float = 0.0,
-          horizon: int | None = None) -> dict[str, dict]:
+          horizon: int | None = None, beam: int | None = None) -> dict[str, dict]:
     """Each policy's record on ``split`` (every window, or ``windows``), the planners'
-    search ``horizon`` steps long (default ``--mpc-horizon``); a member and split are
-    loaded once, for every λ."""
+    search ``horizon`` steps long keeping ``beam`` paths per first move (defaults
+    ``--mpc-horizon``, ``--mpc-beam``); a member and split are loaded once, for every
+    λ."""
     key = (run, split, windows)
     try:
         if key not in LOADED:
             LOADED[key] = load_evaluation(run, "best", windows, split, args.overrides)
         out = evaluate_policies(LOADED[key], policies,
                                 mpc_horizon=horizon or args.mpc_horizon,
-                                predictor=args.predictor, sees=args.sees, hybrid_weight=weight)
+                                predictor=args.predictor, sees=args.sees, hybrid_weight=weight,
+                                beam=beam or args.mpc_beam)
     except ConfigError as e:  # a setting the run cannot take, in one line
         sys.exit(f"error: {run}: {e}")
     recs = {name: rec for name, (rec, _) in out.items()}
@@ -94,8 +100,8 @@ def compare(a: Path, b: Path) -> None:
     ``b``) on the same test windows: the difference of their means over members with
     Welch's 95 % interval (independent groups of seeds), served fraction and P_g."""
     ja, jb = (json.loads((d / "hybrid.json").read_text()) for d in (a, b))
-    same = ("mpc_horizon", "predictor", "sees", "overrides")
-    if any(ja[k] != jb[k] for k in same) or (
+    same = ("mpc_horizon", "predictor", "sees", "overrides", "mpc_beam")
+    if any(ja.get(k, BEAM) != jb.get(k, BEAM) for k in same) or (
             ja["policies"]["mpc"]["served"] != jb["policies"]["mpc"]["served"]):
         sys.exit(f"{a} and {b} were flown under other settings or windows "
                  f"({', '.join(same)}, the test windows): not comparable")
@@ -117,6 +123,11 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--hybrid-horizon", type=int,
                     help="the hybrid's own search horizon (default: --mpc-horizon); the mpc "
                          "beside it keeps --mpc-horizon")
+    ap.add_argument("--mpc-beam", type=int, default=BEAM,
+                    help=f"paths kept per first move by the mpc's and the hybrid's search "
+                         f"(default {BEAM})")
+    ap.add_argument("--hybrid-beam", type=int,
+                    help="the hybrid's own (default: --mpc-beam)")
     ap.add_argument("--predictor", default="cv")
     ap.add_argument("--sees", default="all")
     ap.add_argument("--eval-windows", type=int, help="validation windows (default: all)")
@@ -138,6 +149,10 @@ def main(argv: list[str] | None = None) -> None:
         args.hybrid_horizon = args.mpc_horizon
     if args.hybrid_horizon < 1:
         ap.error("--hybrid-horizon must be >= 1")
+    if args.hybrid_beam is None:
+        args.hybrid_beam = args.mpc_beam
+    if min(args.mpc_beam, args.hybrid_beam) < 1:
+        ap.error("--mpc-beam and --hybrid-beam must be >= 1")
     runs = RunFolder(args.run).members()
     args.out.mkdir(parents=True, exist_ok=True)
     log = open(args.out / "log.txt", "w")
@@ -155,7 +170,8 @@ def main(argv: list[str] | None = None) -> None:
         # λ = 0 is the mpc, which no member's network enters: flown once, as on test
         members = runs[:1] if w == 0 else runs
         per = [float(np.nanmean(flown(r, (hybrid,), "eval", args.eval_windows, args, w,
-                                      args.hybrid_horizon)[hybrid]["served_fractions"]))
+                                      args.hybrid_horizon, args.hybrid_beam
+                                      )[hybrid]["served_fractions"]))
                for r in members]
         per = per * len(runs) if w == 0 else per
         sweep[w] = per
@@ -165,13 +181,14 @@ def main(argv: list[str] | None = None) -> None:
     say(f"λ* = {best:g} (chosen on validation)")
     # 2. test
     fixed = flown(runs[0], ("greedy", "mpc"), "test", None, args)
-    per_member = [flown(r, ("learned", hybrid), "test", None, args, best, args.hybrid_horizon)
-                  for r in runs]
+    per_member = [flown(r, ("learned", hybrid), "test", None, args, best, args.hybrid_horizon,
+                        args.hybrid_beam) for r in runs]
     for m in per_member:  # the table and hybrid.json name either hybrid "hybrid"
         m["hybrid"] = m.pop(hybrid)
     rows, out = [], {"weights": sweep, "best_weight": best, "members": [str(r) for r in runs],
                      "hybrid": hybrid,
                      "mpc_horizon": args.mpc_horizon, "hybrid_horizon": args.hybrid_horizon,
+                     "mpc_beam": args.mpc_beam, "hybrid_beam": args.hybrid_beam,
                      "predictor": args.predictor,
                      "sees": args.sees, "overrides": args.overrides, "policies": {}}
     for name in ("greedy", "mpc"):
@@ -195,8 +212,11 @@ def main(argv: list[str] | None = None) -> None:
     say("")
     kind = "the learned values at the paths' ends" if args.leaf else "Q at the first move"
     say(f"test split, every window; {n} member(s); mpc H = {args.mpc_horizon} "
-        f"({args.predictor}, sees {args.sees}); hybrid ({kind}) λ* = {best:g}"
-        + (f", H = {args.hybrid_horizon}" if args.hybrid_horizon != args.mpc_horizon else ""))
+        f"({args.predictor}, sees {args.sees}"
+        + (f", beam {args.mpc_beam}" if args.mpc_beam != BEAM else "")
+        + f"); hybrid ({kind}) λ* = {best:g}"
+        + (f", H = {args.hybrid_horizon}" if args.hybrid_horizon != args.mpc_horizon else "")
+        + (f", beam {args.hybrid_beam}" if args.hybrid_beam != args.mpc_beam else ""))
     say("| policy | served % [95 % CI] | P_g % [95 % CI] | − mpc, served pt | − mpc, P_g pt "
         "| ms per decision |")
     say("|---|---|---|---|---|---|")

@@ -176,7 +176,8 @@ def paired_learned(rows: list[dict], hybrid_dir: Path, log) -> None:
     """learned − every policy of ``rows`` on the same windows (module docstring)."""
     record = json.loads((hybrid_dir / "hybrid.json").read_text())
     flown = record["policies"]
-    label = policy_label(MPC, record["mpc_horizon"], record["predictor"], record["sees"])
+    label = policy_label(MPC, record["mpc_horizon"], record["predictor"], record["sees"],
+                         beam=record.get("mpc_beam"))
     mpc = [r for r in rows if r["policy"] == label
            and r["served_fractions"] == flown["mpc"]["served"]
            and r["pgs"] == flown["mpc"]["pg"]]
@@ -185,9 +186,10 @@ def paired_learned(rows: list[dict], hybrid_dir: Path, log) -> None:
                  f"windows, masks or fleet; nothing to pair")
     mode, m = mpc[0]["mode"], mpc[0]["n_uabs"]
     # the learned policy, then the hybrid (Q at the first move) or leaf it flew at λ*
+    width = record.get("hybrid_beam", BEAM)
     hyb = (f"{record.get('hybrid', 'hybrid')} "  # files before --leaf have no such key
            f"H={record.get('hybrid_horizon', record['mpc_horizon'])} "
-           f"λ={record['best_weight']:g}")
+           f"λ={record['best_weight']:g}" + (f" beam {width}" if width != BEAM else ""))
     for what, mine in (("learned", flown["learned"]), (hyb, flown.get("hybrid"))):
         if mine is None:
             continue

@@ -229,6 +229,18 @@ def test_the_paired_script_pairs_the_learned_policy_and_the_leaf_with_each_plann
     lines = []
     bench.paired_learned(rows, folder, lines.append)
     assert lines[2].startswith("rank M=3 hybrid H=5 λ=1 (2 members) - mpc H=5 (cv): ")
+    # flown beside the mpc at 4 paths (hybrid.py --mpc-beam 4), its own search at 8
+    record |= {"mpc_beam": 4, "hybrid_beam": 8}
+    record["policies"]["mpc"] = {"served": narrow, "pg": narrow}
+    (folder / "hybrid.json").write_text(json.dumps(record))
+    lines = []
+    bench.paired_learned(rows, folder, lines.append)
+    assert lines[2].startswith("rank M=3 hybrid H=5 λ=1 beam 8 (2 members) - mpc H=5 (cv): ")
+    rows[1]["served_fractions"] = mpc
+    with pytest.raises(SystemExit, match=r"mpc is none of this folder's mpc H=5 \(cv, beam 4\)"):
+        bench.paired_learned(rows, folder, lines.append)
     rows[0]["served_fractions"] = narrow
+    record["policies"]["mpc"], record["mpc_beam"] = {"served": mpc, "pg": mpc}, 16
+    (folder / "hybrid.json").write_text(json.dumps(record))
     with pytest.raises(SystemExit, match="mpc is none of this folder's"):
         bench.paired_learned(rows, folder, lines.append)
