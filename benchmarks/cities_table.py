@@ -126,7 +126,7 @@ def load(root: Path, name: str, kind: str) -> dict | None:
 def own_mpc(hyb: dict) -> str:
     """The planners' name of the mpc ``hyb`` was flown beside (``mpc H=5 (cv)``)."""
     return policy_label(MPC_NAME, hyb.get("mpc_horizon"), hyb.get("predictor"),
-                        beam=hyb.get("mpc_beam"))
+                        beam=hyb.get("mpc_beam"), rounds=hyb.get("mpc_rounds"))
 
 
 def check_mpc(hyb: dict | None, plan: dict, city: str, m: int, name: str = MPC) -> None:

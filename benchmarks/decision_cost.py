@@ -15,7 +15,8 @@ H steps instead, so a shorter search with values can be set beside a longer one 
 ``name:H:all`` searches over every vehicle instead of those each UABS can reach (the
 same moves at the cost of the search before that cut, ``PlannerScore.cut``);
 ``name:H:bB`` keeps B paths per first move in its beam search (``mpc:5:b4``; default
-16, ``uabs-eval --mpc-beam``).
+16, ``uabs-eval --mpc-beam``) and ``name:H:rR`` makes R passes over the fleet
+(``mpc:5:b4:r1``; default 2, ``uabs-eval --mpc-rounds``).
 
     python benchmarks/decision_cost.py RUN scenario=city scenario.n_uabs=25 \
         --policies mpc:5:all mpc:5 leaf:3:all leaf:3 leaf:2 --turns 2
@@ -43,28 +44,29 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
-    specs = {}  # name:H[:all][:bB] -> (name, H, whether the search is cut, its beam)
+    specs = {}  # name:H[:all][:bB][:rR] -> (name, H, whether the search is cut, beam, rounds)
     for spec in args.policies:
         name, *rest = spec.split(":")
         h = rest.pop(0) if rest else ""
         if h and not (h.isdigit() and int(h) >= 1):
             ap.error(f"{spec}: the horizon after ':' must be an integer >= 1")
-        beams = [x[1:] for x in rest if x.startswith("b")]
-        if (any(x != "all" and not x.startswith("b") for x in rest) or len(beams) > 1
-                or rest.count("all") > 1 or any(not (b.isdigit() and int(b) >= 1)
-                                                for b in beams)):
-            ap.error(f"{spec}: after the horizon only ':all' (every vehicle) and ':bB' "
-                     f"(a beam of B >= 1 paths) are known")
-        specs[spec] = (name, int(h) if h else args.mpc_horizon, "all" not in rest,
-                       int(beams[0]) if beams else None)
+        given = {k: [x[1:] for x in rest if x.startswith(k)] for k in "br"}
+        if (any(x != "all" and x[:1] not in given for x in rest)
+                or any(len(v) > 1 for v in given.values()) or rest.count("all") > 1
+                or any(not (x.isdigit() and int(x) >= 1) for v in given.values() for x in v)):
+            ap.error(f"{spec}: after the horizon only ':all' (every vehicle), ':bB' (a beam "
+                     f"of B >= 1 paths) and ':rR' (R >= 1 passes over the fleet) are known")
+        beam, rounds = (int(given[k][0]) if given[k] else None for k in "br")
+        specs[spec] = (name, int(h) if h else args.mpc_horizon, "all" not in rest, beam,
+                       rounds)
     ev = load_evaluation(args.run, "best", None, "test", args.overrides)
     ms: dict[str, list[float]] = {p: [] for p in args.policies}
     for turn in range(args.turns):
         order = args.policies if turn % 2 == 0 else args.policies[::-1]
         for spec in order:
-            name, h, cut, beam = specs[spec]
+            name, h, cut, beam, rounds = specs[spec]
             rec = evaluate_policies(ev, (name,), mpc_horizon=h, hybrid_weight=args.weight,
-                                    cut=cut, beam=beam)[name][0]
+                                    cut=cut, beam=beam, rounds=rounds)[name][0]
             ms[spec].append(rec["ms_per_decision"])
             print(f"turn {turn + 1} {spec}: {rec['ms_per_decision']:.2f} ms per decision, "
                   f"served {100 * rec['served_fraction']:.2f} %", flush=True)

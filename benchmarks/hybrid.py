@@ -31,7 +31,9 @@ validation sweep, λ*) and ``log.txt`` (what it printed) into ``--out``. ``--mpc
 the mpc beside it keeps ``--mpc-horizon`` (a shorter search with learned values against
 the mpc: its λ = 0 on validation is the mpc at H); ``--mpc-beam B`` sets the paths both
 searches keep per first move (``uabs-eval --mpc-beam``, default planner.BEAM) and
-``--hybrid-beam B`` the hybrid's alone (a narrower mpc beside the default hybrid, say);
+``--hybrid-beam B`` the hybrid's alone (a narrower mpc beside the default hybrid, say),
+``--mpc-rounds R`` and ``--hybrid-rounds R`` their passes over the fleet likewise
+(``uabs-eval --mpc-rounds``, default planner.ROUNDS);
 extra ``key=value`` overrides evaluate under other world settings, as ``uabs-eval`` takes
 them.
 """
@@ -50,7 +52,7 @@ from uabs_rl.config import ConfigError
 from uabs_rl.evaluation.hybrid import HYBRID
 from uabs_rl.evaluation.leaf import LEAF
 from uabs_rl.evaluation.load import Evaluation, evaluate_policies, load_evaluation
-from uabs_rl.evaluation.planner import BEAM
+from uabs_rl.evaluation.planner import BEAM, ROUNDS
 from uabs_rl.evaluation.predict import parse_sees
 from uabs_rl.evaluation.stats import paired_over_seeds, t_interval, welch_difference
 from uabs_rl.runs.layout import RunFolder
@@ -63,11 +65,12 @@ LOADED: dict[tuple, Evaluation] = {}  # each member's best.pt, env and traces, p
 
 def flown(run: Path, policies: tuple[str, ...], split: str, windows: int | None,
           args: argparse.Namespace, weight: float = 0.0,
-          horizon: int | None = None, beam: int | None = None) -> dict[str, dict]:
+          horizon: int | None = None, beam: int | None = None,
+          rounds: int | None = None) -> dict[str, dict]:
     """Each policy's record on ``split`` (every window, or ``windows``), the planners'
-    search ``horizon`` steps long keeping ``beam`` paths per first move (defaults
-    ``--mpc-horizon``, ``--mpc-beam``); a member and split are loaded once, for every
-    λ."""
+    search ``horizon`` steps long keeping ``beam`` paths per first move, in ``rounds``
+    passes (defaults ``--mpc-horizon``, ``--mpc-beam``, ``--mpc-rounds``); a member and
+    split are loaded once, for every λ."""
     key = (run, split, windows)
     try:
         if key not in LOADED:
@@ -75,7 +78,7 @@ def flown(run: Path, policies: tuple[str, ...], split: str, windows: int | None,
         out = evaluate_policies(LOADED[key], policies,
                                 mpc_horizon=horizon or args.mpc_horizon,
                                 predictor=args.predictor, sees=args.sees, hybrid_weight=weight,
-                                beam=beam or args.mpc_beam)
+                                beam=beam or args.mpc_beam, rounds=rounds or args.mpc_rounds)
     except ConfigError as e:  # a setting the run cannot take, in one line
         sys.exit(f"error: {run}: {e}")
     recs = {name: rec for name, (rec, _) in out.items()}
@@ -100,8 +103,9 @@ def compare(a: Path, b: Path) -> None:
     ``b``) on the same test windows: the difference of their means over members with
     Welch's 95 % interval (independent groups of seeds), served fraction and P_g."""
     ja, jb = (json.loads((d / "hybrid.json").read_text()) for d in (a, b))
-    same = ("mpc_horizon", "predictor", "sees", "overrides", "mpc_beam")
-    if any(ja.get(k, BEAM) != jb.get(k, BEAM) for k in same) or (
+    same = {"mpc_horizon": None, "predictor": None, "sees": None, "overrides": None,
+            "mpc_beam": BEAM, "mpc_rounds": ROUNDS}  # each with its value where unrecorded
+    if any(ja.get(k, d) != jb.get(k, d) for k, d in same.items()) or (
             ja["policies"]["mpc"]["served"] != jb["policies"]["mpc"]["served"]):
         sys.exit(f"{a} and {b} were flown under other settings or windows "
                  f"({', '.join(same)}, the test windows): not comparable")
@@ -128,6 +132,11 @@ def main(argv: list[str] | None = None) -> None:
                          f"(default {BEAM})")
     ap.add_argument("--hybrid-beam", type=int,
                     help="the hybrid's own (default: --mpc-beam)")
+    ap.add_argument("--mpc-rounds", type=int, default=ROUNDS,
+                    help=f"passes over the fleet of the mpc's and the hybrid's search "
+                         f"(default {ROUNDS})")
+    ap.add_argument("--hybrid-rounds", type=int,
+                    help="the hybrid's own (default: --mpc-rounds)")
     ap.add_argument("--predictor", default="cv")
     ap.add_argument("--sees", default="all")
     ap.add_argument("--eval-windows", type=int, help="validation windows (default: all)")
@@ -153,6 +162,10 @@ def main(argv: list[str] | None = None) -> None:
         args.hybrid_beam = args.mpc_beam
     if min(args.mpc_beam, args.hybrid_beam) < 1:
         ap.error("--mpc-beam and --hybrid-beam must be >= 1")
+    if args.hybrid_rounds is None:
+        args.hybrid_rounds = args.mpc_rounds
+    if min(args.mpc_rounds, args.hybrid_rounds) < 1:
+        ap.error("--mpc-rounds and --hybrid-rounds must be >= 1")
     runs = RunFolder(args.run).members()
     args.out.mkdir(parents=True, exist_ok=True)
     log = open(args.out / "log.txt", "w")
@@ -170,8 +183,8 @@ def main(argv: list[str] | None = None) -> None:
         # λ = 0 is the mpc, which no member's network enters: flown once, as on test
         members = runs[:1] if w == 0 else runs
         per = [float(np.nanmean(flown(r, (hybrid,), "eval", args.eval_windows, args, w,
-                                      args.hybrid_horizon, args.hybrid_beam
-                                      )[hybrid]["served_fractions"]))
+                                      args.hybrid_horizon, args.hybrid_beam,
+                                      args.hybrid_rounds)[hybrid]["served_fractions"]))
                for r in members]
         per = per * len(runs) if w == 0 else per
         sweep[w] = per
@@ -182,13 +195,14 @@ def main(argv: list[str] | None = None) -> None:
     # 2. test
     fixed = flown(runs[0], ("greedy", "mpc"), "test", None, args)
     per_member = [flown(r, ("learned", hybrid), "test", None, args, best, args.hybrid_horizon,
-                        args.hybrid_beam) for r in runs]
+                        args.hybrid_beam, args.hybrid_rounds) for r in runs]
     for m in per_member:  # the table and hybrid.json name either hybrid "hybrid"
         m["hybrid"] = m.pop(hybrid)
     rows, out = [], {"weights": sweep, "best_weight": best, "members": [str(r) for r in runs],
                      "hybrid": hybrid,
                      "mpc_horizon": args.mpc_horizon, "hybrid_horizon": args.hybrid_horizon,
                      "mpc_beam": args.mpc_beam, "hybrid_beam": args.hybrid_beam,
+                     "mpc_rounds": args.mpc_rounds, "hybrid_rounds": args.hybrid_rounds,
                      "predictor": args.predictor,
                      "sees": args.sees, "overrides": args.overrides, "policies": {}}
     for name in ("greedy", "mpc"):
@@ -214,9 +228,11 @@ def main(argv: list[str] | None = None) -> None:
     say(f"test split, every window; {n} member(s); mpc H = {args.mpc_horizon} "
         f"({args.predictor}, sees {args.sees}"
         + (f", beam {args.mpc_beam}" if args.mpc_beam != BEAM else "")
+        + (f", rounds {args.mpc_rounds}" if args.mpc_rounds != ROUNDS else "")
         + f"); hybrid ({kind}) λ* = {best:g}"
         + (f", H = {args.hybrid_horizon}" if args.hybrid_horizon != args.mpc_horizon else "")
-        + (f", beam {args.hybrid_beam}" if args.hybrid_beam != args.mpc_beam else ""))
+        + (f", beam {args.hybrid_beam}" if args.hybrid_beam != args.mpc_beam else "")
+        + (f", rounds {args.hybrid_rounds}" if args.hybrid_rounds != args.mpc_rounds else ""))
     say("| policy | served % [95 % CI] | P_g % [95 % CI] | − mpc, served pt | − mpc, P_g pt "
         "| ms per decision |")
     say("|---|---|---|---|---|---|")

@@ -62,7 +62,7 @@ import torch
 from uabs_rl.config import compose
 from uabs_rl.evaluation.baselines import MPC, PLANNER, baseline_policy, policy_label
 from uabs_rl.evaluation.evaluator import Evaluator, make_eval_env
-from uabs_rl.evaluation.planner import BEAM
+from uabs_rl.evaluation.planner import BEAM, ROUNDS
 from uabs_rl.evaluation.predict import Within, make_predictor, prediction_error
 from uabs_rl.evaluation.stats import paired_difference, paired_over_seeds, t_interval
 from uabs_rl.safety.make import make_selector
@@ -177,7 +177,7 @@ def paired_learned(rows: list[dict], hybrid_dir: Path, log) -> None:
     record = json.loads((hybrid_dir / "hybrid.json").read_text())
     flown = record["policies"]
     label = policy_label(MPC, record["mpc_horizon"], record["predictor"], record["sees"],
-                         beam=record.get("mpc_beam"))
+                         beam=record.get("mpc_beam"), rounds=record.get("mpc_rounds"))
     mpc = [r for r in rows if r["policy"] == label
            and r["served_fractions"] == flown["mpc"]["served"]
            and r["pgs"] == flown["mpc"]["pg"]]
@@ -186,10 +186,11 @@ def paired_learned(rows: list[dict], hybrid_dir: Path, log) -> None:
                  f"windows, masks or fleet; nothing to pair")
     mode, m = mpc[0]["mode"], mpc[0]["n_uabs"]
     # the learned policy, then the hybrid (Q at the first move) or leaf it flew at λ*
-    width = record.get("hybrid_beam", BEAM)
+    width, passes = record.get("hybrid_beam", BEAM), record.get("hybrid_rounds", ROUNDS)
     hyb = (f"{record.get('hybrid', 'hybrid')} "  # files before --leaf have no such key
            f"H={record.get('hybrid_horizon', record['mpc_horizon'])} "
-           f"λ={record['best_weight']:g}" + (f" beam {width}" if width != BEAM else ""))
+           f"λ={record['best_weight']:g}" + (f" beam {width}" if width != BEAM else "")
+           + (f" rounds {passes}" if passes != ROUNDS else ""))
     for what, mine in (("learned", flown["learned"]), (hyb, flown.get("hybrid"))):
         if mine is None:
             continue

@@ -56,8 +56,8 @@ def test_uabs_eval_hybrid_reports_its_settings(rank_run, tmp_path, capsys):
     text = capsys.readouterr().out
     rec = json.loads((out / "eval.json").read_text())["policies"]["hybrid"]
     assert (rec["horizon"], rec["predictor"], rec["sees"], rec["weight"]) == (2, "cv", "all", 0.5)
-    assert "hybrid: horizon 2, beam 16, predictor cv, sees every vehicle, weight 0.5 of the " \
-           "learned Q-values; " in text
+    assert "hybrid: horizon 2, beam 16, 2 rounds, predictor cv, sees every vehicle, weight 0.5 " \
+           "of the learned Q-values; " in text
     assert rec["ms_per_decision"] > 0
 
 

@@ -201,8 +201,8 @@ def test_uabs_eval_leaf_reports_its_settings(ego_run, tmp_path, capsys):
     text = capsys.readouterr().out
     rec = json.loads((out / "eval.json").read_text())["policies"]["leaf"]
     assert (rec["horizon"], rec["predictor"], rec["weight"]) == (2, "cv", 0.5)
-    assert "leaf: horizon 2, beam 16, predictor cv, sees every vehicle, weight 0.5 of the " \
-           "learned leaf values; " in text
+    assert "leaf: horizon 2, beam 16, 2 rounds, predictor cv, sees every vehicle, weight 0.5 " \
+           "of the learned leaf values; " in text
 
 
 def test_a_fleet_frame_network_is_refused_with_the_fix(trace_cache, tmp_path, capsys):
@@ -347,14 +347,15 @@ def test_the_cost_benchmark_sets_a_horizon_per_policy(ego_run, capsys, monkeypat
     asked = []
 
     def spy(*args, **kwargs):
-        asked.append((kwargs["mpc_horizon"], kwargs["cut"], kwargs["beam"]))
+        asked.append((kwargs["mpc_horizon"], kwargs["cut"], kwargs["beam"], kwargs["rounds"]))
         return evaluate_policies(*args, **kwargs)
 
     monkeypatch.setattr(bench, "evaluate_policies", spy)
     bench.main([str(ego_run / "checkpoints" / "last.pt"), "--policies", "mpc:1", "leaf:2",
-                "leaf:2:all", "mpc:2:b4", "leaf:2:all:b3", "--weight", "1", "--turns", "1"])
-    assert asked == [(1, True, None), (2, True, None), (2, False, None), (2, True, 4),
-                     (2, False, 3)]
+                "leaf:2:all", "mpc:2:b4", "leaf:2:all:b3", "mpc:2:r1:b4", "--weight", "1",
+                "--turns", "1"])
+    assert asked == [(1, True, None, None), (2, True, None, None), (2, False, None, None),
+                     (2, True, 4, None), (2, False, 3, None), (2, True, 4, 1)]
     out = capsys.readouterr().out
     ev = load_evaluation(ego_run, "last", None, "test")
     one = evaluate_policies(ev, (MPC,), mpc_horizon=1)[MPC][0]["served_fraction"]
@@ -363,8 +364,9 @@ def test_the_cost_benchmark_sets_a_horizon_per_policy(ego_run, capsys, monkeypat
     served = re.findall(r"turn 1 leaf:2(?::all)?: .* served ([0-9.]+) %", out)
     assert len(served) == 2 and served[0] == served[1]  # every vehicle: the same moves
     for bad, says in (("mpc:0", "the horizon after ':' must be an integer >= 1"),
-                      ("mpc:2:some", "only ':all' (every vehicle) and ':bB'"),
-                      ("mpc:2:b0", "(a beam of B >= 1 paths) are known")):
+                      ("mpc:2:some", "only ':all' (every vehicle), ':bB'"),
+                      ("mpc:2:b0", "(a beam of B >= 1 paths) and ':rR'"),
+                      ("mpc:2:r1:r2", "(R >= 1 passes over the fleet) are known")):
         with pytest.raises(SystemExit):
             bench.main([str(ego_run), "--policies", bad])
         assert says in capsys.readouterr().err

@@ -233,21 +233,58 @@ def smoke_run(trace_cache, tmp_path_factory):
     return run_dir
 
 
-def test_the_beam_width_reaches_the_search_and_names_the_policy(trace_cache):
+def test_the_beam_width_and_rounds_reach_the_search_and_name_the_policy(trace_cache):
     """``beam`` (``uabs-eval --mpc-beam``): the paths the mpc's and the planner's search
-    keep per first move, named in a table's label only where it is not the default."""
+    keep per first move; ``rounds`` (``--mpc-rounds``) its passes over the fleet; each
+    named in a table's label only where it is not the default (the uncoordinated search
+    makes one pass whatever it is given)."""
     from uabs_rl.evaluation.baselines import policy_label
-    from uabs_rl.evaluation.planner import BEAM
+    from uabs_rl.evaluation.planner import BEAM, ROUNDS
 
     _, env = eval_env(trace_cache, "masking=rank")
     for name in (MPC, "planner"):
-        assert baseline_policy(name, env, make_selector(env), horizon=3)[0].beam == BEAM == 16
-        assert baseline_policy(name, env, make_selector(env), horizon=3, beam=4)[0].beam == 4
+        score = baseline_policy(name, env, make_selector(env), horizon=3)[0]
+        assert (score.beam, score.rounds) == (BEAM, ROUNDS) == (16, 2)
+        score = baseline_policy(name, env, make_selector(env), horizon=3, beam=4, rounds=1)[0]
+        assert (score.beam, score.rounds) == (4, 1)
+        assert baseline_policy(name, env, make_selector(env), horizon=3, rounds=3,
+                               coordinated=False)[0].rounds == 1
     assert policy_label(MPC, 5, "cv", beam=4) == "mpc H=5 (cv, beam 4)"
     assert policy_label(MPC, 5, "cv", beam=BEAM) == policy_label(MPC, 5, "cv") == "mpc H=5 (cv)"
     assert policy_label("planner", 5, beam=8) == "planner H=5 (clairvoyant, beam 8)"
+    assert policy_label(MPC, 5, "cv", beam=4, rounds=1) == "mpc H=5 (cv, beam 4, 1 round)"
+    assert policy_label(MPC, 5, "cv", rounds=3) == "mpc H=5 (cv, 3 rounds)"
+    assert policy_label(MPC, 5, "cv", rounds=ROUNDS) == "mpc H=5 (cv)"
+    assert policy_label(MPC, 5, "cv", coordinated=False, rounds=1) == \
+        "mpc H=5 (cv, uncoordinated)"
     with pytest.raises(ValueError, match="the beam must keep at least one path, got 0"):
         PlannerScore(env.base_env, 3, torch.Generator(), beam=0)
+    with pytest.raises(ValueError, match="at least one pass, got rounds=0"):
+        PlannerScore(env.base_env, 3, torch.Generator(), rounds=0)
+
+
+@pytest.mark.parametrize("h", [2, 3])
+def test_one_round_is_the_first_pass_of_two(trace_cache, h):
+    """``rounds=1``: each UABS searched once, in rank order, given the plans of those
+    before it (the k-th given k); the default's second pass searches each again, given
+    all the others' plans (checked on the first decision of a rank-masked evaluation)."""
+    from uabs_rl.evaluation.predict import ConstantVelocity
+
+    _, env = eval_env(trace_cache, "masking=rank")
+    td = env.reset()
+    m = env.base_env.params.n_uabs
+    for rounds in (1, 2):
+        score = PlannerScore(env.base_env, h, torch.Generator().manual_seed(0), rounds=rounds,
+                             predictor=ConstantVelocity())
+        calls = []
+
+        def spy(pos, plan, others, *args, calls=calls, search=score.search, **kwargs):
+            calls.append(others.sum(-1).tolist())  # how many plans each search is given
+            return search(pos, plan, others, *args, **kwargs)
+
+        score.search = spy
+        score.scores(td)
+        assert [c[0] for c in calls] == [*range(m), *[m - 1] * (m * (rounds - 1))]
 
 
 def test_uabs_eval_mpc_reports_its_settings_and_compute(smoke_run, tmp_path, capsys):
@@ -255,13 +292,16 @@ def test_uabs_eval_mpc_reports_its_settings_and_compute(smoke_run, tmp_path, cap
     out = tmp_path / "ev"
     assert eval_main([str(run_dir), "--checkpoint", "last", "--policy", "greedy",
                       "--policy", "mpc", "--mpc-horizon", "3", "--sees", "150",
-                      "--mpc-beam", "4", "--windows", "2", "--out", str(out)]) == 0
+                      "--mpc-beam", "4", "--mpc-rounds", "1", "--windows", "2",
+                      "--out", str(out)]) == 0
     text = capsys.readouterr().out
     res = json.loads((out / "eval.json").read_text())
     mpc = res["policies"]["mpc"]
-    assert (mpc["horizon"], mpc["beam"], mpc["predictor"], mpc["sees"]) == (3, 4, "cv", 150.0)
+    assert (mpc["horizon"], mpc["beam"], mpc["rounds"], mpc["predictor"], mpc["sees"]) == (
+        3, 4, 1, "cv", 150.0)
     assert mpc["ms_per_decision"] > 0 and res["policies"]["greedy"]["ms_per_decision"] > 0
-    assert "mpc: horizon 3, beam 4, predictor cv, sees the vehicles within 150 m; " in text
+    assert "mpc: horizon 3, beam 4, 1 round, predictor cv, sees the vehicles within 150 m; " \
+        in text
     assert "compute per decision (the whole fleet, ms per step" in text
     # the whole evaluation's time and this process's peak memory, as a number of MiB
     assert re.search(r"^evaluated 2 policies in \d+\.\d s, peak memory [1-9]\d* MiB$", text,
@@ -274,6 +314,9 @@ def test_uabs_eval_mpc_reports_its_settings_and_compute(smoke_run, tmp_path, cap
     with pytest.raises(SystemExit) as e:
         eval_main([str(run_dir), "--policy", "mpc", "--mpc-beam", "0"])
     assert e.value.code == 2 and "--mpc-beam must be >= 1, got 0" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:
+        eval_main([str(run_dir), "--policy", "mpc", "--mpc-rounds", "0"])
+    assert e.value.code == 2 and "--mpc-rounds must be >= 1, got 0" in capsys.readouterr().err
 
 
 def test_uabs_eval_looks_at_the_cpus_every_step_unless_omp_fixes_its_threads(

@@ -77,7 +77,7 @@ from uabs_rl.evaluation.load import (
     load_evaluation,
     peak_memory,
 )
-from uabs_rl.evaluation.planner import BEAM
+from uabs_rl.evaluation.planner import BEAM, ROUNDS
 from uabs_rl.evaluation.predict import PREDICTORS, parse_sees
 from uabs_rl.paths import OutputFolder, OutputInterrupted, check_path
 from uabs_rl.runs.checkpoint import CheckpointError
@@ -150,7 +150,8 @@ def _print_mpc(results: dict[str, tuple[dict, Any]]) -> None:
         weight = {HYBRID: f", weight {rec.get('weight', 0):g} of the learned Q-values",
                   LEAF: f", weight {rec.get('weight', 0):g} of the learned leaf values"
                   }.get(name, "")
-        print(f"\n{name}: horizon {rec['horizon']}, beam {rec['beam']}, predictor "
+        print(f"\n{name}: horizon {rec['horizon']}, beam {rec['beam']}, "
+              f"{rec['rounds']} round{'s' * (rec['rounds'] != 1)}, predictor "
               f"{rec['predictor']}, sees {sees}{weight}; {rec['ms_per_decision']:.1f} ms per "
               f"decision ({rec['windows']} windows side by side, {rec['seconds']:.1f} s, "
               f"{torch.get_num_threads()} torch thread(s))")
@@ -203,6 +204,10 @@ def parser() -> argparse.ArgumentParser:
                     help=f"the paths the mpc's (and the hybrids') beam search keeps per "
                          f"first move (default {BEAM}; 4 served as much on the project's "
                          f"grids for under half the compute: docs/evaluation.md)")
+    ap.add_argument("--mpc-rounds", type=int, default=ROUNDS, metavar="R",
+                    help=f"the mpc's (and the hybrids') passes over the fleet per decision "
+                         f"(default {ROUNDS}: a second pass replans each UABS given all the "
+                         f"others' plans; docs/evaluation.md)")
     ap.add_argument("--predictor", choices=tuple(p for p in PREDICTORS), default="cv",
                     help="what the mpc plans over: cv, the vehicles' current and previous "
                          "positions extrapolated at constant velocity (default), or true, "
@@ -236,6 +241,8 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--mpc-horizon must be >= 1, got {args.mpc_horizon}")
     if args.mpc_beam < 1:
         ap.error(f"--mpc-beam must be >= 1, got {args.mpc_beam}")
+    if args.mpc_rounds < 1:
+        ap.error(f"--mpc-rounds must be >= 1, got {args.mpc_rounds}")
     if not (math.isfinite(args.hybrid_weight) and args.hybrid_weight >= 0):
         ap.error(f"--hybrid-weight must be a number >= 0, got {args.hybrid_weight}")
     try:
@@ -298,7 +305,7 @@ def _evaluate_and_write(ev: Evaluation, args: argparse.Namespace, out: Path,
     results = evaluate_policies(ev, policies, horizon=args.horizon,
                                 mpc_horizon=args.mpc_horizon, predictor=args.predictor,
                                 sees=args.sees, hybrid_weight=args.hybrid_weight,
-                                beam=args.mpc_beam)
+                                beam=args.mpc_beam, rounds=args.mpc_rounds)
     n = ev.evaluator.env.base_env.n_envs
     tc = getattr(ev.cfg.traces, args.split)
     print(f"split: {args.split} (traces.{args.split}: SUMO seeds {tc.first_seed}.."

@@ -38,16 +38,19 @@ MPC = "mpc"  # the same planner fed by a predictor (uabs_rl.evaluation.predict):
 
 def policy_label(name: str, horizon: int | None = None, predictor: str | None = None,
                  sees: str | float = "all", coordinated: bool = True,
-                 beam: int | None = None) -> str:
+                 beam: int | None = None, rounds: int | None = None) -> str:
     """A baseline's name in the benchmarks' tables and per-window files, by which they
     are matched across runs: ``greedy``, ``mpc H=5 (cv)`` (with ``, sees 80 m`` where it
     sees only that far, ``, uncoordinated`` where each UABS plans alone, ``, beam 4``
-    where its search keeps another number of paths than planner.BEAM) or ``planner H=5
-    (clairvoyant)`` (the planner over the true future)."""
-    from uabs_rl.evaluation.planner import BEAM
+    where its search keeps another number of paths than planner.BEAM, ``, 1 round``
+    where it makes another number of passes over the fleet than planner.ROUNDS) or
+    ``planner H=5 (clairvoyant)`` (the planner over the true future)."""
+    from uabs_rl.evaluation.planner import BEAM, ROUNDS
 
     alone = "" if coordinated else ", uncoordinated"
     alone += "" if beam in (None, BEAM) else f", beam {beam}"
+    if coordinated and rounds not in (None, ROUNDS):  # alone: one pass whatever it is set to
+        alone += f", {rounds} round{'s' * (rounds != 1)}"
     if name == MPC:
         seen = "" if sees == "all" else f", sees {float(sees):g} m"
         return f"mpc H={horizon} ({predictor}{seen}{alone})"
@@ -79,15 +82,17 @@ def baseline_policy(name: str, env: TransformedEnv, selector: MaskedActionSelect
                     seed: int = 0, horizon: int = 1,
                     sites: torch.Tensor | None = None,
                     predictor=None, coordinated: bool = True,
-                    beam: int | None = None) -> TensorDictModuleBase:
+                    beam: int | None = None, rounds: int | None = None
+                    ) -> TensorDictModuleBase:
     """The baseline ``name`` (one of BASELINES, HEURISTICS, PLANNER or MPC) as a policy
     for ``env`` (a transformed UABS env). ``horizon``: the planner's and the mpc's;
     ``sites [M, 2]``: the junctions heuristic's sites
     (:func:`uabs_rl.evaluation.planner.junction_sites`); ``predictor``: the mpc's
     (:mod:`uabs_rl.evaluation.predict`, default constant velocity seeing every vehicle);
     ``coordinated=False``: the planner's and the mpc's UABS plan alone; ``beam``: the
-    paths their beam search keeps per first move (PlannerScore; default planner.BEAM)."""
-    from uabs_rl.evaluation.planner import BEAM, ClusterScore, PlannerScore, SiteScore
+    paths their beam search keeps per first move, ``rounds`` its passes over the fleet
+    (PlannerScore; default planner.BEAM and planner.ROUNDS)."""
+    from uabs_rl.evaluation.planner import BEAM, ROUNDS, ClusterScore, PlannerScore, SiteScore
     from uabs_rl.evaluation.predict import ConstantVelocity
 
     names = (*BASELINES, *HEURISTICS, PLANNER, MPC)
@@ -103,10 +108,13 @@ def baseline_policy(name: str, env: TransformedEnv, selector: MaskedActionSelect
         return selector
     base = env.base_env
     beam = BEAM if beam is None else beam
+    rounds = ROUNDS if rounds is None else rounds
     if name == PLANNER:
-        score = PlannerScore(base, horizon, gen, coordinated=coordinated, beam=beam)
+        score = PlannerScore(base, horizon, gen, coordinated=coordinated, beam=beam,
+                             rounds=rounds)
     elif name == MPC:
         score = PlannerScore(base, horizon, gen, coordinated=coordinated, beam=beam,
+                             rounds=rounds,
                              predictor=predictor if predictor is not None else ConstantVelocity())
     elif name == "kmeans":
         score = ClusterScore(base, gen)

@@ -266,7 +266,7 @@ def default_out_dir(path: Path, overrides: list[str] | None = None) -> Path:
 def evaluate_policies(ev: Evaluation, policies: tuple[str, ...], seed: int = 0,
                       horizon: int = 1, mpc_horizon: int = 5, predictor: str = "cv",
                       sees: str | float = "all", hybrid_weight: float = 1.0,
-                      cut: bool = True, beam: int | None = None
+                      cut: bool = True, beam: int | None = None, rounds: int | None = None
                       ) -> dict[str, tuple[dict[str, Any], Any]]:
     """Records and rollouts of each policy on the same held-out windows and masks
     (``horizon``: the planner's; ``mpc_horizon``, ``predictor`` and ``sees``: the mpc's
@@ -275,7 +275,8 @@ def evaluate_policies(ev: Evaluation, policies: tuple[str, ...], seed: int = 0,
     over every vehicle instead of those each UABS can reach (``PlannerScore.cut``: the
     same moves at a higher cost; the planner's own search always cuts); ``beam``: the
     paths the mpc's and the hybrids' beam search keeps per first move (default
-    ``planner.BEAM``).
+    ``planner.BEAM``); ``rounds``: their passes over the fleet (default
+    ``planner.ROUNDS``: a second pass replans each UABS given every other's plan).
     The planner's, the mpc's and the hybrids' records hold their ``horizon`` and
     ``seconds``, the wall time of the rollout of all the windows side by side (the mpc's
     and the hybrids' also their ``predictor`` and ``sees``, the hybrids' their ``weight``);
@@ -290,7 +291,7 @@ def evaluate_policies(ev: Evaluation, policies: tuple[str, ...], seed: int = 0,
             made["predictor"] = make_predictor(predictor, sees, ev.cfg.scenario,
                                                env.base_env.device)
         policy = baseline_policy(MPC, env, make_selector(env), seed, horizon=mpc_horizon,
-                                 predictor=made["predictor"], beam=beam)
+                                 predictor=made["predictor"], beam=beam, rounds=rounds)
         policy[0].cut = cut
         return policy
 
@@ -323,7 +324,7 @@ def evaluate_policies(ev: Evaluation, policies: tuple[str, ...], seed: int = 0,
         elif name in (MPC, HYBRID, LEAF):
             search = getattr(policy[0], "planner", policy[0])  # the hybrid's, or itself
             rec.update(horizon=mpc_horizon, seconds=sec, predictor=predictor, sees=sees,
-                       beam=search.beam)
+                       beam=search.beam, rounds=search.rounds)
             if name in (HYBRID, LEAF):
                 rec["weight"] = hybrid_weight
     return results

@@ -114,6 +114,7 @@ def footprint_table(pos: torch.Tensor, veh: torch.Tensor, step: torch.Tensor, r_
 
 
 BEAM = 16  # paths the beam search keeps per first move, by default (PlannerScore.beam)
+ROUNDS = 2  # passes over the fleet per decision, by default (PlannerScore.rounds)
 
 
 def axis_reach(r_b: float, n_beams: int) -> float:
@@ -206,7 +207,7 @@ class PlannerScore(TensorDictModuleBase):
     """
 
     def __init__(self, env: UABSEnv, horizon: int, generator: torch.Generator,
-                 beam: int = BEAM, rounds: int = 2, predictor: Predictor | None = None,
+                 beam: int = BEAM, rounds: int = ROUNDS, predictor: Predictor | None = None,
                  coordinated: bool = True):
         super().__init__()
         if horizon < 1:
@@ -217,6 +218,8 @@ class PlannerScore(TensorDictModuleBase):
                               f"{env.params.episode_steps}.")
         if beam < 1:
             raise ValueError(f"the beam must keep at least one path, got {beam}")
+        if rounds < 1:
+            raise ValueError(f"the planner makes at least one pass, got rounds={rounds}")
         self.env, self.horizon, self.generator = env, horizon, generator
         self.beam, self.rounds = beam, rounds if coordinated else 1
         self.coordinated = coordinated
