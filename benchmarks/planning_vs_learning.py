@@ -12,6 +12,7 @@ with Student-t 95 % CIs over the windows and the compute per decision.
     python benchmarks/planning_vs_learning.py --scenario grid6 --fleets 3 6 --out DIR
     python benchmarks/planning_vs_learning.py --scenario city --fleets 25 --horizons 1 5
     python benchmarks/planning_vs_learning.py --horizons 5 --beams 16 8 4 --ceiling 5
+    python benchmarks/planning_vs_learning.py --horizons 5 --beams 16 4 --rounds 2 1
 
 ``--scenario NAME`` flies a preset of ``conf/scenario`` (a held-out grid, the city)
 instead of the default grid: its test traces, its network for ``--predictors road``.
@@ -37,7 +38,10 @@ it out): what coordinating the fleet's plans is worth.
 
 ``--beams 16 8 4`` flies each mpc with each beam width (the paths its search keeps per
 first move; ``PlannerScore.beam``, ``uabs-eval --mpc-beam``), each narrower one paired
-with the same mpc at the default width (16, flown too if not asked for).
+with the same mpc at the default width (16, flown too if not asked for). ``--rounds 2 1``
+likewise flies each with each number of passes over the fleet (``PlannerScore.rounds``,
+``uabs-eval --mpc-rounds``), each other one paired with the same mpc at the default 2,
+and an mpc off the default in both with the default mpc too.
 
 ``--paired DIR --learned HYBRID_DIR`` pairs a population's learned policy, and the
 hybrid or leaf at its λ*, as ``benchmarks/hybrid.py`` flew them on the test windows into
@@ -71,7 +75,8 @@ from uabs_rl.safety.make import make_selector
 def evaluate(mode: str, m: int, horizons: list[int], ceiling: list[int], sees: list[str],
              log, predictors: tuple[str, ...] = ("cv",), uncoordinated: bool = False,
              scenario: str | None = None,
-             beams: tuple[int, ...] = (BEAM,)) -> tuple[list[dict], list[dict]]:
+             beams: tuple[int, ...] = (BEAM,),
+             rounds: tuple[int, ...] = (ROUNDS,)) -> tuple[list[dict], list[dict]]:
     over = [] if scenario is None else [f"scenario={scenario}"]
     cfg = compose("config", over + [f"masking={mode}", f"scenario.n_uabs={m}"])
     env = make_eval_env(cfg, split="test")
@@ -79,27 +84,31 @@ def evaluate(mode: str, m: int, horizons: list[int], ceiling: list[int], sees: l
     if scenario is not None:
         log(f"scenario={scenario}, {mode} masks, M={m}: its test traces")
     made = {pred: make_predictor(pred, "all", cfg.scenario) for pred in predictors}
-    runs = [("greedy", 1, None, "all", True, BEAM), ("oracle", 1, None, "all", True, BEAM)]
-    runs += [("mpc", h, pred, s, True, b) for pred in predictors for s in sees
-             for h in horizons for b in beams]
-    runs += [("planner", h, "true", "all", True, BEAM) for h in ceiling]
+    default = (BEAM, ROUNDS)
+    runs = [("greedy", 1, None, "all", True, *default),
+            ("oracle", 1, None, "all", True, *default)]
+    runs += [("mpc", h, pred, s, True, b, r) for pred in predictors for s in sees
+             for h in horizons for b in beams for r in rounds]
+    runs += [("planner", h, "true", "all", True, *default) for h in ceiling]
     if uncoordinated:  # each beside its coordinated self (added if not asked for)
         for name, pred, hs in (("mpc", "cv", horizons), ("planner", "true", ceiling)):
-            together = [(name, h, pred, "all", True, BEAM) for h in hs if h > 1]
+            together = [(name, h, pred, "all", True, *default) for h in hs if h > 1]
             runs += [r for r in together if r not in runs]
-            runs += [(name, h, pred, "all", False, BEAM) for h in hs if h > 1]
+            runs += [(name, h, pred, "all", False, *default) for h in hs if h > 1]
     rows, greedy = [], None
-    for name, h, pred, s, coordinated, beam in runs:
+    for name, h, pred, s, coordinated, beam, passes in runs:
         predictor = ((made.get(pred) or make_predictor(pred, "all", cfg.scenario)
                       if s == "all" else Within(made[pred], float(s)))
                      if name == "mpc" else None)
         policy = baseline_policy(name, env, make_selector(env), 0, horizon=h,
-                                 predictor=predictor, coordinated=coordinated, beam=beam)
+                                 predictor=predictor, coordinated=coordinated, beam=beam,
+                                 rounds=passes)
         t0 = time.perf_counter()
         rec, _ = ev.evaluate(policy)
         sec = time.perf_counter() - t0
-        label = policy_label(name, h, pred, s, coordinated, beam)
+        label = policy_label(name, h, pred, s, coordinated, beam, passes)
         row = {"mode": mode, "n_uabs": m, "policy": label, "horizon": h, "beam": beam,
+               "rounds": passes if coordinated else 1,
                "predictor": pred or "", "sees": s, "windows": rec["windows"],
                "ms_per_decision": 1000 * sec / (rec["windows"] * cfg.scenario.episode_steps),
                "collisions": rec["collisions"], "proximity": rec["proximity"],
@@ -170,6 +179,14 @@ def paired(rows: list[dict], log) -> None:
             wide = by.get((mode, m, re.sub(r", beam \d+", "", label)))
             if wide is not None:
                 line(r, wide, f"{label} - {wide['policy']}")
+        if " round" in label:  # against the same mpc in the default passes
+            twice = by.get((mode, m, re.sub(r", \d+ rounds?", "", label)))
+            if twice is not None:
+                line(r, twice, f"{label} - {twice['policy']}")
+            if ", beam " in label:  # and the default mpc
+                plain = by.get((mode, m, re.sub(r", beam \d+|, \d+ rounds?", "", label)))
+                if plain is not None:
+                    line(r, plain, f"{label} - {plain['policy']}")
 
 
 def paired_learned(rows: list[dict], hybrid_dir: Path, log) -> None:
@@ -219,6 +236,8 @@ def main() -> None:
                     help="the mpc's predictors (default cv)")
     ap.add_argument("--beams", type=int, nargs="+", default=[BEAM],
                     help=f"the mpc's beam widths, paths kept per first move (default {BEAM})")
+    ap.add_argument("--rounds", type=int, nargs="+", default=[ROUNDS],
+                    help=f"the mpc's passes over the fleet (default {ROUNDS})")
     ap.add_argument("--uncoordinated", action="store_true",
                     help="also each mpc (cv) and planner with its UABS planning alone")
     ap.add_argument("--scenario", metavar="NAME",
@@ -237,6 +256,10 @@ def main() -> None:
     # each width once, the default among them: the narrower ones are paired with it
     args.beams = list(dict.fromkeys([BEAM, *args.beams] if BEAM not in args.beams
                                     else args.beams))
+    if min(args.rounds) < 1:
+        ap.error(f"--rounds must be >= 1, got {min(args.rounds)}")
+    args.rounds = list(dict.fromkeys([ROUNDS, *args.rounds] if ROUNDS not in args.rounds
+                                     else args.rounds))
     if args.paired is not None:
         rows = json.loads((args.paired / "per_window.json").read_text())
         paired(rows, print)
@@ -256,7 +279,7 @@ def main() -> None:
         for m in args.fleets:
             r, e = evaluate(mode, m, args.horizons, args.ceiling, args.sees, log,
                             tuple(args.predictors), args.uncoordinated, args.scenario,
-                            tuple(args.beams))
+                            tuple(args.beams), tuple(args.rounds))
             rows += r
             errs += e
     paired(rows, log)

@@ -244,3 +244,27 @@ def test_the_paired_script_pairs_the_learned_policy_and_the_leaf_with_each_plann
     (folder / "hybrid.json").write_text(json.dumps(record))
     with pytest.raises(SystemExit, match="mpc is none of this folder's"):
         bench.paired_learned(rows, folder, lines.append)
+
+
+def test_the_paired_script_pairs_each_narrower_or_single_pass_mpc_with_its_default(
+        tmp_path):
+    """``planning_vs_learning.py --beams 16 4 --rounds 2 1`` writes the four mpcs; the
+    paired differences put each beside the same mpc at the default beam, at the default
+    passes, and one off both defaults beside the default mpc too (per-window values
+    chosen so that every difference is known)."""
+    bench = load_benchmark("planning_vs_learning")
+    served = {"mpc H=5 (cv)": [0.30, 0.40], "mpc H=5 (cv, beam 4)": [0.29, 0.39],
+              "mpc H=5 (cv, 1 round)": [0.28, 0.38],
+              "mpc H=5 (cv, beam 4, 1 round)": [0.26, 0.36]}
+    rows = [{"mode": "rank", "n_uabs": 3, "policy": k, "served_fractions": v, "pgs": v}
+            for k, v in served.items()]
+    lines = []
+    bench.paired(rows, lines.append)
+    said = {line.split(": served")[0]: line.split("served ")[1].split(" [")[0]
+            for line in lines}
+    assert said == {
+        "rank M=3 mpc H=5 (cv, beam 4) - mpc H=5 (cv)": "-1.00",
+        "rank M=3 mpc H=5 (cv, 1 round) - mpc H=5 (cv)": "-2.00",
+        "rank M=3 mpc H=5 (cv, beam 4, 1 round) - mpc H=5 (cv, 1 round)": "-2.00",
+        "rank M=3 mpc H=5 (cv, beam 4, 1 round) - mpc H=5 (cv, beam 4)": "-3.00",
+        "rank M=3 mpc H=5 (cv, beam 4, 1 round) - mpc H=5 (cv)": "-4.00"}, lines
