@@ -86,7 +86,8 @@ def planners(root: Path, city: str, m: int) -> dict[str, dict]:
         j = json.loads(extra.read_text())
         rec = j["policies"].get("mpc", {})
         name = policy_label(MPC_NAME, rec.get("horizon"), rec.get("predictor"),
-                            beam=rec.get("beam"))  # another width: not a planner row
+                            beam=rec.get("beam"),  # another width or passes: not a planner row
+                            rounds=rec.get("rounds"))
         if (j["split"] != "test" or j["scenario"] != city or rec.get("sees") != "all"
                 or f"scenario.n_uabs={m}" not in j["overrides"] or name not in PLANNERS
                 or plan and len(rec["served_fractions"]) != len(

@@ -90,6 +90,11 @@ def flown(run: Path, policies: tuple[str, ...], split: str, windows: int | None,
     return recs
 
 
+def passes(n: int) -> str:
+    """``1 round``, ``3 rounds``: a search's passes over the fleet, as labels name them."""
+    return f"{n} round{'s' * (n != 1)}"
+
+
 def pct(x: float) -> str:
     return f"{100 * x:.2f}"
 
@@ -228,11 +233,11 @@ def main(argv: list[str] | None = None) -> None:
     say(f"test split, every window; {n} member(s); mpc H = {args.mpc_horizon} "
         f"({args.predictor}, sees {args.sees}"
         + (f", beam {args.mpc_beam}" if args.mpc_beam != BEAM else "")
-        + (f", rounds {args.mpc_rounds}" if args.mpc_rounds != ROUNDS else "")
+        + (f", {passes(args.mpc_rounds)}" if args.mpc_rounds != ROUNDS else "")
         + f"); hybrid ({kind}) λ* = {best:g}"
         + (f", H = {args.hybrid_horizon}" if args.hybrid_horizon != args.mpc_horizon else "")
         + (f", beam {args.hybrid_beam}" if args.hybrid_beam != args.mpc_beam else "")
-        + (f", rounds {args.hybrid_rounds}" if args.hybrid_rounds != args.mpc_rounds else ""))
+        + (f", {passes(args.hybrid_rounds)}" if args.hybrid_rounds != args.mpc_rounds else ""))
     say("| policy | served % [95 % CI] | P_g % [95 % CI] | − mpc, served pt | − mpc, P_g pt "
         "| ms per decision |")
     say("|---|---|---|---|---|---|")

@@ -207,7 +207,7 @@ def paired_learned(rows: list[dict], hybrid_dir: Path, log) -> None:
     hyb = (f"{record.get('hybrid', 'hybrid')} "  # files before --leaf have no such key
            f"H={record.get('hybrid_horizon', record['mpc_horizon'])} "
            f"λ={record['best_weight']:g}" + (f" beam {width}" if width != BEAM else "")
-           + (f" rounds {passes}" if passes != ROUNDS else ""))
+           + (f" {passes} round{'s' * (passes != 1)}" if passes != ROUNDS else ""))
     for what, mine in (("learned", flown["learned"]), (hyb, flown.get("hybrid"))):
         if mine is None:
             continue

@@ -189,10 +189,15 @@ def test_an_mpc_flown_by_uabs_eval_joins_the_planners_of_its_city(tmp_path, monk
     cells = [c.strip() for c in row.strip("|").split("|")]
     assert cells[2:4] == ["mpc H=10 cv", "48.00"]
     assert cells[8].startswith("+4.00 [") and cells[9].startswith("+1.00 [")
-    spec["overrides"] = ["scenario=grid6", "scenario.n_uabs=6"]  # another fleet: refused
-    (folder / "eval.json").write_text(json.dumps(spec))
-    with pytest.raises(SystemExit, match="mpc_h10_grid6_3 is not an mpc on grid6's test"):
-        bench.main()
+    for other in ({"overrides": ["scenario=grid6", "scenario.n_uabs=6"]},  # another fleet
+                  {"policies": {"mpc": spec["policies"]["mpc"] | {"rounds": 1}}},  # one pass
+                  {"policies": {"mpc": spec["policies"]["mpc"] | {"beam": 4}}}):  # 4 paths
+        (folder / "eval.json").write_text(json.dumps(spec | other))
+        with pytest.raises(SystemExit, match="mpc_h10_grid6_3 is not an mpc on grid6's test"):
+            bench.main()
+    assert bench.own_mpc({"mpc_horizon": 5, "predictor": "cv", "mpc_beam": 4,
+                          "mpc_rounds": 1}) == "mpc H=5 (cv, beam 4, 1 round)"
+    assert bench.own_mpc({"mpc_horizon": 5, "predictor": "cv"}) == "mpc H=5 (cv)"
 
 
 def test_the_paired_script_pairs_the_learned_policy_and_the_leaf_with_each_planner(
@@ -236,6 +241,20 @@ def test_the_paired_script_pairs_the_learned_policy_and_the_leaf_with_each_plann
     lines = []
     bench.paired_learned(rows, folder, lines.append)
     assert lines[2].startswith("rank M=3 hybrid H=5 λ=1 beam 8 (2 members) - mpc H=5 (cv): ")
+    # beside the mpc at 4 paths in one pass (--mpc-rounds 1), itself in one pass too
+    rows.append({"mode": "rank", "n_uabs": 3, "policy": "mpc H=5 (cv, beam 4, 1 round)",
+                 "served_fractions": mpc, "pgs": mpc})
+    record |= {"mpc_rounds": 1, "hybrid_rounds": 1}
+    record["policies"]["mpc"] = {"served": mpc, "pg": mpc}
+    (folder / "hybrid.json").write_text(json.dumps(record))
+    lines = []
+    bench.paired_learned(rows, folder, lines.append)
+    assert lines[-1].startswith("rank M=3 hybrid H=5 λ=1 beam 8 1 round (2 members) - "
+                                "mpc H=5 (cv, beam 4, 1 round): served +5.50 [")
+    rows.pop()
+    record |= {"mpc_rounds": 2, "hybrid_rounds": 2}
+    record["policies"]["mpc"] = {"served": narrow, "pg": narrow}
+    (folder / "hybrid.json").write_text(json.dumps(record))
     rows[1]["served_fractions"] = mpc
     with pytest.raises(SystemExit, match=r"mpc is none of this folder's mpc H=5 \(cv, beam 4\)"):
         bench.paired_learned(rows, folder, lines.append)

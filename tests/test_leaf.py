@@ -256,24 +256,29 @@ def test_the_benchmark_flies_a_shorter_leaf_beside_the_mpc(ego_run, tmp_path):
 
 
 def test_the_benchmark_flies_a_narrower_mpc_beside_the_leaf(ego_run, tmp_path):
-    """``--mpc-beam 1 --hybrid-beam 16``: the mpc beside the leaf keeps 1 path per first
-    move, the leaf (λ = 0: the mpc at 16 paths, on validation and test) 16; both recorded
-    and printed."""
+    """``--mpc-beam 1 --mpc-rounds 1 --hybrid-beam 16 --hybrid-rounds 2``: the mpc beside
+    the leaf keeps 1 path per first move in one pass over the fleet, the leaf (λ = 0: the
+    mpc at 16 paths in two passes, on validation and test) the defaults; all recorded and
+    printed."""
     bench = load_benchmark("hybrid")
     bench.main([str(ego_run), "--leaf", "--weights", "0", "--mpc-beam", "1",
-                "--hybrid-beam", "16", "--eval-windows", "2", "--out", str(tmp_path)])
+                "--hybrid-beam", "16", "--mpc-rounds", "1", "--hybrid-rounds", "2",
+                "--eval-windows", "2", "--out", str(tmp_path)])
     out = json.loads((tmp_path / "hybrid.json").read_text())
-    assert (out["mpc_beam"], out["hybrid_beam"]) == (1, 16)
-    fly = lambda split, windows, b: evaluate_policies(  # noqa: E731
-        load_evaluation(ego_run, "best", windows, split), (MPC,), beam=b)[MPC][0]
-    narrow, wide = fly("test", None, 1), fly("test", None, 16)
-    assert narrow["served_fractions"] != wide["served_fractions"]  # the two differ here
+    assert (out["mpc_beam"], out["hybrid_beam"], out["mpc_rounds"], out["hybrid_rounds"]) == (
+        1, 16, 1, 2)
+    fly = lambda split, windows, b, r: evaluate_policies(  # noqa: E731
+        load_evaluation(ego_run, "best", windows, split), (MPC,), beam=b, rounds=r)[MPC][0]
+    narrow, wide = fly("test", None, 1, 1), fly("test", None, 16, 2)
+    # the settings differ here: each one left out would show
+    assert len({str(x["served_fractions"]) for x in (
+        narrow, wide, fly("test", None, 1, 2), fly("test", None, 16, 1))}) == 4
     assert out["weights"]["0.0"][0] == pytest.approx(
-        sum(fly("eval", 2, 16)["served_fractions"]) / 2)
+        sum(fly("eval", 2, 16, 2)["served_fractions"]) / 2)
     assert out["policies"]["hybrid"]["served"][0] == wide["served_fractions"]
     assert out["policies"]["mpc"]["served"] == narrow["served_fractions"]
-    assert "mpc H = 5 (cv, sees all, beam 1); hybrid (the learned values at the paths' " \
-           "ends) λ* = 0, beam 16" in (tmp_path / "log.txt").read_text()
+    assert "mpc H = 5 (cv, sees all, beam 1, 1 round); hybrid (the learned values at the " \
+           "paths' ends) λ* = 0, beam 16, 2 rounds" in (tmp_path / "log.txt").read_text()
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
