@@ -369,6 +369,11 @@ def test_uabs_report_mpc_sits_beside_greedy_and_the_oracle(smoke_run, tmp_path):
     assert mpc["horizon"] == 2 and mpc["predictor"] == "cv"
     assert row["baseline_value"] == pytest.approx(float(np.mean(mpc["served_fractions"])))
     assert (out / "fig4_pg.png").stat().st_size > 10_000
+    assert (mpc["beam"], mpc["rounds"]) == (16, 2)
+    # --mpc-beam, --mpc-rounds: that mpc
+    narrow = build_report(smoke_run, tmp_path / "narrow", mpc=2, mpc_beam=1, mpc_rounds=1)
+    mpc = narrow["baselines"][f"mpc ({mode} masks)"]
+    assert (mpc["horizon"], mpc["beam"], mpc["rounds"]) == (2, 1, 1)
     # without --mpc nothing of it
     plain = build_report(smoke_run, tmp_path / "plain")
     assert list(plain["baselines"]) == [f"{b} ({mode} masks)" for b in names[:3]]
@@ -377,7 +382,10 @@ def test_uabs_report_mpc_sits_beside_greedy_and_the_oracle(smoke_run, tmp_path):
 @pytest.mark.parametrize("module, args, says", [
     ("evaluate", ["RUN", "--policy", "mpc", "--mpc-horizon", "0"], "--mpc-horizon must be >= 1"),
     ("report", ["DIR", "--mpc", "0"], "--mpc H needs H >= 1"),
-    ("report", ["DIR", "--mpc", "5", "--no-baselines"], "--mpc H needs H >= 1")])
+    ("report", ["DIR", "--mpc", "5", "--no-baselines"], "--mpc H needs H >= 1"),
+    ("report", ["DIR", "--mpc-beam", "4"], "--mpc-beam goes with --mpc H"),
+    ("report", ["DIR", "--mpc", "5", "--mpc-rounds", "0"],
+     "--mpc-rounds goes with --mpc H and must be >= 1, got 0")])
 def test_mpc_option_errors_are_one_line(module, args, says, capsys):
     import importlib
 

@@ -95,6 +95,12 @@ def main(argv: list[str] | None = None) -> int:
                          "(mpc: the vehicles' current and previous positions extrapolated "
                          "at constant velocity) beside greedy and the oracle, in the "
                          "baseline tables and Fig. 4")
+    ap.add_argument("--mpc-beam", type=int, metavar="B",
+                    help="with --mpc: the paths its beam search keeps per first move "
+                         "(default 16, as uabs-eval --mpc-beam)")
+    ap.add_argument("--mpc-rounds", type=int, metavar="R",
+                    help="with --mpc: its passes over the fleet (default 2, as uabs-eval "
+                         "--mpc-rounds)")
     ap.add_argument("--export", choices=("marl-eval",),
                     help="also write the runs in marl-eval's JSON layout (marl_eval.json: "
                          "per run, per evaluation, per metric; best.pt's test windows as "
@@ -114,6 +120,9 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("--planner H needs H >= 1 and the test-trace evaluation (no --no-baselines)")
     if args.mpc is not None and (args.mpc < 1 or not args.baselines):
         ap.error("--mpc H needs H >= 1 and the test-trace evaluation (no --no-baselines)")
+    for flag, value in (("--mpc-beam", args.mpc_beam), ("--mpc-rounds", args.mpc_rounds)):
+        if value is not None and (args.mpc is None or value < 1):
+            ap.error(f"{flag} goes with --mpc H and must be >= 1, got {value}")
     cmd = "uabs-report " + " ".join(sys.argv[1:] if argv is None else argv)
     try:
         for root in args.roots:
@@ -126,7 +135,8 @@ def main(argv: list[str] | None = None) -> int:
                 curves_figure(group_runs(runs), folder / "curves")
             else:
                 res = build_report(args.roots, folder, args.baselines, cmd, args.planner,
-                                   runs=runs, export=args.export, mpc=args.mpc)
+                                   runs=runs, export=args.export, mpc=args.mpc,
+                                   mpc_beam=args.mpc_beam, mpc_rounds=args.mpc_rounds)
                 text = (folder / "summary.md").read_text()
     except (ReportError, ConfigError, CheckpointError, MetricsError) as e:
         print(f"error: {e}", file=sys.stderr)

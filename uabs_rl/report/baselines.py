@@ -9,18 +9,20 @@ from pathlib import Path
 
 import numpy as np
 
-from uabs_rl.evaluation.baselines import BASELINES, MPC, PLANNER
+from uabs_rl.evaluation.baselines import BASELINES, MPC, PLANNER, policy_label
 from uabs_rl.runs.sweep import Grouping, Run
 
 
 def evaluate_on_test(runs: list[Run], planner_runs: frozenset[Path] = frozenset(),
                      horizon: int = 1, mpc: int | None = None,
-                     mpc_runs: frozenset[Path] = frozenset()) -> dict[Path, dict[str, dict]]:
+                     mpc_runs: frozenset[Path] = frozenset(), mpc_beam: int | None = None,
+                     mpc_rounds: int | None = None) -> dict[Path, dict[str, dict]]:
     """Each run's ``best.pt`` (chosen on validation) and the random, greedy and oracle
     baselines with the run's masks, on every window of the test traces; for the runs in
     ``planner_runs`` also the receding-horizon planner of ``horizon``, for those in
-    ``mpc_runs`` the deployable mpc of horizon ``mpc`` (constant velocity; their cost
-    per decision said on stderr)."""
+    ``mpc_runs`` the deployable mpc of horizon ``mpc`` (constant velocity; ``mpc_beam``
+    paths per first move, ``mpc_rounds`` passes over the fleet, default planner's; their
+    cost per decision said on stderr)."""
     from uabs_rl.evaluation.load import POLICIES, evaluate_policies, load_evaluation
 
     out = {}
@@ -30,14 +32,16 @@ def evaluate_on_test(runs: list[Run], planner_runs: frozenset[Path] = frozenset(
                      *([MPC] if mpc is not None and run.path in mpc_runs else [])))
         out[run.path] = {k: rec for k, (rec, _) in
                          evaluate_policies(ev, policies, horizon=horizon,
-                                           mpc_horizon=mpc or 1).items()}
+                                           mpc_horizon=mpc or 1, beam=mpc_beam,
+                                           rounds=mpc_rounds).items()}
         if PLANNER in out[run.path]:
             rec = out[run.path][PLANNER]
             print(f"planner H={horizon} on {run.path}: {rec['seconds'] / rec['windows']:.2f} "
                   f"s per window ({rec['windows']} windows)", file=sys.stderr)
         if MPC in out[run.path]:
             rec = out[run.path][MPC]
-            print(f"mpc H={mpc} (constant velocity) on {run.path}: "
+            print(f"{policy_label(MPC, mpc, 'cv', beam=rec['beam'], rounds=rec['rounds'])} "
+                  f"on {run.path}: "
                   f"{rec['ms_per_decision']:.1f} ms per decision ({rec['windows']} windows)",
                   file=sys.stderr)
     return out

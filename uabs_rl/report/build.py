@@ -32,11 +32,14 @@ from uabs_rl.runs.sweep import Run, describe, find_runs, group_runs
 def build_report(roots: Path | list[Path], out: Path, with_baselines: bool = True,
                  command: str = "", planner: int | None = None,
                  runs: list[Run] | None = None, export: str | None = None,
-                 mpc: int | None = None) -> dict[str, Any]:
+                 mpc: int | None = None, mpc_beam: int | None = None,
+                 mpc_rounds: int | None = None) -> dict[str, Any]:
     """Every file of the report of the runs under ``roots`` (``runs``: those already
     found there), written to ``out`` (``planner``: the planner's horizon, to place the
     learned runs between greedy and it; ``mpc``: the deployable mpc's horizon, beside
-    greedy and the oracle; ``export="marl-eval"``: also ``marl_eval.json``)."""
+    greedy and the oracle, ``mpc_beam`` and ``mpc_rounds`` its search's paths per first
+    move and passes over the fleet (default planner.BEAM and planner.ROUNDS);
+    ``export="marl-eval"``: also ``marl_eval.json``)."""
     roots = [roots] if isinstance(roots, str | Path) else list(roots)
     grouping = group_runs(find_runs(*roots) if runs is None else runs)
     groups = grouping.groups
@@ -49,7 +52,7 @@ def build_report(roots: Path | list[Path], out: Path, with_baselines: bool = Tru
     tests = evaluate_on_test([r for runs in groups.values() for r in runs],
                              panel_runs(grouping) if planner is not None else frozenset(),
                              planner or 1, mpc, panel_runs(grouping) if mpc is not None
-                             else frozenset()) if with_baselines else {}
+                             else frozenset(), mpc_beam, mpc_rounds) if with_baselines else {}
     baselines = baselines_on_test(grouping, tests) if tests else {}
     if baselines:
         write_baselines(out / "baselines.csv", baselines)
