@@ -26,7 +26,9 @@ mean over its seeds). The mpc costs far more than the learned policies (about a 
 per fleet decision at M = 25 over a district): ``--mpc-from CITY:M=EVAL_JSON`` takes a
 pair's mpc from a ``uabs-eval RUN <the pair's overrides> --policy mpc --mpc-horizon H``
 of a run with the same masking and channel (its ``eval.json``: per window, the same
-windows) instead of flying it again.
+windows) instead of flying it again. ``--mpc-beam B`` and ``--mpc-rounds R`` set its
+search as ``uabs-eval``'s do (paths per first move, passes over the fleet; columns
+``mpc_beam``, ``mpc_rounds``); a record of ``--mpc-from`` must have the same.
 """
 
 from __future__ import annotations
@@ -42,6 +44,7 @@ import numpy as np
 
 from uabs_rl.config import ConfigError
 from uabs_rl.evaluation.load import evaluate_policies, load_evaluation
+from uabs_rl.evaluation.planner import BEAM, ROUNDS
 from uabs_rl.evaluation.stats import (
     AGGREGATE_METHOD,
     iqm_runs,
@@ -61,10 +64,13 @@ def overrides(at: str) -> list[str]:
     return ([] if city == "home" else [f"scenario={city}"]) + [f"scenario.n_uabs={m}"]
 
 
-def mpc_from(path: Path, at: str, horizon: int) -> dict:
+def mpc_from(path: Path, at: str, horizon: int, beam: int = BEAM,
+             rounds: int = ROUNDS) -> dict:
     """The mpc's record (:func:`record`) from a ``uabs-eval --policy mpc`` record
     (``eval.json``) of the pair ``at``: the test split, the pair's overrides, horizon H,
-    the constant-velocity predictor and every vehicle seen; refused otherwise."""
+    the constant-velocity predictor, every vehicle seen, ``beam`` paths per first move
+    and ``rounds`` passes (the defaults where a record predates them); refused
+    otherwise."""
     try:
         d = json.loads(path.read_text())
     except (OSError, ValueError) as e:
@@ -73,20 +79,27 @@ def mpc_from(path: Path, at: str, horizon: int) -> dict:
     rec = (d.get("policies") or {}).get("mpc") or {}
     if ((d.get("split"), sorted(d.get("overrides") or [])) != ("test", sorted(overrides(at)))
             or (rec.get("horizon"), rec.get("predictor"), rec.get("sees")) != (horizon, "cv", "all")
+            or (rec.get("beam", BEAM), rec.get("rounds", ROUNDS)) != (beam, rounds)
             or any(key not in rec for key in METRICS.values())):
+        search = "".join(f" --mpc-{k} {v}" for k, v, d in (("beam", beam, BEAM),
+                                                            ("rounds", rounds, ROUNDS))
+                         if v != d)
         raise SystemExit(
             f"--mpc-from {at}={path}: not the mpc of {at} on the test split at horizon "
-            f"{horizon} (constant velocity, every vehicle seen); write it with uabs-eval "
-            f"RUN {' '.join(overrides(at))} --policy mpc --mpc-horizon {horizon}")
+            f"{horizon} (constant velocity, every vehicle seen, beam {beam}, {rounds} "
+            f"round{'s' * (rounds != 1)}); write it with uabs-eval RUN "
+            f"{' '.join(overrides(at))} --policy mpc --mpc-horizon {horizon}{search}")
     return record({"ms_per_decision": float("nan"), **rec})
 
 
 def evaluate(runs: list[Path], over: list[str], dirs: list[Path],
-             baselines: tuple[str, ...] = (), mpc_horizon: int = 5
+             baselines: tuple[str, ...] = (), mpc_horizon: int = 5,
+             beam: int = BEAM, rounds: int = ROUNDS
              ) -> tuple[list[dict], dict[str, dict]] | None:
     """Per seed, the learned policy's record (its served fraction and P_g per window,
     :data:`METRICS`, and its ms per decision), and the records of the ``baselines`` (on
-    the first seed's env: they do not depend on the run's seed); None where the network
+    the first seed's env: they do not depend on the run's seed; the mpc's search
+    ``mpc_horizon`` steps, ``beam`` paths, ``rounds`` passes); None where the network
     does not fit (the paper's observation at another M)."""
     out, base = [], {}
     for i, run in enumerate(runs):
@@ -97,7 +110,7 @@ def evaluate(runs: list[Path], over: list[str], dirs: list[Path],
                 return None
             raise
         res = evaluate_policies(ev, ("learned", *(baselines if i == 0 else ())),
-                                mpc_horizon=mpc_horizon)
+                                mpc_horizon=mpc_horizon, beam=beam, rounds=rounds)
         values = {k: record(rec) for k, (rec, _) in res.items()}
         out.append(values.pop("learned"))
         base = base or values
@@ -205,7 +218,13 @@ def main(argv: list[str] | None = None) -> None:
                     help="also the deployable mpc of horizon H (constant velocity)")
     ap.add_argument("--mpc-from", nargs="+", default=[], metavar="CITY:M=EVAL_JSON",
                     help="a pair's mpc from a uabs-eval --policy mpc record (with --mpc)")
+    ap.add_argument("--mpc-beam", type=int, default=BEAM, metavar="B",
+                    help=f"the mpc's paths per first move (default {BEAM})")
+    ap.add_argument("--mpc-rounds", type=int, default=ROUNDS, metavar="R",
+                    help=f"the mpc's passes over the fleet (default {ROUNDS})")
     args = ap.parse_args(argv)
+    if min(args.mpc_beam, args.mpc_rounds) < 1:
+        ap.error("--mpc-beam and --mpc-rounds must be >= 1")
     if any("=" not in item for item in args.mpc_from):
         raise SystemExit("--mpc-from takes CITY:M=EVAL_JSON items")
     given = dict(item.split("=", 1) for item in args.mpc_from)
@@ -213,7 +232,8 @@ def main(argv: list[str] | None = None) -> None:
         raise SystemExit("--mpc-from needs --mpc H (the horizon the records must have)")
     if set(given) - set(args.at):
         raise SystemExit(f"--mpc-from names pairs not in --at: {sorted(set(given) - set(args.at))}")
-    recorded = {at: mpc_from(Path(path), at, args.mpc) for at, path in given.items()}
+    recorded = {at: mpc_from(Path(path), at, args.mpc, args.mpc_beam, args.mpc_rounds)
+                for at, path in given.items()}
     runs = RunFolder(args.runs).members()
     other = RunFolder(args.beside).members() if args.beside else []
     rows = []
@@ -225,7 +245,8 @@ def main(argv: list[str] | None = None) -> None:
         over = overrides(at)
         fly_mpc = args.mpc and at not in given
         found = evaluate(runs, over, args.config_dir,
-                         ("greedy", "oracle", *(["mpc"] if fly_mpc else [])), args.mpc or 5)
+                         ("greedy", "oracle", *(["mpc"] if fly_mpc else [])), args.mpc or 5,
+                         args.mpc_beam, args.mpc_rounds)
         if found is None:
             raise SystemExit(f"{args.runs}: its network does not fit {at}")
         mine, base = found
@@ -248,6 +269,7 @@ def main(argv: list[str] | None = None) -> None:
             dm, lo_m, hi_m = versus(mine, base["mpc"])
             dp, lo_p, hi_p = versus(mine, base["mpc"], "pg")
             row.update(mpc=float(base["mpc"]["served"].mean()), mpc_horizon=args.mpc,
+                       mpc_beam=args.mpc_beam, mpc_rounds=args.mpc_rounds,
                        learned_minus_mpc=dm, mpc_ci_low=lo_m, mpc_ci_high=hi_m,
                        pg_learned=mean_of(mine, "pg"),
                        **{f"pg_{k}": float(base[k]["pg"].mean()) for k in base},

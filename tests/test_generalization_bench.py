@@ -26,8 +26,11 @@ def test_the_table_holds_learned_minus_mpc_in_both_metrics_and_the_costs(
             "oracle": rec(greedy + 0.02, greedy + 0.07, 0.1),
             "mpc": rec(greedy + 0.10, greedy + 0.20, 3.0, collisions=1.0)}
 
-    def evaluate(runs, over, dirs, baselines=(), mpc_horizon=5):
+    asked = []
+
+    def evaluate(runs, over, dirs, baselines=(), mpc_horizon=5, beam=16, rounds=2):
         assert over == ["scenario=grid6", "scenario.n_uabs=6"] and mpc_horizon == 5
+        asked.append((beam, rounds))
         assert "mpc" in baselines
         return seeds, dict(base)
 
@@ -54,3 +57,28 @@ def test_the_table_holds_learned_minus_mpc_in_both_metrics_and_the_costs(
     printed = capsys.readouterr()
     assert "P_g(5)" in printed.out and "-5.00 [" in printed.out and "-9.00 [" in printed.out
     assert "1 collisions" in printed.err
+
+    # the mpc's search as asked, in its columns
+    bench.main(["runs", "--at", "grid6:6", "--mpc", "5", "--mpc-beam", "4", "--mpc-rounds",
+                "1", "--csv", str(out)])
+    (row,) = csv.DictReader(out.open())
+    assert asked[-1] == (4, 1) and (row["mpc_beam"], row["mpc_rounds"]) == ("4", "1")
+
+
+def test_a_recorded_mpc_of_another_search_is_refused_with_the_command(tmp_path):
+    """``--mpc-from``: a uabs-eval record of the mpc at the default search is refused for
+    ``--mpc-beam 4 --mpc-rounds 1`` (and taken for the default), naming the command."""
+    import json
+
+    bench = load_benchmark("generalization")
+    path = tmp_path / "eval.json"
+    path.write_text(json.dumps({"split": "test", "overrides": ["scenario=grid6",
+                                                               "scenario.n_uabs=6"],
+                                "policies": {"mpc": {
+                                    "horizon": 5, "predictor": "cv", "sees": "all",
+                                    "served_fractions": [0.3], "pgs": [0.4],
+                                    "collisions": 0, "proximity": 0, "fallbacks": 0}}}))
+    assert bench.mpc_from(path, "grid6:6", 5)["served"].tolist() == [0.3]
+    with pytest.raises(SystemExit, match="beam 4, 1 round.*--mpc-horizon 5 --mpc-beam 4 "
+                                         "--mpc-rounds 1$"):
+        bench.mpc_from(path, "grid6:6", 5, beam=4, rounds=1)
