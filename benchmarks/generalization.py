@@ -81,9 +81,9 @@ def mpc_from(path: Path, at: str, horizon: int, beam: int = BEAM,
             or (rec.get("horizon"), rec.get("predictor"), rec.get("sees")) != (horizon, "cv", "all")
             or (rec.get("beam", BEAM), rec.get("rounds", ROUNDS)) != (beam, rounds)
             or any(key not in rec for key in METRICS.values())):
-        search = "".join(f" --mpc-{k} {v}" for k, v, d in (("beam", beam, BEAM),
-                                                            ("rounds", rounds, ROUNDS))
-                         if v != d)
+        search = "".join(f" --mpc-{k} {v}" for k, v, default in (("beam", beam, BEAM),
+                                                                  ("rounds", rounds, ROUNDS))
+                         if v != default)
         raise SystemExit(
             f"--mpc-from {at}={path}: not the mpc of {at} on the test split at horizon "
             f"{horizon} (constant velocity, every vehicle seen, beam {beam}, {rounds} "
@@ -218,13 +218,19 @@ def main(argv: list[str] | None = None) -> None:
                     help="also the deployable mpc of horizon H (constant velocity)")
     ap.add_argument("--mpc-from", nargs="+", default=[], metavar="CITY:M=EVAL_JSON",
                     help="a pair's mpc from a uabs-eval --policy mpc record (with --mpc)")
-    ap.add_argument("--mpc-beam", type=int, default=BEAM, metavar="B",
-                    help=f"the mpc's paths per first move (default {BEAM})")
-    ap.add_argument("--mpc-rounds", type=int, default=ROUNDS, metavar="R",
-                    help=f"the mpc's passes over the fleet (default {ROUNDS})")
+    ap.add_argument("--mpc-beam", type=int, metavar="B",
+                    help=f"with --mpc: its paths per first move (default {BEAM})")
+    ap.add_argument("--mpc-rounds", type=int, metavar="R",
+                    help=f"with --mpc: its passes over the fleet (default {ROUNDS})")
     args = ap.parse_args(argv)
+    if (args.mpc_beam, args.mpc_rounds) != (None, None) and not args.mpc:
+        raise SystemExit("--mpc-beam and --mpc-rounds set the search of --mpc H: give "
+                         "--mpc H too")
+    args.mpc_beam = BEAM if args.mpc_beam is None else args.mpc_beam
+    args.mpc_rounds = ROUNDS if args.mpc_rounds is None else args.mpc_rounds
     if min(args.mpc_beam, args.mpc_rounds) < 1:
-        ap.error("--mpc-beam and --mpc-rounds must be >= 1")
+        ap.error(f"--mpc-beam and --mpc-rounds must be >= 1, got {args.mpc_beam} and "
+                 f"{args.mpc_rounds}")
     if any("=" not in item for item in args.mpc_from):
         raise SystemExit("--mpc-from takes CITY:M=EVAL_JSON items")
     given = dict(item.split("=", 1) for item in args.mpc_from)

@@ -28,7 +28,7 @@ def test_the_table_holds_learned_minus_mpc_in_both_metrics_and_the_costs(
 
     asked = []
 
-    def evaluate(runs, over, dirs, baselines=(), mpc_horizon=5, beam=16, rounds=2):
+    def evaluate(runs, over, dirs, baselines=(), mpc_horizon=5, beam=None, rounds=None):
         assert over == ["scenario=grid6", "scenario.n_uabs=6"] and mpc_horizon == 5
         asked.append((beam, rounds))
         assert "mpc" in baselines
@@ -58,6 +58,10 @@ def test_the_table_holds_learned_minus_mpc_in_both_metrics_and_the_costs(
     assert "P_g(5)" in printed.out and "-5.00 [" in printed.out and "-9.00 [" in printed.out
     assert "1 collisions" in printed.err
 
+    from uabs_rl.evaluation.planner import BEAM, ROUNDS
+
+    assert asked == [(BEAM, ROUNDS)] and (row["mpc_beam"], row["mpc_rounds"]) == (
+        str(BEAM), str(ROUNDS))
     # the mpc's search as asked, in its columns
     bench.main(["runs", "--at", "grid6:6", "--mpc", "5", "--mpc-beam", "4", "--mpc-rounds",
                 "1", "--csv", str(out)])
@@ -79,6 +83,8 @@ def test_a_recorded_mpc_of_another_search_is_refused_with_the_command(tmp_path):
                                     "served_fractions": [0.3], "pgs": [0.4],
                                     "collisions": 0, "proximity": 0, "fallbacks": 0}}}))
     assert bench.mpc_from(path, "grid6:6", 5)["served"].tolist() == [0.3]
+    with pytest.raises(SystemExit, match="set the search of --mpc H: give --mpc H too"):
+        bench.main(["runs", "--at", "grid6:6", "--mpc-beam", "4"])
     with pytest.raises(SystemExit, match="beam 4, 1 round.*--mpc-horizon 5 --mpc-beam 4 "
                                          "--mpc-rounds 1$"):
         bench.mpc_from(path, "grid6:6", 5, beam=4, rounds=1)

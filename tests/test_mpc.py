@@ -379,13 +379,33 @@ def test_uabs_report_mpc_sits_beside_greedy_and_the_oracle(smoke_run, tmp_path):
     assert list(plain["baselines"]) == [f"{b} ({mode} masks)" for b in names[:3]]
 
 
+def test_uabs_report_passes_the_mpcs_search_on(smoke_run, tmp_path, monkeypatch, capsys):
+    """``uabs-report DIR --mpc 2 --mpc-beam 1 --mpc-rounds 1``: build_report is asked for
+    that mpc (a spy that stops there: nothing is written)."""
+    import uabs_rl.cli.report as cli
+    from uabs_rl.runs.sweep import ReportError
+
+    asked = {}
+
+    def spy(*args, **kwargs):
+        asked.update(kwargs)
+        raise ReportError("stopped by the test")
+
+    monkeypatch.setattr(cli, "build_report", spy)
+    assert cli.main([str(smoke_run), "--mpc", "2", "--mpc-beam", "1", "--mpc-rounds", "1",
+                     "--out", str(tmp_path / "r")]) == 2
+    assert (asked["mpc"], asked["mpc_beam"], asked["mpc_rounds"]) == (2, 1, 1)
+    assert "stopped by the test" in capsys.readouterr().err
+    assert not (tmp_path / "r").exists()
+
+
 @pytest.mark.parametrize("module, args, says", [
     ("evaluate", ["RUN", "--policy", "mpc", "--mpc-horizon", "0"], "--mpc-horizon must be >= 1"),
     ("report", ["DIR", "--mpc", "0"], "--mpc H needs H >= 1"),
     ("report", ["DIR", "--mpc", "5", "--no-baselines"], "--mpc H needs H >= 1"),
-    ("report", ["DIR", "--mpc-beam", "4"], "--mpc-beam goes with --mpc H"),
-    ("report", ["DIR", "--mpc", "5", "--mpc-rounds", "0"],
-     "--mpc-rounds goes with --mpc H and must be >= 1, got 0")])
+    ("report", ["DIR", "--mpc-beam", "4"], "--mpc-beam sets the search of --mpc H: give "
+                                            "--mpc H too"),
+    ("report", ["DIR", "--mpc", "5", "--mpc-rounds", "0"], "--mpc-rounds must be >= 1, got 0")])
 def test_mpc_option_errors_are_one_line(module, args, says, capsys):
     import importlib
 

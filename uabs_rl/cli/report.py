@@ -121,8 +121,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.mpc is not None and (args.mpc < 1 or not args.baselines):
         ap.error("--mpc H needs H >= 1 and the test-trace evaluation (no --no-baselines)")
     for flag, value in (("--mpc-beam", args.mpc_beam), ("--mpc-rounds", args.mpc_rounds)):
-        if value is not None and (args.mpc is None or value < 1):
-            ap.error(f"{flag} goes with --mpc H and must be >= 1, got {value}")
+        if value is not None and args.mpc is None:
+            ap.error(f"{flag} sets the search of --mpc H: give --mpc H too")
+        if value is not None and value < 1:
+            ap.error(f"{flag} must be >= 1, got {value}")
     cmd = "uabs-report " + " ".join(sys.argv[1:] if argv is None else argv)
     try:
         for root in args.roots:
