@@ -287,3 +287,28 @@ def test_the_paired_script_pairs_each_narrower_or_single_pass_mpc_with_its_defau
         "rank M=3 mpc H=5 (cv, beam 4, 1 round) - mpc H=5 (cv, 1 round)": "-2.00",
         "rank M=3 mpc H=5 (cv, beam 4, 1 round) - mpc H=5 (cv, beam 4)": "-3.00",
         "rank M=3 mpc H=5 (cv, beam 4, 1 round) - mpc H=5 (cv)": "-4.00"}, lines
+
+
+def test_two_hybrid_folders_are_compared_only_beside_the_same_mpc(tmp_path, capsys):
+    """``hybrid.py --compare A B``: learned(A) − learned(B) with Welch's interval when both
+    were flown beside the same mpc (a record without the beam or passes counts as the
+    defaults); refused when the mpc's search differs."""
+    bench = load_benchmark("hybrid")
+    mpc = [0.30, 0.40]
+
+    def folder(name, learned, **extra):
+        path = tmp_path / name
+        path.mkdir()
+        (path / "hybrid.json").write_text(json.dumps({
+            "mpc_horizon": 5, "predictor": "cv", "sees": "all", "overrides": [], **extra,
+            "policies": {"mpc": {"served": mpc, "pg": mpc},
+                         "learned": {"served": learned, "pg": learned}}}))
+        return path
+
+    a = folder("a", [[0.32, 0.42], [0.34, 0.44]])  # before the keys: the defaults
+    b = folder("b", [[0.30, 0.40], [0.31, 0.41]], mpc_beam=16, mpc_rounds=2)
+    bench.compare(a, b)
+    assert "served: +2.50 [" in capsys.readouterr().out  # 0.38 − 0.355
+    c = folder("c", [[0.30, 0.40], [0.31, 0.41]], mpc_beam=16, mpc_rounds=1)
+    with pytest.raises(SystemExit, match="not comparable"):
+        bench.compare(a, c)
