@@ -43,6 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from uabs_rl.config import ConfigError
+from uabs_rl.evaluation.baselines import passes_text
 from uabs_rl.evaluation.load import evaluate_policies, load_evaluation
 from uabs_rl.evaluation.planner import BEAM, ROUNDS
 from uabs_rl.evaluation.stats import (
@@ -86,8 +87,8 @@ def mpc_from(path: Path, at: str, horizon: int, beam: int = BEAM,
                          if v != default)
         raise SystemExit(
             f"--mpc-from {at}={path}: not the mpc of {at} on the test split at horizon "
-            f"{horizon} (constant velocity, every vehicle seen, beam {beam}, {rounds} "
-            f"round{'s' * (rounds != 1)}); write it with uabs-eval RUN "
+            f"{horizon} (constant velocity, every vehicle seen, beam {beam}, "
+            f"{passes_text(rounds)}); write it with uabs-eval RUN "
             f"{' '.join(overrides(at))} --policy mpc --mpc-horizon {horizon}{search}")
     return record({"ms_per_decision": float("nan"), **rec})
 

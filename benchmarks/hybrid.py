@@ -49,6 +49,7 @@ from pathlib import Path
 import numpy as np
 
 from uabs_rl.config import ConfigError
+from uabs_rl.evaluation.baselines import passes_text
 from uabs_rl.evaluation.hybrid import HYBRID
 from uabs_rl.evaluation.leaf import LEAF
 from uabs_rl.evaluation.load import Evaluation, evaluate_policies, load_evaluation
@@ -88,11 +89,6 @@ def flown(run: Path, policies: tuple[str, ...], split: str, windows: int | None,
             sys.exit(f"{run} {name} on {split}: {rec['collisions']} collisions, "
                      f"{rec['proximity']} proximity events, {rec['fallbacks']} fallbacks")
     return recs
-
-
-def passes(n: int) -> str:
-    """``1 round``, ``3 rounds``: a search's passes over the fleet, as labels name them."""
-    return f"{n} round{'s' * (n != 1)}"
 
 
 def pct(x: float) -> str:
@@ -233,11 +229,12 @@ def main(argv: list[str] | None = None) -> None:
     say(f"test split, every window; {n} member(s); mpc H = {args.mpc_horizon} "
         f"({args.predictor}, sees {args.sees}"
         + (f", beam {args.mpc_beam}" if args.mpc_beam != BEAM else "")
-        + (f", {passes(args.mpc_rounds)}" if args.mpc_rounds != ROUNDS else "")
+        + (f", {passes_text(args.mpc_rounds)}" if args.mpc_rounds != ROUNDS else "")
         + f"); hybrid ({kind}) λ* = {best:g}"
         + (f", H = {args.hybrid_horizon}" if args.hybrid_horizon != args.mpc_horizon else "")
         + (f", beam {args.hybrid_beam}" if args.hybrid_beam != args.mpc_beam else "")
-        + (f", {passes(args.hybrid_rounds)}" if args.hybrid_rounds != args.mpc_rounds else ""))
+        + (f", {passes_text(args.hybrid_rounds)}" if args.hybrid_rounds != args.mpc_rounds
+           else ""))
     say("| policy | served % [95 % CI] | P_g % [95 % CI] | − mpc, served pt | − mpc, P_g pt "
         "| ms per decision |")
     say("|---|---|---|---|---|---|")

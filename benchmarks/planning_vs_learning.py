@@ -64,7 +64,13 @@ from pathlib import Path
 import torch
 
 from uabs_rl.config import compose
-from uabs_rl.evaluation.baselines import MPC, PLANNER, baseline_policy, policy_label
+from uabs_rl.evaluation.baselines import (
+    MPC,
+    PLANNER,
+    baseline_policy,
+    passes_text,
+    policy_label,
+)
 from uabs_rl.evaluation.evaluator import Evaluator, make_eval_env
 from uabs_rl.evaluation.planner import BEAM, ROUNDS
 from uabs_rl.evaluation.predict import Within, make_predictor, prediction_error
@@ -207,7 +213,7 @@ def paired_learned(rows: list[dict], hybrid_dir: Path, log) -> None:
     hyb = (f"{record.get('hybrid', 'hybrid')} "  # files before --leaf have no such key
            f"H={record.get('hybrid_horizon', record['mpc_horizon'])} "
            f"λ={record['best_weight']:g}" + (f" beam {width}" if width != BEAM else "")
-           + (f" {passes} round{'s' * (passes != 1)}" if passes != ROUNDS else ""))
+           + (f" {passes_text(passes)}" if passes != ROUNDS else ""))
     for what, mine in (("learned", flown["learned"]), (hyb, flown.get("hybrid"))):
         if mine is None:
             continue
@@ -251,15 +257,14 @@ def main() -> None:
     args = ap.parse_args()
     if args.learned is not None and args.paired is None:
         ap.error("--learned goes with --paired DIR")
-    if min(args.beams) < 1:
-        ap.error(f"--beams must be >= 1, got {min(args.beams)}")
-    # each width once, the default among them: the narrower ones are paired with it
-    args.beams = list(dict.fromkeys([BEAM, *args.beams] if BEAM not in args.beams
-                                    else args.beams))
-    if min(args.rounds) < 1:
-        ap.error(f"--rounds must be >= 1, got {min(args.rounds)}")
-    args.rounds = list(dict.fromkeys([ROUNDS, *args.rounds] if ROUNDS not in args.rounds
-                                     else args.rounds))
+    # each width and number of passes once, the default among them: the others are
+    # paired with it
+    for flag, default in (("beams", BEAM), ("rounds", ROUNDS)):
+        values = getattr(args, flag)
+        if min(values) < 1:
+            ap.error(f"--{flag} must be >= 1, got {min(values)}")
+        setattr(args, flag, list(dict.fromkeys(values if default in values
+                                               else [default, *values])))
     if args.paired is not None:
         rows = json.loads((args.paired / "per_window.json").read_text())
         paired(rows, print)

@@ -63,7 +63,7 @@ from typing import Any
 import torch
 
 from uabs_rl.config import ConfigError
-from uabs_rl.evaluation.baselines import HEURISTICS, MPC, PLANNER
+from uabs_rl.evaluation.baselines import HEURISTICS, MPC, PLANNER, passes_text
 from uabs_rl.evaluation.hybrid import HYBRID
 from uabs_rl.evaluation.leaf import LEAF
 from uabs_rl.evaluation.load import (
@@ -151,7 +151,7 @@ def _print_mpc(results: dict[str, tuple[dict, Any]]) -> None:
                   LEAF: f", weight {rec.get('weight', 0):g} of the learned leaf values"
                   }.get(name, "")
         print(f"\n{name}: horizon {rec['horizon']}, beam {rec['beam']}, "
-              f"{rec['rounds']} round{'s' * (rec['rounds'] != 1)}, predictor "
+              f"{passes_text(rec['rounds'])}, predictor "
               f"{rec['predictor']}, sees {sees}{weight}; {rec['ms_per_decision']:.1f} ms per "
               f"decision ({rec['windows']} windows side by side, {rec['seconds']:.1f} s, "
               f"{torch.get_num_threads()} torch thread(s))")

@@ -36,6 +36,11 @@ PLANNER = "planner"  # the receding-horizon planning reference (uabs_rl.evaluati
 MPC = "mpc"  # the same planner fed by a predictor (uabs_rl.evaluation.predict): deployable
 
 
+def passes_text(rounds: int) -> str:
+    """``1 round``, ``3 rounds``: a search's passes over the fleet, in words."""
+    return f"{rounds} round{'s' * (rounds != 1)}"
+
+
 def policy_label(name: str, horizon: int | None = None, predictor: str | None = None,
                  sees: str | float = "all", coordinated: bool = True,
                  beam: int | None = None, rounds: int | None = None) -> str:
@@ -50,7 +55,7 @@ def policy_label(name: str, horizon: int | None = None, predictor: str | None = 
     alone = "" if coordinated else ", uncoordinated"
     alone += "" if beam in (None, BEAM) else f", beam {beam}"
     if coordinated and rounds not in (None, ROUNDS):  # alone: one pass whatever it is set to
-        alone += f", {rounds} round{'s' * (rounds != 1)}"
+        alone += f", {passes_text(rounds)}"
     if name == MPC:
         seen = "" if sees == "all" else f", sees {float(sees):g} m"
         return f"mpc H={horizon} ({predictor}{seen}{alone})"

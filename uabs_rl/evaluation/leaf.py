@@ -123,10 +123,7 @@ class LeafValue:
         gx, gy = env.math.links.grid_coordinates(flat, vehs)
         inside, beam = beam_cells(gx, gy, env.math.links.beam_k)
         b = beam_sums(inside & pres[:, None, :], beam, prio, p.n_beams)  # [E·N, 1, B]
-        worlds = [veh]
-        if p.motion_obs:
-            moving = (present & prev_present)[:, None, :]
-            worlds.append(torch.where(moving, 2 * veh - prev, veh))
+        worlds = self.worlds(veh, present, prev, prev_present)
         if table:  # map_scores keeps the vehicles near the table itself, world by world
             look = torch.cat([self.map_scores(pos, origin, radius, x, present, priority,
                                               key=None if key is None else (key, i, radius))
@@ -234,6 +231,16 @@ class LeafValue:
             prev_present = w["present"][0]
         return veh, present, prev, prev_present
 
+    def worlds(self, veh: torch.Tensor, present: torch.Tensor, prev: torch.Tensor,
+               prev_present: torch.Tensor) -> list[torch.Tensor]:
+        """Where the local map looks for the vehicles ``veh [E, 2, V]`` (present ``[E,
+        V]``, one step before at ``prev`` / ``prev_present``): at them, and with the
+        motion half, at them extrapolated one step (those present at both)."""
+        out = [veh]
+        if self.env.params.motion_obs:
+            out.append(torch.where((present & prev_present)[:, None, :], 2 * veh - prev, veh))
+        return out
+
     def reads(self, origin: torch.Tensor, w: dict[str, torch.Tensor]) -> torch.Tensor:
         """``[E, M, V]`` the vehicles the values of the paths of a UABS at ``origin [E,
         M, 2]`` can read (a superset): present at the horizon H, at or extrapolated one
@@ -243,12 +250,9 @@ class LeafValue:
         p = self.env.params
         veh, present, prev, prev_present = self.horizon_worlds(w)
         reach = (w["veh"].shape[0] + p.map_radius) * p.step_m + self.footprint_reach()
-        worlds = [veh]
-        if p.motion_obs:
-            worlds.append(torch.where((present & prev_present)[:, None, :], 2 * veh - prev, veh))
         near = torch.zeros(*origin.shape[:2], veh.shape[-1], dtype=torch.bool,
                            device=origin.device)
-        for x in worlds:
+        for x in self.worlds(veh, present, prev, prev_present):
             near |= within(x, origin, reach)
         return near & present[:, None, :]
 
