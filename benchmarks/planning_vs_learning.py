@@ -19,7 +19,9 @@ instead of the default grid: its test traces, its network for ``--predictors roa
 
 Writes ``table.csv`` (per policy and setting: served fraction and P_g(N̂_s) with their
 intervals over windows, paired differences against greedy, ms per decision for the
-whole fleet, amortised over the windows run side by side), ``per_window.json`` and
+whole fleet, amortised over the windows run side by side; a search's beam and passes,
+blank for greedy and the oracle), ``per_window.json`` (each policy's per-window values
+with its label, horizon, beam, passes, predictor and visibility) and
 ``prediction_error.csv`` (each predictor's error k steps ahead on the same windows;
 ``--predictors``: constant velocity, ``road`` along the SUMO network's lanes). One
 process, one torch thread. No trained checkpoint is read.
@@ -113,8 +115,10 @@ def evaluate(mode: str, m: int, horizons: list[int], ceiling: list[int], sees: l
         rec, _ = ev.evaluate(policy)
         sec = time.perf_counter() - t0
         label = policy_label(name, h, pred, s, coordinated, beam, passes)
-        row = {"mode": mode, "n_uabs": m, "policy": label, "horizon": h, "beam": beam,
-               "rounds": passes if coordinated else 1,
+        search = name in (MPC, PLANNER)  # the beam and passes of a search; none else
+        row = {"mode": mode, "n_uabs": m, "policy": label, "horizon": h,
+               "beam": beam if search else None,
+               "rounds": (passes if coordinated else 1) if search else None,
                "predictor": pred or "", "sees": s, "windows": rec["windows"],
                "ms_per_decision": 1000 * sec / (rec["windows"] * cfg.scenario.episode_steps),
                "collisions": rec["collisions"], "proximity": rec["proximity"],
@@ -302,7 +306,8 @@ def main() -> None:
         w.writeheader()
         w.writerows(errs)
     (args.out / "per_window.json").write_text(json.dumps(
-        [{k: r[k] for k in ("mode", "n_uabs", "policy", "served_fractions", "pgs")}
+        [{k: r[k] for k in ("mode", "n_uabs", "policy", "horizon", "beam", "rounds",
+                            "predictor", "sees", "served_fractions", "pgs")}
          for r in rows]))
     (args.out / "log.txt").write_text("\n".join(lines) + "\n")
 
