@@ -286,6 +286,27 @@ def test_a_checkpoint_file_outside_a_run_writes_beside_itself(tmp_path):
         run_dir / "evaluation"
 
 
+def test_a_checkpoint_file_is_named_as_what_was_evaluated(ckpt_run, tmp_path, capsys):
+    """``uabs-eval RUN/checkpoints/last.pt`` prints and records the file it evaluated
+    (it said "best checkpoint" of any file); ``--checkpoint`` beside a file is refused."""
+    last = ckpt_run / "checkpoints" / "last.pt"
+    out = tmp_path / "ev"
+    assert eval_main([str(last), "--split", "eval", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert f"steps, checkpoint {last}" in text and "best checkpoint" not in text
+    assert json.loads((out / "eval.json").read_text())["checkpoint"] == str(last)
+    # a second evaluation into the same folder says what it replaced
+    assert eval_main([str(ckpt_run), "--split", "eval", "--policy", "greedy",
+                      "--out", str(out)]) == 0
+    assert ("they replace the evaluation of learned that was there (--out DIR writes "
+            "another folder)") in capsys.readouterr().out
+    with pytest.raises(SystemExit) as e:
+        eval_main([str(last), "--checkpoint", "best", "--out", str(tmp_path / "no")])
+    assert e.value.code == 2 and not (tmp_path / "no").exists()
+    err = capsys.readouterr().err
+    assert "--checkpoint best chooses a run folder's checkpoint" in err and str(last) in err
+
+
 # ------------------------------------------------------------------ formats
 def test_number_formats():
     assert evaluate.percent(0.12345) == "12.3 %" and evaluate.percent(-1e-5) == "0.0 %"

@@ -291,6 +291,35 @@ def test_misspelt_keys_and_unknown_groups_fail_at_composition(trace_cache, overr
     assert key in str(e.value) + str(e.value.__cause__)
 
 
+@pytest.mark.parametrize("args,said", [
+    (["masking=rnak"], "masking=rnak: masking has no option 'rnak'; choose from flat, "
+                       "penalty, rank (the files of conf/masking/)."),
+    (["algo.lrr=1"], "algo.lrr is not a setting (AlgoConfig has no 'lrr'): fix its "
+                     "spelling; uabs-train --cfg job prints every setting."),
+    (["scenario.n_uabs=three"], "scenario.n_uabs=three: Value 'three' of type 'str' could "
+                                "not be converted to Integer."),
+    (["masking.mode=soft"], "masking.mode=soft: Invalid value 'soft', expected one of "
+                            "[penalty, flat, rank]."),
+    (["-m", "masking=penalty,rnak", "seed=0,1"], "masking=rnak: masking has no option"),
+    (["masking=masking_schema"], "masking=masking_schema is the schema the options of "
+                                 "masking build on, not one of them: choose from flat, "
+                                 "penalty, rank."),
+    (["algo=qmix_schema"], "algo=qmix_schema is the schema the options of algo build on"),
+])
+def test_a_command_line_hydra_cannot_compose_is_one_line_before_any_run(trace_cache, tmp_path,
+                                                                      args, said):
+    """What Hydra answers in 7 to 13 lines and status 1 (a misspelt key, an option no
+    group has, a value of the wrong type; in a sweep too) is one line and status 2, and
+    a group's typed base (``<group>_schema``, Hydra lists it among the options) is no
+    option: before, ``masking=masking_schema`` trained with the schema's defaults."""
+    ran = run_command("train", *args, "experiment=smoke", f"traces.cache_dir={trace_cache}",
+                      f"hydra.run.dir={tmp_path / 'run'}", f"hydra.sweep.dir={tmp_path / 'sweep'}")
+    lines = ran.stderr.strip().splitlines()
+    assert ran.returncode == 2 and len(lines) == 1, ran.stderr
+    assert lines[0].startswith(f"error: {said}"), lines[0]
+    assert not (tmp_path / "run").exists() and not (tmp_path / "sweep").exists()
+
+
 def test_cli_entry_point(trace_cache, tmp_path):
     """``uabs-train experiment=smoke`` through Hydra: output folder, config, metrics."""
     out = tmp_path / "run"

@@ -22,9 +22,10 @@ be given more than once; beyond ``all`` (learned, random, greedy, oracle) it tak
 the vehicles' true future positions ``--horizon`` steps ahead (the clairvoyant ceiling),
 and ``mpc``, the same planner ``--mpc-horizon`` steps ahead over the positions a
 predictor gives (``--predictor cv``: constant velocity from the vehicles' current and
-previous positions, the default) seeing every vehicle or only those within ``--sees R``
-metres of a UABS: a deployable policy; ``hybrid`` adds ``--hybrid-weight`` λ times the
-learned Q-values to the mpc's scores (:mod:`uabs_rl.evaluation.hybrid`; choose λ on
+previous positions, the default; ``road``: along the SUMO network's lanes) seeing every
+vehicle or only those within ``--sees R`` metres of a UABS: a deployable policy;
+``hybrid`` adds ``--hybrid-weight`` λ times the learned Q-values to the mpc's scores
+(:mod:`uabs_rl.evaluation.hybrid`; choose λ on
 ``--split eval``), ``leaf`` adds λ times the learned value at the end of each of the
 mpc's paths (:mod:`uabs_rl.evaluation.leaf`; a network of ``obs=egocentric``). Every
 policy's compute per decision (ms per step for the whole fleet, amortised over the
@@ -186,8 +187,9 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--config-dir", type=Path, action="append", default=[],
                     help="a folder of your own configs (scenario/<name>.yaml, ...), searched "
                          "before the package's conf/; may be repeated")
-    ap.add_argument("--checkpoint", choices=("best", "last"), default="best",
-                    help="which checkpoint of a run directory (default: best)")
+    ap.add_argument("--checkpoint", choices=("best", "last"), default=None,
+                    help="which checkpoint of a run directory (default: best); a .pt "
+                         "PATH is the checkpoint itself")
     ap.add_argument("--policy", choices=(*CHOICES, "all"), action="append",
                     help="what to evaluate, may be repeated: learned (default), the "
                          "random, greedy and oracle baselines, all (these four), the "
@@ -210,8 +212,10 @@ def parser() -> argparse.ArgumentParser:
                          f"others' plans; docs/evaluation.md)")
     ap.add_argument("--predictor", choices=tuple(p for p in PREDICTORS), default="cv",
                     help="what the mpc plans over: cv, the vehicles' current and previous "
-                         "positions extrapolated at constant velocity (default), or true, "
-                         "their true future (then it is the clairvoyant planner)")
+                         "positions extrapolated at constant velocity (default); road, each "
+                         "vehicle moved along its lane and the SUMO network's successors "
+                         "(not its route); or true, their true future (then it is the "
+                         "clairvoyant planner)")
     ap.add_argument("--sees", default="all", metavar="all|R",
                     help="the vehicles the mpc sees: all (centralised, default) or those "
                          "within R metres of some UABS")
@@ -249,6 +253,17 @@ def main(argv: list[str] | None = None) -> int:
         args.sees = parse_sees(args.sees)
     except ValueError as e:
         ap.error(str(e))
+    try:  # a name too long to stat is refused below, by check_path
+        a_file = args.path.is_file()
+    except OSError:
+        a_file = False
+    if a_file and args.checkpoint is not None:
+        ap.error(f"--checkpoint {args.checkpoint} chooses a run folder's checkpoint, and "
+                 f"{args.path} is a checkpoint file itself: pass the run folder with "
+                 f"--checkpoint, or the file alone")
+    # what was evaluated, as printed and recorded: best or last of a run folder, or the file
+    args.checkpoint = args.checkpoint or "best"
+    checkpoint = str(args.path) if a_file else args.checkpoint
     try:  # the output folder is checked before anything is evaluated
         check_path(args.path, "PATH")
         for d in args.config_dir:
@@ -257,6 +272,7 @@ def main(argv: list[str] | None = None) -> int:
                             args.out is not None)
         find_checkpoint(args.path, args.checkpoint)
         out.check()
+        replaced = earlier_policies(out.path)
         ev = load_evaluation(args.path, args.checkpoint, args.windows, args.split,
                              args.overrides, args.config_dir, windows_name="--windows")
         # torch's default threads (or OMP_NUM_THREADS), fewer while other processes keep
@@ -266,7 +282,7 @@ def main(argv: list[str] | None = None) -> int:
         ev.evaluator.on_step = governor.check if governor.active else None
         try:
             with out.writing() as folder:  # the previous evaluation stays whole until the end
-                _evaluate_and_write(ev, args, folder, governor)
+                _evaluate_and_write(ev, args, folder, governor, checkpoint)
         finally:  # a caller of main() (a test, a script) keeps its own count
             torch.set_num_threads(governor.most)
     except (CheckpointError, ConfigError) as e:
@@ -278,8 +294,19 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted: nothing was written", file=sys.stderr)
         return 130
-    print(f"wrote {out.path / 'eval.json'} and pictures under {out.path}")
+    print(f"wrote {out.path / 'eval.json'} and pictures under {out.path}"
+          + (f"; they replace the evaluation of {', '.join(replaced)} that was there "
+             f"(--out DIR writes another folder)" if replaced else ""))
     return 0
+
+
+def earlier_policies(out: Path) -> list[str]:
+    """The policies of the evaluation already in ``out`` (which this one replaces), or
+    none."""
+    try:
+        return list(json.loads((out / "eval.json").read_text())["policies"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return []
 
 
 # every file uabs-eval writes (an evaluation folder written before the marker file
@@ -296,9 +323,12 @@ def output_folder(out: Path, given: bool) -> OutputFolder:
 
 
 def _evaluate_and_write(ev: Evaluation, args: argparse.Namespace, out: Path,
-                        governor: ThreadGovernor | None = None) -> None:
+                        governor: ThreadGovernor | None = None,
+                        checkpoint: str | None = None) -> None:
     """Evaluate the policies ``args`` asks for, print the tables, and write eval.json and
-    the pictures into ``out``."""
+    the pictures into ``out``. ``checkpoint``: what was evaluated, "best" or "last" of a
+    run folder or a checkpoint file's path (default ``args.checkpoint``)."""
+    checkpoint = checkpoint or args.checkpoint
     policies = tuple(dict.fromkeys(
         q for p in args.policy or ["learned"] for q in (POLICIES if p == "all" else [p])))
     t0 = time.perf_counter()
@@ -310,7 +340,9 @@ def _evaluate_and_write(ev: Evaluation, args: argparse.Namespace, out: Path,
     tc = getattr(ev.cfg.traces, args.split)
     print(f"split: {args.split} (traces.{args.split}: SUMO seeds {tc.first_seed}.."
           f"{tc.first_seed + tc.n_sims - 1}), {n} windows of "
-          f"{ev.cfg.scenario.episode_steps} steps, {args.checkpoint} checkpoint"
+          f"{ev.cfg.scenario.episode_steps} steps, "
+          + (f"checkpoint {checkpoint}" if checkpoint not in ("best", "last")
+             else f"{checkpoint} checkpoint")
           + (f", scenario {ev.cfg.scenario.name}, overrides: {' '.join(args.overrides)}"
              if args.overrides else ""))
     _print_table(results, ev.evaluator.params.nhat_s)
@@ -325,7 +357,7 @@ def _evaluate_and_write(ev: Evaluation, args: argparse.Namespace, out: Path,
     print(f"evaluated {len(results)} {'policy' if len(results) == 1 else 'policies'} in "
           f"{time.perf_counter() - t0:.1f} s{peak_memory()}{busy}")
     (out / "eval.json").write_text(json.dumps(
-        {"split": args.split, "windows": n, "checkpoint": args.checkpoint,
+        {"split": args.split, "windows": n, "checkpoint": checkpoint,
          "overrides": args.overrides, "scenario": ev.cfg.scenario.name,
          "policies": {k: r for k, (r, _) in results.items()}, "differences": diffs,
          **({"gap_share": shares} if shares else {})},

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import re
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -72,12 +73,86 @@ def check_command_line(argv: list[str]) -> None:
                               f"record and log into its folder): leave it out.")
         if key in groups:
             for option in word.partition("=")[2].split(","):
-                safe_component(option.strip().strip("'\""), key)
+                option = option.strip().strip("'\"")
+                safe_component(option, key)
+                if option.endswith("_schema") and not (CONF_DIR / key / f"{option}.yaml"
+                                                       ).is_file():  # a typed base (store.py)
+                    choices = sorted(p.stem for p in (CONF_DIR / key).glob("*.yaml"))
+                    raise ConfigError(f"{key}={option} is the schema the options of {key} "
+                                      f"build on, not one of them: choose from "
+                                      f"{', '.join(choices)}.")
     for key in keys:
         wider = next((k for k in keys if key.startswith(k + ".") and k not in groups), None)
         if wider is not None:
             raise ConfigError(f"{key} is given twice on the command line (once inside "
                               f"{wider}={{...}}): give it once.")
+
+
+# Hydra's command-line flags after which a composition here would not be Hydra's (another
+# config folder, a printout instead of a run): the pre-check leaves those to Hydra
+_OWN_FLAGS = ("--config-dir", "-cd", "--config-path", "-cp", "--config-name", "-cn",
+              "--cfg", "-c", "--help", "-h", "--hydra-help", "--info", "-i", "--resolve",
+              "--package", "-p", "--shell-completion", "-sc", "--experimental-rerun")
+
+
+def check_composition(config_name: str, argv: list[str]) -> None:
+    """Compose the command line's config as Hydra is about to (each value of a sweep in
+    turn): a misspelt key, a group option that does not exist or a value of the wrong
+    type is a :class:`ConfigError` of one line naming it and what to type instead, where
+    Hydra prints its message over 7 to 13 lines and exits with status 1. Only Hydra's
+    composition is tried here; the run's own checks come after, as before."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
+
+    if any(a.split("=", 1)[0] in _OWN_FLAGS for a in argv):
+        return
+    words = command_line_overrides(argv)
+    try:
+        parsed = OverridesParser.create().parse_overrides(overrides=words)
+        fixed = [o.input_line for o in parsed if not o.is_sweep_override()]
+        tries = [fixed]
+        for o in parsed:
+            if o.is_sweep_override() and not o.is_interval_sweep():
+                key = o.get_key_element()
+                tries += [fixed + [f"{key}={v}"] for v in o.sweep_string_iterator()]
+    except HydraException:  # a sweep this cannot list: Hydra's own path decides
+        return
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        for overrides in tries:
+            try:
+                compose(config_name=config_name, overrides=[
+                    o for o in overrides if not o.lstrip("+~").startswith("hydra")])
+            except HydraException as e:
+                cause = f"\n{e.__cause__}" if e.__cause__ is not None else ""
+                raise ConfigError(composition_error(f"{e}{cause}")) from None
+
+
+def composition_error(message: str) -> str:
+    """Hydra's message of a failed composition as one line: what is wrong and what to
+    type instead (the options of a group without its schema, ``<group>_schema``)."""
+    lines = [ln.strip() for ln in message.strip().splitlines() if ln.strip()]
+    text = " ".join(lines)
+    missing = re.search(r"Could not find '([^']+)/([^']+)'", text)
+    if missing:
+        group, option = missing.groups()
+        options = [ln for ln in lines[lines.index(next(
+            ln for ln in lines if ln.startswith("Available options"))) + 1:]
+            if not ln.startswith(("Config search path", "provider="))] if any(
+            ln.startswith("Available options") for ln in lines) else []
+        options = [o for o in options if not o.endswith("_schema")]
+        return (f"{group}={option}: {group} has no option {option!r}; choose from "
+                f"{', '.join(options)} (the files of conf/{group}/).")
+    unknown = re.search(r"Could not override '([^']+)'.*Key '([^']+)' not in '([^']+)'", text)
+    if unknown:
+        key, _, schema = unknown.groups()
+        return (f"{key} is not a setting ({schema} has no {key.rsplit('.', 1)[-1]!r}): "
+                f"fix its spelling; uabs-train --cfg job prints every setting.")
+    merging = re.search(r"Error merging override (\S+) (.*?)(?: full_key: \S+|$)", text)
+    if merging:
+        return f"{merging.group(1)}: {merging.group(2).strip()}."
+    return " ".join(ln for ln in lines if not ln.startswith(
+        ("full_key:", "reference_type=", "object_type=", "Set the environment variable")))
 
 
 def path_safe(text: str) -> str:
@@ -127,6 +202,8 @@ def hydra_main(config_name: str, body: Callable[..., Any],
         check_moved_overrides(sys.argv[1:])
         check_duplicate_overrides(sys.argv[1:])
         check_command_line(sys.argv[1:])
+        register_configs()
+        check_composition(config_name, sys.argv[1:])
     except ConfigError as e:
         print(f"error: {e}", file=sys.stderr)
         sys.exit(2)

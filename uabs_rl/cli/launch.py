@@ -23,16 +23,52 @@ def _run(module: str, func: str) -> None:
     if held:
         print("interrupted", file=sys.stderr)
         sys.exit(130)
+    out = sys.stdout = ReaderLeft(sys.stdout)
     try:
         command()
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         sys.exit(130)
-    except BrokenPipeError:  # `uabs-report ... | head`: the reader left; what was
-        # written to files is complete, and the rest of standard output goes nowhere
+    except BrokenPipeError:  # a write around the wrapper (to the descriptor itself)
+        out.discard()
+    if out.left:  # as a shell reports a process ended by SIGPIPE; its files are whole
+        sys.exit(128 + 13)
+
+
+class ReaderLeft:
+    """Standard output that outlives its reader: once a write finds the pipe closed
+    (``uabs-eval ... | head``), the rest of the output goes nowhere and the command
+    carries on, so the files it writes after its tables (eval.json, the pictures, a
+    report) are written whole; before, the broken pipe ended it with nothing written.
+    Everything else is the wrapped stream's."""
+
+    def __init__(self, stream):
+        self._stream, self.left = stream, False
+
+    def write(self, text: str) -> int:
+        if not self.left:
+            try:
+                return self._stream.write(text)
+            except BrokenPipeError:
+                self.discard()
+        return len(text)
+
+    def flush(self) -> None:
+        if not self.left:
+            try:
+                self._stream.flush()
+            except BrokenPipeError:
+                self.discard()
+
+    def discard(self) -> None:
+        """From now on the output goes to the null device (the interpreter's last flush
+        of what is buffered too)."""
+        self.left = True
         devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stdout.fileno())
-        sys.exit(128 + 13)  # as a shell reports a process ended by SIGPIPE
+        os.dup2(devnull, self._stream.fileno())
+
+    def __getattr__(self, name: str):
+        return getattr(self._stream, name)
 
 
 def train() -> None:

@@ -81,8 +81,11 @@ def _group_file(group: str, option: str, config_dirs: list[Path]) -> Path:
         if f.is_file():
             return f
     looked = ", ".join(str(Path(d) / group) for d in (*config_dirs, CONF_DIR))
-    raise ConfigError(f"{group}={option}: no {option}.yaml in {looked}. Give the folder "
-                      f"that holds {group}/{option}.yaml with --config-dir.")
+    options = sorted({f.stem for d in (*config_dirs, CONF_DIR)
+                      for f in (Path(d) / group).glob("*.yaml")})
+    raise ConfigError(f"{group}={option}: no {option}.yaml in {looked}. Choose from "
+                      f"{', '.join(options)}, or give the folder that holds "
+                      f"{group}/{option}.yaml with --config-dir.")
 
 
 def _load_yaml(path: Path, override: str) -> Any:
