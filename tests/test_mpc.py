@@ -405,7 +405,15 @@ def test_uabs_report_passes_the_mpcs_search_on(smoke_run, tmp_path, monkeypatch,
     ("report", ["DIR", "--mpc", "5", "--no-baselines"], "--mpc H needs H >= 1"),
     ("report", ["DIR", "--mpc-beam", "4"], "--mpc-beam sets the search of --mpc H: give "
                                             "--mpc H too"),
-    ("report", ["DIR", "--mpc", "5", "--mpc-rounds", "0"], "--mpc-rounds must be >= 1, got 0")])
+    ("report", ["DIR", "--mpc", "5", "--mpc-rounds", "0"], "--mpc-rounds must be >= 1, got 0"),
+    # an option of a policy not evaluated (before: ignored without a word)
+    ("evaluate", ["RUN", "--mpc-beam", "4"], "--mpc-beam sets the mpc / hybrid / leaf policy, "
+                                             "which this command does not evaluate: add "
+                                             "--policy mpc, or leave --mpc-beam out"),
+    ("evaluate", ["RUN", "--policy", "all", "--sees", "150"], "--sees sets the mpc"),
+    ("evaluate", ["RUN", "--policy", "mpc", "--hybrid-weight", "2"],
+     "--hybrid-weight sets the hybrid / leaf policy"),
+    ("evaluate", ["RUN", "--policy", "mpc", "--horizon", "3"], "--horizon sets the planner")])
 def test_mpc_option_errors_are_one_line(module, args, says, capsys):
     import importlib
 

@@ -198,28 +198,28 @@ def parser() -> argparse.ArgumentParser:
                          "scores plus the learned Q-values, see --hybrid-weight), leaf "
                          "(the mpc whose paths end in the learned values, an egocentric "
                          "network's; the same weight)")
-    ap.add_argument("--horizon", type=int, default=10,
+    ap.add_argument("--horizon", type=int, default=None,
                     help="the planner's horizon in steps (default 10; 1 = the oracle)")
-    ap.add_argument("--mpc-horizon", type=int, default=5,
+    ap.add_argument("--mpc-horizon", type=int, default=None,
                     help="the mpc's horizon in steps (default 5)")
-    ap.add_argument("--mpc-beam", type=int, default=BEAM, metavar="B",
+    ap.add_argument("--mpc-beam", type=int, default=None, metavar="B",
                     help=f"the paths the mpc's (and the hybrids') beam search keeps per "
                          f"first move (default {BEAM}; 4 served as much on the project's "
                          f"grids for under half the compute: docs/evaluation.md)")
-    ap.add_argument("--mpc-rounds", type=int, default=ROUNDS, metavar="R",
+    ap.add_argument("--mpc-rounds", type=int, default=None, metavar="R",
                     help=f"the mpc's (and the hybrids') passes over the fleet per decision "
                          f"(default {ROUNDS}: a second pass replans each UABS given all the "
                          f"others' plans; docs/evaluation.md)")
-    ap.add_argument("--predictor", choices=tuple(p for p in PREDICTORS), default="cv",
+    ap.add_argument("--predictor", choices=tuple(p for p in PREDICTORS), default=None,
                     help="what the mpc plans over: cv, the vehicles' current and previous "
                          "positions extrapolated at constant velocity (default); road, each "
                          "vehicle moved along its lane and the SUMO network's successors "
                          "(not its route); or true, their true future (then it is the "
                          "clairvoyant planner)")
-    ap.add_argument("--sees", default="all", metavar="all|R",
+    ap.add_argument("--sees", default=None, metavar="all|R",
                     help="the vehicles the mpc sees: all (centralised, default) or those "
                          "within R metres of some UABS")
-    ap.add_argument("--hybrid-weight", type=float, default=1.0, metavar="λ",
+    ap.add_argument("--hybrid-weight", type=float, default=None, metavar="λ",
                     help="the hybrid's weight of the learned Q-values beside the mpc's "
                          "scores, and leaf's of the learned leaf values (default 1; 0 = "
                          "the mpc); choose it on --split eval")
@@ -234,9 +234,28 @@ def parser() -> argparse.ArgumentParser:
     return ap
 
 
+# the options that set one kind of policy, their defaults, and the policies they set
+# (given without one of them they would be ignored: refused instead, as uabs-report does)
+POLICY_OPTIONS = {"horizon": (10, ("planner",)),
+                  "mpc_horizon": (5, ("mpc", "hybrid", "leaf")),
+                  "mpc_beam": (BEAM, ("mpc", "hybrid", "leaf")),
+                  "mpc_rounds": (ROUNDS, ("mpc", "hybrid", "leaf")),
+                  "predictor": ("cv", ("mpc", "hybrid", "leaf")),
+                  "sees": ("all", ("mpc", "hybrid", "leaf")),
+                  "hybrid_weight": (1.0, ("hybrid", "leaf"))}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = parser()
     args = ap.parse_intermixed_args(argv)
+    asked = set(args.policy or ["learned"])
+    for key, (default, users) in POLICY_OPTIONS.items():
+        if getattr(args, key) is None:
+            setattr(args, key, default)
+        elif not asked & set(users):
+            flag = "--" + key.replace("_", "-")
+            ap.error(f"{flag} sets the {' / '.join(users)} policy, which this command does "
+                     f"not evaluate: add --policy {users[0]}, or leave {flag} out")
     if args.windows is not None and args.windows < 1:
         ap.error(f"--windows must be >= 1, got {args.windows}")
     if args.horizon < 1:
