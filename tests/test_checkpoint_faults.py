@@ -219,7 +219,8 @@ def test_a_window_longer_than_the_episode_is_refused_by_uabs_eval(ckpt_run, caps
 
 def test_too_many_validation_windows_name_train_eval_windows(trace_cache, tmp_path):
     with pytest.raises(ConfigError, match=r"^train\.eval_windows=1000 but the eval traces hold "
-                       r"4 non-overlapping windows of 21 steps \(1 x 100 steps\): lower "
+                       r"4 non-overlapping windows of 20 steps \(21 recorded instants "
+                       r"each; 1 x 100 instants\): lower "
                        r"train\.eval_windows or raise traces\.eval\.n_sims / "
                        r"traces\.eval\.duration_s\.$"):
         run(smoke(trace_cache, "train.eval_windows=1000", "train.logger=none",

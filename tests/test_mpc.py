@@ -374,9 +374,16 @@ def test_uabs_report_mpc_sits_beside_greedy_and_the_oracle(smoke_run, tmp_path):
     narrow = build_report(smoke_run, tmp_path / "narrow", mpc=2, mpc_beam=1, mpc_rounds=1)
     mpc = narrow["baselines"][f"mpc ({mode} masks)"]
     assert (mpc["horizon"], mpc["beam"], mpc["rounds"]) == (2, 1, 1)
+    # the learned-vs-baselines page names the mpc with its search, in its intro and rows
+    md = (tmp_path / "narrow" / "learned_vs_baselines.md").read_text()
+    assert ("evaluated with random, greedy and oracle (and the deployable mpc H=2 (cv, "
+            "beam 1, 1 round), constant-velocity prediction) on every test window") in md
+    assert "| mpc H=2 (cv, beam 1, 1 round) | " in md
     # without --mpc nothing of it
     plain = build_report(smoke_run, tmp_path / "plain")
     assert list(plain["baselines"]) == [f"{b} ({mode} masks)" for b in names[:3]]
+    md = (tmp_path / "plain" / "learned_vs_baselines.md").read_text()
+    assert "evaluated with random, greedy and oracle on every test window" in md
 
 
 def test_uabs_report_passes_the_mpcs_search_on(smoke_run, tmp_path, monkeypatch, capsys):

@@ -190,6 +190,15 @@ def test_incompatible_or_damaged_checkpoint_is_refused(rank_run, trace_cache, tm
         load_checkpoint(bad)
     with pytest.raises(CheckpointError, match="no checkpoint"):
         load_checkpoint(tmp_path / "nowhere.pt")
+    # resuming from it: the advice is what resume can use (last.pt alone), not "another
+    # checkpoint of the run"
+    import shutil
+    copy = tmp_path / "copy"
+    shutil.copytree(rank_run, copy)
+    (copy / "checkpoints" / "last.pt").write_bytes(bad.read_bytes())
+    with pytest.raises(CheckpointError, match=r"damaged .*: resume continues from "
+                                              r"checkpoints/last.pt alone: put back an intact"):
+        run(smoke(trace_cache, f"resume={copy}"), copy)
 
 
 def ctrl_c_in_episode_2(exp: Experiment, monkeypatch) -> None:

@@ -103,7 +103,8 @@ def test_nan_inf_and_extreme_numbers_are_refused_naming_the_setting(base, key, k
     ("channel.fov_deg=180", "channel.fov_deg must be in (0, 180), got 180.0."),
     ("algo.hidden=[32,100000]", "algo.hidden (each entry) must be in [1, 65536], got 100000."),
     ("train.eval_windows=5", "train.eval_windows=5 but the eval traces hold 4 non-overlapping "
-     "windows of 21 steps (1 x 100 steps): lower train.eval_windows or raise "
+     "windows of 20 steps (21 recorded instants each; 1 x 100 instants): lower "
+     "train.eval_windows or raise "
      "traces.eval.n_sims / traces.eval.duration_s."),
     ("scenario.speed=0.05", "scenario.area / (scenario.speed x scenario.dt) must give at most "
      "20000 lattice points (the start positions compare every pair of them), got 2.38e+07 "

@@ -60,7 +60,8 @@ def check_command_line(argv: list[str]) -> None:
     except HydraException as e:
         first = (str(e).strip().splitlines() or [type(e).__name__])[0]
         raise ConfigError(f"the command line does not parse: {first} (quote a value "
-                          f"holding brackets, braces, commas or spaces).") from None
+                          f"holding brackets, braces, commas, spaces or an =, for the shell "
+                          f"too: \"key='a=b'\").") from None
     groups = {d.name for d in CONF_DIR.iterdir() if d.is_dir()}
     keys = []
     for word in words:

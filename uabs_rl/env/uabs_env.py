@@ -238,7 +238,8 @@ def fixed_windows(n_sims: int, steps: int, episode_steps: int, n: int | None,
     if not 1 <= n <= most:
         raise ConfigError(
             f"n_eval_windows={n} but the held-out traces hold {most} "
-            f"non-overlapping windows of {episode_steps + 1} steps: lower it "
+            f"non-overlapping windows of {episode_steps} steps ({episode_steps + 1} "
+            f"recorded instants each): lower it "
             f"or raise traces.eval.n_sims / traces.eval.duration_s.")
     k = torch.arange(n, device=device)
     return torch.stack([k % n_sims, (k // n_sims) * (episode_steps + 1)], dim=-1)

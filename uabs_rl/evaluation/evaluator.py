@@ -100,8 +100,9 @@ def eval_window_count(cfg: RunConfig, traces: TraceSet, split: str,
     if not 1 <= n <= most:
         given = f"{setting} {n}" if setting.startswith("--") else f"{setting}={n}"
         raise ConfigError(
-            f"{given} but the {split} traces hold {most} non-overlapping windows of {t + 1} "
-            f"steps ({traces.n_sims} x {traces.steps} steps): lower {setting} or "
+            f"{given} but the {split} traces hold {most} non-overlapping windows of {t} "
+            f"steps ({t + 1} recorded instants each; {traces.n_sims} x {traces.steps} "
+            f"instants): lower {setting} or "
             f"raise {key}.n_sims / {key}.duration_s.")
     return n
 

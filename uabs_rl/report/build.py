@@ -7,6 +7,7 @@ import os
 from pathlib import Path
 from typing import Any
 
+from uabs_rl.evaluation.baselines import MPC, policy_label
 from uabs_rl.report.baselines import (
     baselines_by_panel,
     baselines_on_test,
@@ -63,7 +64,10 @@ def build_report(roots: Path | list[Path], out: Path, with_baselines: bool = Tru
     lvb = learned_vs_baselines(grouping, tests) if tests else []
     if lvb:
         write_csv(out / "learned_vs_baselines.csv", lvb, LVB_COLUMNS)
-        (out / "learned_vs_baselines.md").write_text(learned_vs_baselines_markdown(lvb, common))
+        label = (policy_label(MPC, mpc, "cv", beam=mpc_beam, rounds=mpc_rounds)
+                 if mpc is not None else None)
+        (out / "learned_vs_baselines.md").write_text(
+            learned_vs_baselines_markdown(lvb, common, label))
     if export == "marl-eval":
         from uabs_rl.evaluation.export import marl_eval
 

@@ -166,11 +166,16 @@ def fmt_diff(metric: str, d: float, lo: float, hi: float) -> str:
     return f"{100 * d:+.1f} pt [{100 * lo:+.1f}, {100 * hi:+.1f}]"
 
 
-def learned_vs_baselines_markdown(rows: list[dict[str, Any]], common: str = "") -> str:
-    """One block per group, headed by its label, seeds and M (named once, not per row)."""
+def learned_vs_baselines_markdown(rows: list[dict[str, Any]], common: str = "",
+                                  mpc_label: str | None = None) -> str:
+    """One block per group, headed by its label, seeds and M (named once, not per row);
+    ``mpc_label``: the mpc's name with its search (``policy_label``), where it ran."""
+    with_mpc = mpc_label is not None and any(r["baseline"] == MPC for r in rows)
     text = ("# Learned policies against the baselines on the test traces\n\n"
             "best.pt of every run (chosen on validation), evaluated with random, greedy "
-            "and oracle on every test window with the same masks; differences are "
+            + (f"and oracle (and the deployable {mpc_label}, constant-velocity prediction) "
+               if with_mpc else "and oracle ")
+            + "on every test window with the same masks; differences are "
             "learned − baseline per window, averaged per seed. Served fraction and "
             "P_g(N̂_s) in %, their differences in percentage points (pt).\n")
     if common:
@@ -185,7 +190,7 @@ def learned_vs_baselines_markdown(rows: list[dict[str, Any]], common: str = "") 
                  f"[{interval}] |\n|---|---|---|---|---|\n")
         text += "".join(
             f"| {METRIC_NAMES.get(r['metric'], r['metric']).format(nhat=r['nhat'])} | "
-            f"{r['baseline']} | "
+            f"{mpc_label if with_mpc and r['baseline'] == MPC else r['baseline']} | "
             f"{fmt_level(r['metric'], r['learned'])} | "
             f"{fmt_level(r['metric'], r['baseline_value'])} | "
             f"{fmt_diff(r['metric'], r['diff'], r['ci_low'], r['ci_high'])} |\n" for r in rs)

@@ -18,6 +18,7 @@ from omegaconf import OmegaConf
 from uabs_rl.config import ConfigError, RunConfig, compose, structured_run, to_container
 from uabs_rl.runs import folder as runfolder
 from uabs_rl.runs.checkpoint import (
+    ANOTHER,
     CheckpointError,
     check_own,
     config_dict,
@@ -188,6 +189,11 @@ def resumed_config(saved: RunConfig, overrides: list[str]) -> RunConfig:
     return to_container(OmegaConf.merge(OmegaConf.structured(saved), nested))
 
 
+# what a resume refused for a damaged or foreign last.pt can do instead
+RESUME_FIX = ("resume continues from checkpoints/last.pt alone: put back an intact copy of "
+              "it, or start a new run (uabs-eval can still evaluate the run's best.pt)")
+
+
 def requeued() -> bool:
     """True in a SLURM job that the scheduler requeued (after a preemption or a
     time-out, e.g. by the submitit launcher's ``max_num_timeout``)."""
@@ -231,6 +237,11 @@ def prepare(cfg: RunConfig, run_dir: Path, overrides: list[str] | None = None,
     except OSError as e:  # a full disk or a read-only folder at start-up: one line
         lk.release()
         raise runfolder.write_error(e, run_dir) from None
+    except CheckpointError as e:  # resume reads last.pt alone: "another checkpoint" is
+        lk.release()  # no advice for it
+        if not cfg.resume or ANOTHER not in str(e):
+            raise
+        raise CheckpointError(str(e).replace(ANOTHER, RESUME_FIX)) from None
     except BaseException:
         lk.release()
         raise
