@@ -329,6 +329,17 @@ def test_a_command_line_hydra_cannot_compose_is_one_line_before_any_run(trace_ca
     assert not (tmp_path / "run").exists() and not (tmp_path / "sweep").exists()
 
 
+def test_a_command_line_with_other_config_folders_is_left_to_hydra():
+    """``--config-dir`` or ``hydra.searchpath`` add options the package's conf/ lacks:
+    the pre-check does not compose those command lines (Hydra alone finds the options)."""
+    from uabs_rl.cli.hydra import check_composition
+
+    check_composition("config", ["--config-dir", "myconf", "scenario=mine"])
+    check_composition("config", ["hydra.searchpath=[file://myconf]", "scenario=mine"])
+    with pytest.raises(ConfigError, match="scenario has no option 'mine'"):
+        check_composition("config", ["scenario=mine"])
+
+
 def test_cli_entry_point(trace_cache, tmp_path):
     """``uabs-train experiment=smoke`` through Hydra: output folder, config, metrics."""
     out = tmp_path / "run"

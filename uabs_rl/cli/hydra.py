@@ -106,9 +106,10 @@ def check_composition(config_name: str, argv: list[str]) -> None:
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.errors import HydraException
 
-    if any(a.split("=", 1)[0] in _OWN_FLAGS for a in argv):
-        return
     words = command_line_overrides(argv)
+    if any(a.split("=", 1)[0] in _OWN_FLAGS for a in argv) or any(
+            w.lstrip("+~").startswith("hydra.searchpath") for w in words):
+        return  # other config folders: Hydra's composition alone knows them
     try:
         parsed = OverridesParser.create().parse_overrides(overrides=words)
         fixed = [o.input_line for o in parsed if not o.is_sweep_override()]
