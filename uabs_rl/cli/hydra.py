@@ -110,6 +110,7 @@ def check_composition(config_name: str, argv: list[str]) -> None:
     if any(a.split("=", 1)[0] in _OWN_FLAGS for a in argv) or any(
             w.lstrip("+~").startswith("hydra.searchpath") for w in words):
         return  # other config folders: Hydra's composition alone knows them
+    register_configs()  # the groups' typed bases (idempotent)
     try:
         parsed = OverridesParser.create().parse_overrides(overrides=words)
         fixed = [o.input_line for o in parsed if not o.is_sweep_override()]
@@ -204,7 +205,6 @@ def hydra_main(config_name: str, body: Callable[..., Any],
         check_moved_overrides(sys.argv[1:])
         check_duplicate_overrides(sys.argv[1:])
         check_command_line(sys.argv[1:])
-        register_configs()
         check_composition(config_name, sys.argv[1:])
     except ConfigError as e:
         print(f"error: {e}", file=sys.stderr)
