@@ -303,8 +303,12 @@ def test_misspelt_keys_and_unknown_groups_fail_at_composition(trace_cache, overr
 @pytest.mark.parametrize("args,said", [
     (["masking=rnak"], "masking=rnak: masking has no option 'rnak'; choose from flat, "
                        "penalty, rank (the files of conf/masking/)."),
-    (["algo.lrr=1"], "algo.lrr is not a setting (AlgoConfig has no 'lrr'): fix its "
-                     "spelling; uabs-train --cfg job prints every setting."),
+    (["algo.lrr=1"], "algo.lrr is not a setting (AlgoConfig has no 'lrr'): did you mean "
+                     "algo.lr or algo.loss or algo.replay? fix its spelling; uabs-train "
+                     "--cfg job prints every setting."),
+    (["algo=qmix", "algo.mixing_embed=4"], "algo.mixing_embed is not a setting (QmixConfig "
+                                           "has no 'mixing_embed'): did you mean "
+                                           "algo.mixing_embed_dim"),
     (["scenario.n_uabs=three"], "scenario.n_uabs=three: Value 'three' of type 'str' could "
                                 "not be converted to Integer."),
     (["masking.mode=soft"], "masking.mode=soft: Invalid value 'soft', expected one of "

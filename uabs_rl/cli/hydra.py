@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import difflib
 import logging
 import re
 import sys
@@ -123,17 +124,31 @@ def check_composition(config_name: str, argv: list[str]) -> None:
         return
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         for overrides in tries:
+            mine = [o for o in overrides if not o.lstrip("+~").startswith("hydra")]
             try:
-                compose(config_name=config_name, overrides=[
-                    o for o in overrides if not o.lstrip("+~").startswith("hydra")])
+                compose(config_name=config_name, overrides=mine)
             except HydraException as e:
                 cause = f"\n{e.__cause__}" if e.__cause__ is not None else ""
-                raise ConfigError(composition_error(f"{e}{cause}")) from None
+                try:  # the settings there are, with the groups and presets chosen
+                    chosen = compose(config_name=config_name, overrides=[
+                        o for o in mine if "." not in o.split("=", 1)[0]])
+                    known = _flat_keys(OmegaConf.to_container(chosen, resolve=False))
+                except HydraException:
+                    known = []
+                raise ConfigError(composition_error(f"{e}{cause}", known)) from None
 
 
-def composition_error(message: str) -> str:
+def _flat_keys(node, prefix: str = "") -> list[str]:
+    """Every setting of a config as ``section.key``."""
+    if not isinstance(node, dict):
+        return [prefix[:-1]]
+    return [k for key, value in node.items() for k in _flat_keys(value, f"{prefix}{key}.")]
+
+
+def composition_error(message: str, known: list[str] = ()) -> str:
     """Hydra's message of a failed composition as one line: what is wrong and what to
-    type instead (the options of a group without its schema, ``<group>_schema``)."""
+    type instead (the options of a group without its schema, ``<group>_schema``; for a
+    key no setting has, the closest of ``known``, the config's settings)."""
     lines = [ln.strip() for ln in message.strip().splitlines() if ln.strip()]
     text = " ".join(lines)
     missing = re.search(r"Could not find '([^']+)/([^']+)'", text)
@@ -149,8 +164,10 @@ def composition_error(message: str) -> str:
     unknown = re.search(r"Could not override '([^']+)'.*Key '([^']+)' not in '([^']+)'", text)
     if unknown:
         key, _, schema = unknown.groups()
+        close = difflib.get_close_matches(key, sorted(known), n=3, cutoff=0.6)
+        hint = f"did you mean {' or '.join(close)}? " if close else ""
         return (f"{key} is not a setting ({schema} has no {key.rsplit('.', 1)[-1]!r}): "
-                f"fix its spelling; uabs-train --cfg job prints every setting.")
+                f"{hint}fix its spelling; uabs-train --cfg job prints every setting.")
     merging = re.search(r"Error merging override (\S+) (.*?)(?: full_key: \S+|$)", text)
     if merging:
         return f"{merging.group(1)}: {merging.group(2).strip()}."
