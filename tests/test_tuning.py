@@ -173,6 +173,20 @@ def test_bad_study_inputs_are_one_line_naming_the_fix(trace_cache, tmp_path):
     assert not (tmp_path / "study" / "trial=0").exists()
 
 
+def test_a_study_whose_trials_are_all_refused_at_start_up_stops_after_three(trace_cache,
+                                                                           tmp_path):
+    """A fixed setting every trial is refused for (``algo.gamma=2``): before, the study ran
+    all its n_trials jobs, each refused, and a resume= after the fix had none left to run;
+    now it stops after the first three with one error line naming the fix, exit 2."""
+    p = uabs_train_here(tmp_path, *study_args(trace_cache, 10, "algo.gamma=2"))
+    assert p.returncode == 2, p.stderr[-3000:]
+    assert p.stderr.count("error: algo.gamma must be in [0, 1], got 2.0.") == 3
+    last = [ln for ln in p.stderr.splitlines() if ln.startswith("error:")][-1]
+    assert last.startswith("error: the study stops: its first 3 trials were refused before "
+                           "their runs began")
+    assert len(load(tmp_path).trials) == 3
+
+
 def test_search_space_overrides_as_distributions():
     from optuna.distributions import CategoricalDistribution, FloatDistribution, IntDistribution
 

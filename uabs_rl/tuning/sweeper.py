@@ -88,6 +88,12 @@ def _flat(node: Any, prefix: str = "") -> dict[str, Any]:
     return {prefix[:-1]: node}
 
 
+# a study stops when its first trials (this many, or more in a parallel batch) were all
+# refused at start-up: a wrong fixed setting would refuse every one of its n_trials, and
+# a search space that is wrong somewhere would let some of three random draws through
+REFUSED_STOP = 3
+
+
 def run_study(sweeper, arguments: list[str]) -> list[dict[str, Any]]:
     """Run (or continue) the study of a ``-m hydra/sweeper=optuna`` command line; a bad
     input is one line on stderr and exit status 2."""
@@ -177,6 +183,14 @@ def _run_study(sweeper, arguments: list[str]) -> list[dict[str, Any]]:
         todo -= len(batch)
         for (number, _), ret in zip(batch, returns, strict=True):
             results.append(_tell(study, number, ret))
+        if todo > 0 and len(results) >= REFUSED_STOP and all(r.get("refused")
+                                                               for r in results):
+            raise ConfigError(
+                f"the study stops: its first {len(results)} trials were refused before "
+                f"their runs began (the error lines above), so a setting of the command "
+                f"line is wrong for every trial; fix it and start the study again in "
+                f"another sweep folder (these trials stay in {hidden(url)} as failed, and "
+                f"count as done there).")
     _print_end(study, sweep_dir, url)
     return results
 

@@ -81,12 +81,28 @@ def evaluation_hook() -> Callable[[int, list[float]], bool] | None:
     return _current
 
 
+def refused_at_start() -> bool:
+    """True when this job ended before its run began: its folder holds no
+    ``metrics.jsonl`` (the start-up checks pass before anything is written), so its
+    settings, not its training, failed."""
+    from pathlib import Path
+
+    from hydra.core.hydra_config import HydraConfig
+
+    try:
+        out = Path(HydraConfig.get().runtime.output_dir)
+    except ValueError:  # outside a Hydra job
+        return False
+    return not (out / "metrics.jsonl").exists()
+
+
 @dataclass
 class TrialTask:
     """The Hydra task of a study's jobs: runs ``task`` (``uabs-train``'s) as trial
-    ``$UABS_RL_TRIAL`` and returns ``{"number", "value", "pruned_at", "failed"}``. A job
-    that fails on its settings (a diverging run, exit status 2) is a failed trial and the
-    study goes on; one stopped by the user stops the study."""
+    ``$UABS_RL_TRIAL`` and returns ``{"number", "value", "pruned_at", "failed"}`` (and
+    ``"refused"`` for a failed one: refused before its run began). A job that fails on
+    its settings (a diverging run, exit status 2) is a failed trial and the study goes
+    on; one stopped by the user stops the study."""
 
     task: Callable[[Any], Any]
     storage: str
@@ -104,7 +120,7 @@ class TrialTask:
                 raise
             return {"number": number, "value": None, "pruned_at": None,
                     "failed": f"the job stopped with status {e.code} (its error line "
-                              f"above)"}
+                              f"above)", "refused": refused_at_start()}
         finally:
             _current = None
         value = score(summary)
