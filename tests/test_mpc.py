@@ -374,6 +374,11 @@ def test_uabs_report_mpc_sits_beside_greedy_and_the_oracle(smoke_run, tmp_path):
     narrow = build_report(smoke_run, tmp_path / "narrow", mpc=2, mpc_beam=1, mpc_rounds=1)
     mpc = narrow["baselines"][f"mpc ({mode} masks)"]
     assert (mpc["horizon"], mpc["beam"], mpc["rounds"]) == (2, 1, 1)
+    with open(tmp_path / "narrow" / "baselines.csv") as f:  # the search beside its figures
+        rows = {r["policy"].split()[0]: r for r in csv.DictReader(f)}
+    assert [rows["mpc"][k] for k in ("horizon", "beam", "rounds", "predictor")] == \
+        ["2", "1", "1", "cv"]
+    assert [rows["greedy"][k] for k in ("horizon", "beam", "rounds")] == ["", "", ""]
     # the learned-vs-baselines page names the mpc with its search, in its intro and rows
     md = (tmp_path / "narrow" / "learned_vs_baselines.md").read_text()
     assert ("evaluated with random, greedy and oracle (and the deployable mpc H=2 (cv, "

@@ -277,7 +277,10 @@ def write_baselines(path: Path, baselines: dict[str, dict]) -> None:
     with open(path, "w", newline="") as f:
         keys = ["policy", "return", "return_std", "collisions", "proximity", "fallbacks",
                 "served_fraction", "pg"]
+        search = ["horizon", "beam", "rounds", "predictor"]  # a planner's; blank elsewhere
         w = csv.writer(f)
-        w.writerow(keys)
+        w.writerow(keys + search)
         for name, b in baselines.items():
-            w.writerow([name] + [b[k] for k in keys[1:]])
+            planned = name.split()[0] in (MPC, PLANNER)
+            w.writerow([name] + [b[k] for k in keys[1:]]
+                       + [b.get(k, "") if planned else "" for k in search])
