@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.conftest import Ran
+from tests.conftest import Ran, run_command
 from tests.test_faults import QUIET, error_lines, uabs_train, uabs_train_here, wait_for
 from tests.test_train import smoke
 from uabs_rl.runs.folder import Before, RunFolderError, RunLock
@@ -127,6 +127,37 @@ def test_a_second_sweep_into_a_sweeps_folder_is_refused(trace_cache, tmp_path):
     err = one_error(uabs_train_here(tmp_path, "-m", "experiment=smoke", "masking=flat,rank",
                                     f"traces.cache_dir={trace_cache}", f"hydra.sweep.dir={sweep}"))
     assert "holds another sweep" in err and f"resume={sweep}" in err
+    assert tree(sweep) == before
+
+
+def test_a_sweep_resumed_with_another_command_is_refused(trace_cache, tmp_path):
+    """``-m ... resume=<sweep folder>`` continues the sweep its multirun.yaml records only
+    when re-typed as that sweep (values in any order, settings that cannot change results
+    free): without its overrides it started one run in the sweep folder itself; with one
+    left out, new runs beside its own; and Hydra overwrote the record. Without ``-m`` it
+    names what to type."""
+    sweep = tmp_path / "sweep"
+    job = sweep / "experiment=smoke,masking=flat,seed=0"
+    (job / ".hydra").mkdir(parents=True)
+    (job / ".hydra" / "config.yaml").write_text("seed: 0\n")
+    (sweep / "multirun.yaml").write_text(
+        "hydra:\n  overrides:\n    task:\n    - experiment=smoke\n    - masking=flat,rank\n"
+        "    - seed=0\n    - train.progress=false\n")
+    before = tree(sweep)
+    common = [f"traces.cache_dir={trace_cache}", f"resume={sweep}"]
+    for args, says in ((["-m"], "lacks experiment, masking, seed"),
+                       (["-m", "masking=flat,rank", "seed=0"], "lacks experiment"),
+                       (["-m", "experiment=smoke", "masking=flat,rank", "seed=0,1"],
+                        "changes seed"),
+                       (["-m", "experiment=smoke", "masking=flat,rank", "seed=0",
+                         "train.episodes=12"], "adds train.episodes")):
+        err = one_error(run_command("train", *args, *common))
+        assert err.startswith(f"error: resume={sweep} continues the sweep typed as `uabs-train "
+                              f"-m experiment=smoke masking=flat,rank seed=0 "
+                              f"train.progress=false`; this command {says}: re-type"), err
+        assert tree(sweep) == before
+    err = one_error(run_command("train", *common))
+    assert f"resume={sweep} is a sweep's folder (multirun.yaml): re-type the sweep's" in err
     assert tree(sweep) == before
 
 

@@ -318,6 +318,12 @@ def test_misspelt_keys_and_unknown_groups_fail_at_composition(trace_cache, overr
                                  "masking build on, not one of them: choose from flat, "
                                  "penalty, rank."),
     (["algo=qmix_schema"], "algo=qmix_schema is the schema the options of algo build on"),
+    # a sweep without -m (Hydra: "Ambiguous value", 4 lines, exit 1), a launcher of 0 jobs
+    # (a 35-line joblib traceback)
+    (["masking=flat,rank"], "masking=flat,rank is a sweep (several values): add -m to run "
+                            "one job per value (uabs-train -m ...), or give one value."),
+    (["-m", "masking=flat,rank", "hydra/launcher=local_parallel", "hydra.launcher.n_jobs=0"],
+     "hydra.launcher.n_jobs=0: the jobs a sweep runs at once must be a whole number >= 1."),
 ])
 def test_a_command_line_hydra_cannot_compose_is_one_line_before_any_run(trace_cache, tmp_path,
                                                                       args, said):

@@ -112,8 +112,19 @@ def check_composition(config_name: str, argv: list[str]) -> None:
             w.lstrip("+~").startswith("hydra.searchpath") for w in words):
         return  # other config folders: Hydra's composition alone knows them
     register_configs()  # the groups' typed bases (idempotent)
+    multirun = any(a in ("-m", "--multirun") for a in argv)
+    for w in words:
+        key, _, value = w.partition("=")
+        if key == "hydra.launcher.n_jobs" and not (value.isdigit() and int(value) >= 1):
+            raise ConfigError(f"hydra.launcher.n_jobs={value}: the jobs a sweep runs at "
+                              f"once must be a whole number >= 1.")
     try:
         parsed = OverridesParser.create().parse_overrides(overrides=words)
+        sweeps = [o.input_line for o in parsed if o.is_sweep_override()
+                  and not o.get_key_element().lstrip("+~").startswith("hydra")]
+        if sweeps and not multirun:
+            raise ConfigError(f"{sweeps[0]} is a sweep (several values): add -m to run one "
+                              f"job per value (uabs-train -m ...), or give one value.")
         fixed = [o.input_line for o in parsed if not o.is_sweep_override()]
         tries = [fixed]
         for o in parsed:

@@ -176,6 +176,13 @@ def _check_paths(argv: list[str]) -> None:
                 raise ConfigError(f"resume={path} with -m: pass the sweep's folder (the "
                                   f"one holding multirun.yaml) with the sweep's own "
                                   f"command, or drop -m to resume this one run.")
+            if multirun:
+                _check_sweep_command(path, argv)
+            elif RunFolder(path).sweep_record.is_file() and not runfolder.holds_run(path):
+                raise ConfigError(f"resume={path} is a sweep's folder (multirun.yaml): "
+                                  f"re-type the sweep's own command, with -m, and "
+                                  f"resume={path} appended; or pass one of its jobs' "
+                                  f"folders to resume that run alone.")
         elif key in ("hydra.run.dir", "hydra.sweep.dir", "hydra.sweep.subdir") and not \
                 value.strip("'\""):  # an empty shell variable: the current folder
             raise ConfigError(f"{key}= names no folder (the run would write into the "
@@ -202,6 +209,68 @@ def _check_paths(argv: list[str]) -> None:
                  in (("hydra.sweep.dir",) if multirun else ("hydra.run.dir",))]
         _check_writable_place(typed[0] if typed else Path("outputs"))
     _check_auto_name(argv, multirun)
+
+
+def _sweep_settings(words: list[str]) -> dict[str, frozenset[str]]:
+    """A sweep's command-line overrides as ``key -> the values it takes`` (a sweep's in
+    any order, ``range(0,3)`` as 0, 1, 2), less what may change when it is re-typed with
+    ``resume=``: Hydra's settings and those that cannot change results (left out of the
+    jobs' folder names; every other setting names the folders, so a sweep re-typed with
+    another ``train.episodes`` would start new runs beside its own, not extend them)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    from uabs_rl.config import folder_name_excludes
+
+    free = set(folder_name_excludes())
+    words = [w for w in words if w.split("=", 1)[0].lstrip("+~") not in free
+             and not w.lstrip("+~").startswith("hydra")]  # resume= may hold , and =
+    out = {}
+    for o in OverridesParser.create().parse_overrides(overrides=words):
+        key = o.get_key_element()
+        if key.lstrip("+~").startswith("hydra") or key.lstrip("+~") in free:
+            continue
+        values = (list(o.sweep_string_iterator()) if o.is_sweep_override()
+                  and not o.is_interval_sweep() else [o.get_value_element_as_str()])
+        out[key] = frozenset(values)
+    return out
+
+
+def _check_sweep_command(sweep: Path, argv: list[str]) -> None:
+    """``-m ... resume=<sweep folder>`` continues the sweep its ``multirun.yaml`` records
+    only when the command is that sweep's (up to what may change on resume): another
+    command would start other jobs in the folder (with no sweep at all, one run in the
+    sweep folder itself) and Hydra would overwrite the record. A study (the Optuna
+    sweeper) checks its own resume."""
+    from hydra.errors import HydraException
+
+    from uabs_rl.config import command_line_overrides
+
+    try:
+        record = OmegaConf.load(RunFolder(sweep).sweep_record)
+        typed = [str(w) for w in record.hydra.overrides.task]
+    except Exception:  # no readable record of the command: the jobs' own checks decide
+        return
+    words = command_line_overrides(argv)
+    if any(w.startswith("hydra/sweeper=") for w in [*typed, *words]):
+        return
+    try:
+        then, now = _sweep_settings(typed), _sweep_settings(words)
+    except HydraException:
+        return
+    if then == now:
+        return
+    lacks = [k for k in then if k not in now]
+    adds = [k for k in now if k not in then]
+    changes = [k for k in then if k in now and then[k] != now[k]]
+    said = "; ".join(part for part in (
+        f"lacks {', '.join(lacks)}" if lacks else "",
+        f"adds {', '.join(adds)}" if adds else "",
+        f"changes {', '.join(changes)}" if changes else "") if part)
+    command = " ".join(w for w in typed if not w.startswith(("resume=", "hydra.")))
+    raise ConfigError(f"resume={sweep} continues the sweep typed as `uabs-train -m "
+                      f"{command}`; this command {said}: re-type that one with "
+                      f"resume={sweep} appended (another sweep goes into another "
+                      f"folder). Nothing was changed.")
 
 
 def _holds_jobs(sweep: Path) -> bool:
