@@ -339,15 +339,30 @@ def test_a_command_line_hydra_cannot_compose_is_one_line_before_any_run(trace_ca
     assert not (tmp_path / "run").exists() and not (tmp_path / "sweep").exists()
 
 
-def test_a_command_line_with_other_config_folders_is_left_to_hydra():
-    """``--config-dir`` or ``hydra.searchpath`` add options the package's conf/ lacks:
-    the pre-check does not compose those command lines (Hydra alone finds the options)."""
+def test_config_dir_options_are_composed_with_it_and_its_mistakes_are_one_line(tmp_path):
+    """``--config-dir D`` adds D's options to the pre-check's composition; a missing D, a
+    file of D's that is not YAML, and one named as a package option (which uabs-train
+    would ignore: Hydra reads conf/ first) are one line each. ``hydra.searchpath`` is
+    left to Hydra."""
     from uabs_rl.cli.hydra import check_composition
 
-    check_composition("config", ["--config-dir", "myconf", "scenario=mine"])
-    check_composition("config", ["hydra.searchpath=[file://myconf]", "scenario=mine"])
+    mine = tmp_path / "myconf"
+    (mine / "scenario").mkdir(parents=True)
+    (mine / "scenario" / "mine.yaml").write_text("name: mine\n")
+    check_composition("config", ["--config-dir", str(mine), "scenario=mine"])
+    check_composition("config", [f"-cd={mine}", "scenario=mine"])
+    check_composition("config", ["hydra.searchpath=[file://nowhere]", "scenario=mine"])
     with pytest.raises(ConfigError, match="scenario has no option 'mine'"):
         check_composition("config", ["scenario=mine"])
+    with pytest.raises(ConfigError, match="--config-dir nowhere: no such folder"):
+        check_composition("config", ["--config-dir", "nowhere", "scenario=mine"])
+    (mine / "scenario" / "broken.yaml").write_text("name: [broken\n")
+    with pytest.raises(ConfigError, match=r"broken.yaml is not a readable YAML file \("):
+        check_composition("config", ["--config-dir", str(mine), "scenario=broken"])
+    (mine / "scenario" / "grid6.yaml").write_text("name: grid6\n")
+    with pytest.raises(ConfigError, match=r"scenario/grid6.yaml has the name of the "
+                                          r"package's conf/scenario/grid6.yaml"):
+        check_composition("config", ["--config-dir", str(mine), "scenario=grid6"])
 
 
 def test_cli_entry_point(trace_cache, tmp_path):

@@ -120,6 +120,19 @@ def test_uabs_eval_refuses_what_cannot_change(smoke_run, override, names, capsys
         assert n in err
 
 
+def test_uabs_eval_refuses_a_file_of_yours_named_as_a_package_option(smoke_run, tmp_path,
+                                                                      capsys):
+    """uabs-eval would read your scenario/grid6.yaml where uabs-train reads the package's:
+    refused by both, in the same words (tests/test_train.py has uabs-train's)."""
+    (tmp_path / "scenario").mkdir()
+    (tmp_path / "scenario" / "grid6.yaml").write_text("name: grid6\n")
+    assert eval_main([str(smoke_run), "--config-dir", str(tmp_path), "scenario=grid6",
+                      "--checkpoint", "last"]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1
+    assert "scenario/grid6.yaml has the name of the package's conf/scenario/grid6.yaml" in err
+
+
 @pytest.fixture(scope="module")
 def egocentric_run(trace_cache, tmp_path_factory) -> Path:
     run_dir = tmp_path_factory.mktemp("egocentric_run")

@@ -7,7 +7,7 @@
     uabs-eval outputs/runs/<run dir> --policy mpc --policy hybrid --hybrid-weight 0.5
     uabs-eval path/to/last.pt --split eval --windows 20 --gif
     uabs-eval outputs/runs/<run dir> scenario.sumo.fleet_size=120 channel.los_mode=los
-    uabs-eval outputs/runs/<run dir> --config-dir myconf scenario=grid6   # another city
+    uabs-eval outputs/runs/<run dir> --config-dir myconf scenario=mygrid   # another city
 
 Evaluates on the test traces by default (``traces.test``: SUMO seeds that neither
 training nor checkpoint selection ever read; every window of them), ``--split eval`` on

@@ -10,11 +10,13 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import yaml
 from omegaconf import OmegaConf
 
 from uabs_rl.config import (
     CONF_DIR,
     ConfigError,
+    check_config_dirs,
     check_duplicate_overrides,
     check_moved_overrides,
     command_line_overrides,
@@ -92,9 +94,22 @@ def check_command_line(argv: list[str]) -> None:
 
 # Hydra's command-line flags after which a composition here would not be Hydra's (another
 # config folder, a printout instead of a run): the pre-check leaves those to Hydra
-_OWN_FLAGS = ("--config-dir", "-cd", "--config-path", "-cp", "--config-name", "-cn",
+_OWN_FLAGS = ("--config-path", "-cp", "--config-name", "-cn",
               "--cfg", "-c", "--help", "-h", "--hydra-help", "--info", "-i", "--resolve",
               "--package", "-p", "--shell-completion", "-sc", "--experimental-rerun")
+_CONFIG_DIR = ("--config-dir", "-cd")
+
+
+def config_dirs(argv: list[str]) -> list[Path]:
+    """The folders of ``--config-dir D`` (``-cd D``, ``--config-dir=D``) on a command
+    line."""
+    out = []
+    for i, a in enumerate(argv):
+        flag, eq, value = a.partition("=")
+        if flag in _CONFIG_DIR:
+            value = value if eq else (argv[i + 1] if i + 1 < len(argv) else "")
+            out.append(Path(value))
+    return out
 
 
 def check_composition(config_name: str, argv: list[str]) -> None:
@@ -110,7 +125,15 @@ def check_composition(config_name: str, argv: list[str]) -> None:
     words = command_line_overrides(argv)
     if any(a.split("=", 1)[0] in _OWN_FLAGS for a in argv) or any(
             w.lstrip("+~").startswith("hydra.searchpath") for w in words):
-        return  # other config folders: Hydra's composition alone knows them
+        return  # another primary config or search path: Hydra's composition alone
+    dirs = config_dirs(argv)
+    groups = {d.name for d in CONF_DIR.iterdir() if d.is_dir()}
+    check_config_dirs(dirs, [(w.split("=", 1)[0], v.strip().strip("'\""))
+                             for w in words if w.split("=", 1)[0] in groups
+                             for v in w.split("=", 1)[1].split(",")])
+    # where Hydra looks beside conf/: the same folders, for this composition
+    search = ([f"hydra.searchpath=[{','.join(f'file://{d.resolve()}' for d in dirs)}]"]
+              if dirs else [])
     register_configs()  # the groups' typed bases (idempotent)
     multirun = any(a in ("-m", "--multirun") for a in argv)
     for w in words:
@@ -137,16 +160,22 @@ def check_composition(config_name: str, argv: list[str]) -> None:
         for overrides in tries:
             mine = [o for o in overrides if not o.lstrip("+~").startswith("hydra")]
             try:
-                compose(config_name=config_name, overrides=mine)
+                compose(config_name=config_name, overrides=search + mine)
+            except yaml.YAMLError as e:  # a file of --config-dir's that is not YAML
+                where = getattr(e, "problem_mark", None)
+                raise ConfigError(f"{where.name if where else 'a config file'} is not a "
+                                  f"readable YAML file ({getattr(e, 'problem', None) or e}"
+                                  f"{f', line {where.line + 1}' if where else ''}): fix it "
+                                  f"or choose another option.") from None
             except HydraException as e:
                 cause = f"\n{e.__cause__}" if e.__cause__ is not None else ""
                 try:  # the settings there are, with the groups and presets chosen
-                    chosen = compose(config_name=config_name, overrides=[
+                    chosen = compose(config_name=config_name, overrides=search + [
                         o for o in mine if "." not in o.split("=", 1)[0]])
                     known = _flat_keys(OmegaConf.to_container(chosen, resolve=False))
                 except HydraException:
                     known = []
-                raise ConfigError(composition_error(f"{e}{cause}", known)) from None
+                raise ConfigError(composition_error(f"{e}{cause}", known, bool(dirs))) from None
 
 
 def _flat_keys(node, prefix: str = "") -> list[str]:
@@ -156,7 +185,7 @@ def _flat_keys(node, prefix: str = "") -> list[str]:
     return [k for key, value in node.items() for k in _flat_keys(value, f"{prefix}{key}.")]
 
 
-def composition_error(message: str, known: list[str] = ()) -> str:
+def composition_error(message: str, known: list[str] = (), yours: bool = False) -> str:
     """Hydra's message of a failed composition as one line: what is wrong and what to
     type instead (the options of a group without its schema, ``<group>_schema``; for a
     key no setting has, the closest of ``known``, the config's settings)."""
@@ -170,8 +199,9 @@ def composition_error(message: str, known: list[str] = ()) -> str:
             if not ln.startswith(("Config search path", "provider="))] if any(
             ln.startswith("Available options") for ln in lines) else []
         options = [o for o in options if not o.endswith("_schema")]
+        where = f"conf/{group}/" + (f" and your --config-dir's {group}/" if yours else "")
         return (f"{group}={option}: {group} has no option {option!r}; choose from "
-                f"{', '.join(options)} (the files of conf/{group}/).")
+                f"{', '.join(options)} (the files of {where}).")
     unknown = re.search(r"Could not override '([^']+)'.*Key '([^']+)' not in '([^']+)'", text)
     if unknown:
         key, _, schema = unknown.groups()

@@ -94,6 +94,7 @@ from uabs_rl.config.schema import (
 from uabs_rl.config.store import (
     CONF_DIR,
     PROJECT_ROOT,
+    check_config_dirs,
     compose,
     default_settings,
     flatten,
@@ -109,6 +110,7 @@ __all__ = [
     "AlgoConfig",
     "AreaConfig",
     "CONF_DIR",
+    "check_config_dirs",
     "ChannelConfig",
     "ConfigError",
     "FAMILY_KEYS",

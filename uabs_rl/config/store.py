@@ -136,3 +136,23 @@ def own_learner_settings(algo: Any) -> Any:
     own = {f.name for f in fields(algo_schema(algo.get("name")))}
     others = {f.name for s in LEARNER_SCHEMAS.values() for f in fields(s)} - own
     return {k: v for k, v in algo.items() if k not in others} if others & set(algo) else algo
+
+
+def check_config_dirs(dirs: list[Path], chosen: list[tuple[str, str]],
+                      flag: str = "--config-dir") -> None:
+    """Each folder exists, and none holds an option of the same name as one of the
+    package's that the command chooses (``chosen``: group, option): Hydra reads the
+    package's ``conf/`` first, so ``uabs-train`` would ignore such a file of yours
+    where ``uabs-eval`` reads it; refused in both."""
+    for d in dirs:
+        if not d.is_dir():
+            raise ConfigError(f"{flag} {d}: no such folder: give the folder that holds "
+                              f"your <group>/<option>.yaml files (e.g. scenario/).")
+        for group, option in chosen:
+            mine, ours = d / group / f"{option}.yaml", CONF_DIR / group / f"{option}.yaml"
+            if mine.is_file() and ours.is_file():
+                raise ConfigError(
+                    f"{flag} {d}: {mine} has the name of the package's "
+                    f"conf/{group}/{option}.yaml, and uabs-train reads the package's "
+                    f"first: rename yours (e.g. {group}/my_{option}.yaml, chosen with "
+                    f"{group}=my_{option}).")

@@ -27,6 +27,7 @@ from uabs_rl.config import (
     ConfigError,
     Role,
     RunConfig,
+    check_config_dirs,
     check_moved_overrides,
     sections_with_role,
     to_container,
@@ -76,6 +77,7 @@ OBS_KEYS = ("scenario.n_uabs", "channel.n_beams")
 
 
 def _group_file(group: str, option: str, config_dirs: list[Path]) -> Path:
+    check_config_dirs([Path(d) for d in config_dirs], [(group, option)])
     for d in (*config_dirs, CONF_DIR):
         f = Path(d) / group / f"{option}.yaml"
         if f.is_file():
