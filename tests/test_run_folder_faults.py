@@ -130,6 +130,19 @@ def test_a_second_sweep_into_a_sweeps_folder_is_refused(trace_cache, tmp_path):
     assert tree(sweep) == before
 
 
+def test_what_existed_before_survives_the_trip_to_a_parallel_worker(tmp_path):
+    """A local_parallel sweep's jobs get the parent's :class:`Before` pickled: a folder
+    that did not exist must still read as absent there (its sentinel compared by identity
+    once, and a refused job ended in a TypeError traceback instead of its one line)."""
+    import pickle
+
+    sweep = tmp_path / "sweep"
+    there = pickle.loads(pickle.dumps(Before([sweep])))
+    (sweep / "job").mkdir(parents=True)
+    assert there.created(sweep) and there.created(sweep / "job")
+    assert not there.created(tmp_path)
+
+
 def test_a_sweep_resumed_with_another_command_is_refused(trace_cache, tmp_path):
     """``-m ... resume=<sweep folder>`` continues the sweep its multirun.yaml records only
     when re-typed as that sweep (values in any order, settings that cannot change results

@@ -17,6 +17,7 @@
 
 from __future__ import annotations
 
+import enum
 import errno
 import fcntl
 import json
@@ -266,7 +267,16 @@ def write_error(e: OSError | RuntimeError, run_dir: Path) -> Exception:
 
 
 # ------------------------------------------------------------------- a refused start
-_ABSENT = object()
+class _Absent(enum.Enum):
+    """A folder that did not exist: an enum member, so it is still itself after the
+    pickling that takes a :class:`Before` to a parallel launcher's worker process (an
+    ``object()`` sentinel was not: its copy read as a folder's names, and a refused
+    job of a local_parallel sweep ended in a TypeError traceback)."""
+
+    ABSENT = 0
+
+
+_ABSENT = _Absent.ABSENT
 
 
 def write_hydra_record(cfg: Any, folder: Path) -> None:
