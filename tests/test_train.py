@@ -324,6 +324,11 @@ def test_misspelt_keys_and_unknown_groups_fail_at_composition(trace_cache, overr
                             "one job per value (uabs-train -m ...), or give one value."),
     (["-m", "masking=flat,rank", "hydra/launcher=local_parallel", "hydra.launcher.n_jobs=0"],
      "hydra.launcher.n_jobs=0: the jobs a sweep runs at once must be a whole number >= 1."),
+    # a value one job of a sweep would refuse: before, the jobs before it ran first (the
+    # serial launcher), and the sweep stopped there
+    (["-m", "algo.lr=0.001,-1", "seed=0,1"], "the job algo.lr=-1 seed=0 of this sweep: "
+                                             "algo.lr must be > 0, got -1.0. No job was "
+                                             "started."),
 ])
 def test_a_command_line_hydra_cannot_compose_is_one_line_before_any_run(trace_cache, tmp_path,
                                                                       args, said):

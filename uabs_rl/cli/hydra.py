@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import difflib
+import itertools
 import logging
+import math
 import re
 import sys
 from collections.abc import Callable
@@ -112,12 +114,19 @@ def config_dirs(argv: list[str]) -> list[Path]:
     return out
 
 
-def check_composition(config_name: str, argv: list[str]) -> None:
+# a sweep of at most this many jobs has each job's settings checked before any starts
+MOST_JOBS_CHECKED = 256
+
+
+def check_composition(config_name: str, argv: list[str],
+                      check: Callable[[Any], None] | None = None) -> None:
     """Compose the command line's config as Hydra is about to (each value of a sweep in
     turn): a misspelt key, a group option that does not exist or a value of the wrong
     type is a :class:`ConfigError` of one line naming it and what to type instead, where
     Hydra prints its message over 7 to 13 lines and exits with status 1. Only Hydra's
-    composition is tried here; the run's own checks come after, as before."""
+    composition is tried here, and with ``check`` (the run's own start-up checks, on the
+    composed config) each job of a sweep of at most :data:`MOST_JOBS_CHECKED`, so a value
+    one job would refuse stops the sweep before any job runs."""
     from hydra import compose, initialize_config_dir
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.errors import HydraException
@@ -150,10 +159,17 @@ def check_composition(config_name: str, argv: list[str]) -> None:
                               f"job per value (uabs-train -m ...), or give one value.")
         fixed = [o.input_line for o in parsed if not o.is_sweep_override()]
         tries = [fixed]
-        for o in parsed:
-            if o.is_sweep_override() and not o.is_interval_sweep():
-                key = o.get_key_element()
-                tries += [fixed + [f"{key}={v}"] for v in o.sweep_string_iterator()]
+        listed = [[f"{o.get_key_element()}={v}" for v in o.sweep_string_iterator()]
+                  for o in parsed if o.is_sweep_override() and not o.is_interval_sweep()]
+        for values in listed:
+            tries += [fixed + [v] for v in values]
+        # every job of the sweep, where they are few enough to check each before any runs
+        # (an interval sweep's values are drawn by its sweeper: none listed here)
+        jobs = ([fixed + list(job) for job in itertools.product(*listed)]
+                if check is not None and math.prod(map(len, listed)) <= MOST_JOBS_CHECKED
+                and not any(o.is_interval_sweep() for o in parsed)
+                and not any(w.startswith("hydra/sweeper=") for w in words)  # a study's
+                else [])  # trials are drawn, not listed: it stops on refusals itself
     except HydraException:  # a sweep this cannot list: Hydra's own path decides
         return
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
@@ -176,6 +192,14 @@ def check_composition(config_name: str, argv: list[str]) -> None:
                 except HydraException:
                     known = []
                 raise ConfigError(composition_error(f"{e}{cause}", known, bool(dirs))) from None
+        for job in jobs if len(jobs) > 1 else []:  # one run checks itself as it starts
+            mine = [o for o in job if not o.lstrip("+~").startswith("hydra")]
+            try:
+                check(compose(config_name=config_name, overrides=search + mine))
+            except ConfigError as e:
+                which = " ".join(j for j in mine if j not in fixed)
+                raise ConfigError(f"the job {which} of this sweep: {e} No job was "
+                                  f"started.") from None
 
 
 def _flat_keys(node, prefix: str = "") -> list[str]:
@@ -223,7 +247,8 @@ def path_safe(text: str) -> str:
 
 
 def hydra_main(config_name: str, body: Callable[..., Any],
-               pass_overrides: bool = False) -> None:
+               pass_overrides: bool = False,
+               check: Callable[[Any], None] | None = None) -> None:
     """Run ``body(cfg, output_dir[, overrides])`` under ``@hydra.main`` (a sweep's job
     returns what ``body`` returns) with
     ``conf/<config_name>``: the config arrives as checked dataclasses; a config or
@@ -263,7 +288,7 @@ def hydra_main(config_name: str, body: Callable[..., Any],
         check_moved_overrides(sys.argv[1:])
         check_duplicate_overrides(sys.argv[1:])
         check_command_line(sys.argv[1:])
-        check_composition(config_name, sys.argv[1:])
+        check_composition(config_name, sys.argv[1:], check)
     except ConfigError as e:
         print(f"error: {e}", file=sys.stderr)
         sys.exit(2)

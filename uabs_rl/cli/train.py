@@ -369,7 +369,18 @@ def main() -> None:
            and "${now:" not in a for a in sys.argv[1:]):
         os.environ[_TYPED_DIR] = "1"
     sys.argv = [sys.argv[0], *_quote_resume(sys.argv[1:])]
-    hydra_main("config", _run_and_report, pass_overrides=True)
+    hydra_main("config", _run_and_report, pass_overrides=True, check=_check_job)
+
+
+def _check_job(composed) -> None:
+    """A sweep's job's start-up checks, before any job of the sweep runs (a resumed
+    job's settings are its run's, checked when it continues)."""
+    from uabs_rl.config import to_container
+    from uabs_rl.training.startup import validate_run
+
+    cfg = to_container(composed)
+    if not cfg.resume:
+        validate_run(cfg)
 
 
 if __name__ == "__main__":

@@ -14,6 +14,7 @@ last checkpoint (the job's own ``resume``); only then are new trials asked for, 
 
 from __future__ import annotations
 
+import importlib.util
 import logging
 import math
 import sys
@@ -232,8 +233,11 @@ def _print_end(study, sweep_dir: Path, url: str) -> None:
                   "  " + " ".join(trial_overrides(best.params)),
                   f"  run folder: {sweep_dir / f'trial={best.number}'}"]
     q = shlex.quote(str(sweep_dir))
+    # the tune extra installs the dashboard; the dev extra (optuna alone) does not
+    install = ("" if importlib.util.find_spec("optuna_dashboard") is not None
+               else " (pip install -e '.[tune]')")
     lines += ["next:",
               f"  uabs-report {q}   # best trials, parameter importances, history",
-              f"  optuna-dashboard {shlex.quote(hidden(url))}   # the study in a browser "
-              f"(pip install optuna-dashboard)"]
+              f"  optuna-dashboard {shlex.quote(hidden(url))}   # the study in a browser"
+              f"{install}"]
     print("\n".join(lines))
