@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import time
@@ -126,6 +127,17 @@ def test_a_killed_study_continues_with_resume_and_never_reads_a_test_trace(
     lines = text.splitlines()
     first = lines[next(i for i, ln in enumerate(lines) if ln.startswith("|---")) + 1]
     assert first.startswith(f"| {best.number} | complete | {best.value:.1f} |")
+    # a copy of the folder continues its own study (named after the first folder: it
+    # once made a second, empty study named after the copy and ran its trials again)
+    shutil.copytree(tmp_path / "study", tmp_path / "copy")
+    again = [a for a in args if not a.startswith(("hydra.sweep.dir=", "hydra.sweeper.n_trials="))]
+    err = finish(uabs_train(tmp_path, *again, "hydra.sweeper.n_trials=5",
+                            f"resume={tmp_path / 'copy'}"))
+    assert "4 trials done, 0 to continue, 1 to run" in err
+    copied = optuna.load_study(study_name="study",
+                               storage=f"sqlite:///{tmp_path / 'copy' / 'study.db'}")
+    assert [t.number for t in copied.get_trials()] == [0, 1, 2, 3, 4]
+    assert len(load(tmp_path).get_trials()) == 4  # the first folder's study untouched
     for name in ("history.png", "importances.png", "trials.csv"):
         assert (tmp_path / "study" / "report" / name).is_file()
 

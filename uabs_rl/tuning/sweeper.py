@@ -132,7 +132,15 @@ def _run_study(sweeper, arguments: list[str]) -> list[dict[str, Any]]:
     sweep_dir = Path(str(config.hydra.sweep.dir)).absolute()
     resumed = any(w.split("=", 1)[0] == "resume" for w in fixed)
     url = s.get("storage") or f"sqlite:///{sweep_dir / 'study.db'}"
-    name = str(s.get("study_name") or sweep_dir.name)
+    # a resumed study is the one its folder records (a folder copied or moved keeps its
+    # study's name, which the default, the folder's name, would not)
+    recorded = None
+    if resumed and not s.get("study_name") and (sweep_dir / STUDY_FILE).is_file():
+        try:
+            recorded = str(OmegaConf.load(sweep_dir / STUDY_FILE).study_name)
+        except Exception:  # an unreadable record: the default name
+            recorded = None
+    name = str(s.get("study_name") or recorded or sweep_dir.name)
     if not s.get("storage"):  # study.db in the sweep folder
         sweep_dir.mkdir(parents=True, exist_ok=True)
     storage = open_storage(url)
@@ -142,6 +150,10 @@ def _run_study(sweeper, arguments: list[str]) -> list[dict[str, Any]]:
                           f"it by re-typing its command with resume=<its sweep folder>, or "
                           f"name a new one with hydra.sweeper.study_name=<name>. Nothing "
                           f"was changed.")
+    if resumed and name not in names:
+        raise ConfigError(f"resume={sweep_dir}: {hidden(url)} holds no study named {name!r} "
+                          f"(it holds {', '.join(map(repr, names)) or 'none'}): pass the "
+                          f"study's own folder, or name it with hydra.sweeper.study_name=.")
     if name in names and names[name].direction.name.lower() != direction:
         raise ConfigError(f"the study {name!r} in {hidden(url)} was made to "
                           f"{names[name].direction.name.lower()}, not {direction}: re-type "
