@@ -99,6 +99,34 @@ def test_resume_of_a_run_that_is_still_training_is_refused(trace_cache, tmp_path
     assert eps == list(range(1, len(eps) + 1))  # each episode once, none mixed in
 
 
+def test_a_stopped_sweep_says_to_re_type_the_sweep_and_continues_so(trace_cache, tmp_path):
+    """A job of a sweep stopped by SIGTERM names the sweep's resume (its own folder's
+    resume= alone is refused with -m and loses the other jobs): the command re-typed with
+    resume=<sweep> finishes every job, the stopped one continued, not restarted."""
+    sweep = tmp_path / "sweep"
+    args = ["-m", "experiment=smoke", f"traces.cache_dir={trace_cache}", *QUIET,
+            "train.episodes=150", "train.eval_every=75", "seed=0,1",
+            f"hydra.sweep.dir={sweep}"]
+    proc = uabs_train(tmp_path, *args)
+    first = sweep / "experiment=smoke,seed=0,train.episodes=150,train.eval_every=75"
+    wait_for(first / "metrics.jsonl", proc)
+    time.sleep(1.0)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 143, err[-2000:]
+    assert err.strip().splitlines()[-1].endswith(
+        f"continue the whole sweep by re-typing its command (with -m) and resume={sweep} "
+        f"appended"), err[-2000:]
+    stopped = episodes(first)
+    assert 0 < len(stopped) < 150
+    again = uabs_train(tmp_path, *args, f"resume={sweep}")
+    _, err = again.communicate(timeout=600)
+    assert again.returncode == 0, err[-2000:]
+    assert episodes(first) == list(range(1, 151))  # continued: each episode once
+    assert episodes(sweep / "experiment=smoke,seed=1,train.episodes=150,train.eval_every=75"
+                    )[-1] == 150
+
+
 def test_sigterm_saves_a_checkpoint_as_fresh_as_the_last_record(trace_cache, tmp_path):
     run_dir = tmp_path / "preempted"
     proc = uabs_train(tmp_path, "experiment=smoke", f"traces.cache_dir={trace_cache}",

@@ -343,6 +343,10 @@ def _run_and_report(cfg: RunConfig, run_dir: Path, overrides: list[str]) -> dict
                   if multirun else None,
                   record=lambda folder: runfolder.write_hydra_record(cfg, folder))
     print(f"{'resuming' if cfg.resume else 'run folder:'} {exp.run_dir}", file=sys.stderr)
+    if multirun:  # a job continues with its sweep (or study), re-typed
+        exp.continue_hint = (f"continue the whole {'study' if _in_study() else 'sweep'} by "
+                             f"re-typing its command (with -m) and resume={sweep_dir} "
+                             f"appended")
     exp.on_eval = evaluation_hook()  # a tuning study's trial reports to its pruner
     text = summary_text if exp.solo else population_summary_text
     summary = exp.fit()
@@ -370,6 +374,13 @@ def main() -> None:
         os.environ[_TYPED_DIR] = "1"
     sys.argv = [sys.argv[0], *_quote_resume(sys.argv[1:])]
     hydra_main("config", _run_and_report, pass_overrides=True, check=_check_job)
+
+
+def _in_study() -> bool:
+    """True in a job of a tuning study (the sweeper sets its trial number)."""
+    from uabs_rl.tuning.trial import TRIAL_ENV
+
+    return TRIAL_ENV in os.environ
 
 
 def _check_job(composed) -> None:

@@ -225,6 +225,9 @@ class Experiment:
         # returns; True stops training there, the checkpoint saved (a tuning study's
         # pruner, uabs_rl.tuning)
         self.on_eval: Callable[[int, list[float]], bool] | None = None
+        # how a stopped run continues, as its stop line says it (a sweep's job: the
+        # sweep re-typed, set by uabs-train; None: resume= of this run's folder)
+        self.continue_hint: str | None = None
 
     # ------------------------------------------------------------------ state
     def generators(self, i: int) -> tuple[torch.Generator, torch.Generator]:
@@ -341,11 +344,15 @@ class Experiment:
         self.saved_episode = self.episode
         return returns
 
+    def how_to_continue(self) -> str:
+        """The words a stopped run ends its line with."""
+        return self.continue_hint or f"continue with resume={self.run_dir}"
+
     def kept(self) -> str:
         """What a run stopped at once keeps, in words."""
         last = [RunFolder(m.run_dir).last for m in self.members]
         if all(p.is_file() for p in last):
-            return (f"the last checkpoint is kept; continue with resume={self.run_dir}")
+            return f"the last checkpoint is kept; {self.how_to_continue()}"
         return ("no checkpoint had been written yet: nothing to resume, start the run "
                 "again")
 
@@ -399,7 +406,7 @@ class Experiment:
                 path = self.checkpoints.save_all("last")
                 saved = path if self.solo else "every member's last.pt"
                 self.interrupt.stop(f"interrupted at episode {self.episode}: saved {saved}; "
-                                    f"continue with resume={self.run_dir}")
+                                    f"{self.how_to_continue()}")
 
     def fit(self) -> dict[str, Any]:
         """Train every member to ``train.episodes``, evaluating every
