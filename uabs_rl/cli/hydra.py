@@ -200,6 +200,8 @@ def check_composition(config_name: str, argv: list[str],
                 which = " ".join(j for j in mine if j not in fixed)
                 raise ConfigError(f"the job {which} of this sweep: {e} No job was "
                                   f"started.") from None
+            except Exception:  # anything else is the job's to report, as it starts
+                return
 
 
 def _flat_keys(node, prefix: str = "") -> list[str]:
