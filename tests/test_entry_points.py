@@ -18,6 +18,7 @@ def test_a_command_piped_into_head_still_writes_its_files(tmp_path):
                 print(f"line {i}")
             pathlib.Path(sys.argv[1]).write_text("whole")
             print("and after the files")
+            sys.exit(0)  # as uabs-eval's and uabs-report's run_main end
     """))
     done = tmp_path / "done.txt"
     code = ("import sys; sys.argv = ['talkative', sys.argv[1]]; "

@@ -323,7 +323,8 @@ def test_misspelt_keys_and_unknown_groups_fail_at_composition(trace_cache, overr
     (["masking=flat,rank"], "masking=flat,rank is a sweep (several values): add -m to run "
                             "one job per value (uabs-train -m ...), or give one value."),
     (["-m", "masking=flat,rank", "hydra/launcher=local_parallel", "hydra.launcher.n_jobs=0"],
-     "hydra.launcher.n_jobs=0: the jobs a sweep runs at once must be a whole number >= 1."),
+     "hydra.launcher.n_jobs=0: the jobs a sweep runs at once must be a whole number >= 1 "
+     "(or -1: one per core)."),
     # a value one job of a sweep would refuse: before, the jobs before it ran first (the
     # serial launcher), and the sweep stopped there
     (["-m", "algo.lr=0.001,-1", "seed=0,1"], "the job algo.lr=-1 seed=0 of this sweep: "
@@ -351,12 +352,17 @@ def test_config_dir_options_are_composed_with_it_and_its_mistakes_are_one_line(t
     left to Hydra."""
     from uabs_rl.cli.hydra import check_composition
 
-    mine = tmp_path / "myconf"
+    mine = tmp_path / "my conf=a,b'c"  # a path Hydra's override grammar must quote
     (mine / "scenario").mkdir(parents=True)
     (mine / "scenario" / "mine.yaml").write_text("name: mine\n")
     check_composition("config", ["--config-dir", str(mine), "scenario=mine"])
     check_composition("config", [f"-cd={mine}", "scenario=mine"])
     check_composition("config", ["hydra.searchpath=[file://nowhere]", "scenario=mine"])
+    # what Hydra itself takes passes: joblib's n_jobs=-1 (a job per core), and a value
+    # this check cannot compose (scenario=null) is left to Hydra's own answer
+    check_composition("config", ["-m", "hydra/launcher=local_parallel",
+                                 "hydra.launcher.n_jobs=-1", "seed=0,1"])
+    check_composition("config", ["scenario=null"])
     with pytest.raises(ConfigError, match="scenario has no option 'mine'"):
         check_composition("config", ["scenario=mine"])
     with pytest.raises(ConfigError, match="--config-dir nowhere: no such folder"):

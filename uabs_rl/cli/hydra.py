@@ -102,6 +102,11 @@ _OWN_FLAGS = ("--config-path", "-cp", "--config-name", "-cn",
 _CONFIG_DIR = ("--config-dir", "-cd")
 
 
+def _quoted(value: str) -> str:
+    """``value`` as a quoted string of Hydra's override grammar (a path may hold = , [ ')."""
+    return "'" + value.replace("\\", "\\\\").replace("'", "\\'") + "'"
+
+
 def config_dirs(argv: list[str]) -> list[Path]:
     """The folders of ``--config-dir D`` (``-cd D``, ``--config-dir=D``) on a command
     line."""
@@ -115,7 +120,8 @@ def config_dirs(argv: list[str]) -> list[Path]:
 
 
 # a sweep of at most this many jobs has each job's settings checked before any starts
-MOST_JOBS_CHECKED = 256
+# (each a composition, ~0.1 s); of a longer sweep, each setting's first values
+MOST_JOBS_CHECKED = 32
 
 
 def check_composition(config_name: str, argv: list[str],
@@ -141,15 +147,15 @@ def check_composition(config_name: str, argv: list[str],
                              for w in words if w.split("=", 1)[0] in groups
                              for v in w.split("=", 1)[1].split(",")])
     # where Hydra looks beside conf/: the same folders, for this composition
-    search = ([f"hydra.searchpath=[{','.join(f'file://{d.resolve()}' for d in dirs)}]"]
+    search = ([f"hydra.searchpath=[{','.join(_quoted(f'file://{d.resolve()}') for d in dirs)}]"]
               if dirs else [])
     register_configs()  # the groups' typed bases (idempotent)
-    multirun = any(a in ("-m", "--multirun") for a in argv)
+    multirun = any(a in ("-m", "--multirun") for a in argv) or "hydra.mode=MULTIRUN" in words
     for w in words:
         key, _, value = w.partition("=")
-        if key == "hydra.launcher.n_jobs" and not (value.isdigit() and int(value) >= 1):
+        if key == "hydra.launcher.n_jobs" and value.strip("'\"") in ("0", "-0"):
             raise ConfigError(f"hydra.launcher.n_jobs={value}: the jobs a sweep runs at "
-                              f"once must be a whole number >= 1.")
+                              f"once must be a whole number >= 1 (or -1: one per core).")
     try:
         parsed = OverridesParser.create().parse_overrides(overrides=words)
         sweeps = [o.input_line for o in parsed if o.is_sweep_override()
@@ -161,8 +167,8 @@ def check_composition(config_name: str, argv: list[str],
         tries = [fixed]
         listed = [[f"{o.get_key_element()}={v}" for v in o.sweep_string_iterator()]
                   for o in parsed if o.is_sweep_override() and not o.is_interval_sweep()]
-        for values in listed:
-            tries += [fixed + [v] for v in values]
+        for values in listed:  # a composition is ~0.1 s: a long sweep's first values only
+            tries += [fixed + [v] for v in values][:MOST_JOBS_CHECKED]
         # every job of the sweep, where they are few enough to check each before any runs
         # (an interval sweep's values are drawn by its sweeper: none listed here)
         jobs = ([fixed + list(job) for job in itertools.product(*listed)]
@@ -177,7 +183,8 @@ def check_composition(config_name: str, argv: list[str],
             mine = [o for o in overrides if not o.lstrip("+~").startswith("hydra")]
             try:
                 compose(config_name=config_name, overrides=search + mine)
-            except yaml.YAMLError as e:  # a file of --config-dir's that is not YAML
+            except (yaml.YAMLError, UnicodeDecodeError) as e:  # a file of --config-dir's
+                # that is not YAML (or not text)
                 where = getattr(e, "problem_mark", None)
                 raise ConfigError(f"{where.name if where else 'a config file'} is not a "
                                   f"readable YAML file ({getattr(e, 'problem', None) or e}"
@@ -192,6 +199,8 @@ def check_composition(config_name: str, argv: list[str],
                 except HydraException:
                     known = []
                 raise ConfigError(composition_error(f"{e}{cause}", known, bool(dirs))) from None
+            except Exception:  # anything else (scenario=null, ...): Hydra's own answer
+                return
         for job in jobs if len(jobs) > 1 else []:  # one run checks itself as it starts
             mine = [o for o in job if not o.lstrip("+~").startswith("hydra")]
             try:
@@ -230,14 +239,18 @@ def composition_error(message: str, known: list[str] = (), yours: bool = False) 
                 f"{', '.join(options)} (the files of {where}).")
     unknown = re.search(r"Could not override '([^']+)'.*Key '([^']+)' not in '([^']+)'", text)
     if unknown:
-        key, _, schema = unknown.groups()
+        key, missing, schema = unknown.groups()
         close = difflib.get_close_matches(key, sorted(known), n=3, cutoff=0.6)
         hint = f"did you mean {' or '.join(close)}? " if close else ""
-        return (f"{key} is not a setting ({schema} has no {key.rsplit('.', 1)[-1]!r}): "
+        return (f"{key} is not a setting ({schema} has no {missing!r}): "
                 f"{hint}fix its spelling; uabs-train --cfg job prints every setting.")
-    merging = re.search(r"Error merging override (\S+) (.*?)(?: full_key: \S+|$)", text)
-    if merging:
-        return f"{merging.group(1)}: {merging.group(2).strip()}."
+    first = next((i for i, ln in enumerate(lines) if ln.startswith("Error merging override ")),
+                 None)
+    if first is not None:
+        override = lines[first][len("Error merging override "):]
+        detail = next((ln for ln in lines[first + 1:] if not ln.startswith(
+            ("full_key:", "reference_type=", "object_type=", "Set the environment"))), "")
+        return f"{override}: {detail.rstrip('.')}."
     return " ".join(ln for ln in lines if not ln.startswith(
         ("full_key:", "reference_type=", "object_type=", "Set the environment variable")))
 

@@ -23,16 +23,23 @@ def _run(module: str, func: str) -> None:
     if held:
         print("interrupted", file=sys.stderr)
         sys.exit(130)
-    out = sys.stdout = ReaderLeft(sys.stdout)
+    out = None
+    if sys.stdout is not None:  # None: started with standard output closed (>&-)
+        out = sys.stdout = ReaderLeft(sys.stdout)
     try:
         command()
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         sys.exit(130)
     except BrokenPipeError:  # a write around the wrapper (to the descriptor itself)
-        out.discard()
-    if out.left:  # as a shell reports a process ended by SIGPIPE; its files are whole
-        sys.exit(128 + 13)
+        if out is not None:
+            out.discard()
+    except SystemExit as e:  # a command that ends with sys.exit(main())
+        if out is not None and out.left and not e.code:
+            sys.exit(128 + 13)
+        raise
+    if out is not None and out.left:  # as a shell reports a process ended by SIGPIPE;
+        sys.exit(128 + 13)  # its files are whole
 
 
 class ReaderLeft:

@@ -266,7 +266,7 @@ def _check_sweep_command(sweep: Path, argv: list[str]) -> None:
         f"lacks {', '.join(lacks)}" if lacks else "",
         f"adds {', '.join(adds)}" if adds else "",
         f"changes {', '.join(changes)}" if changes else "") if part)
-    command = " ".join(w for w in typed if not w.startswith(("resume=", "hydra.")))
+    command = " ".join(shlex.quote(w) for w in typed if not w.startswith(("resume=", "hydra.")))
     raise ConfigError(f"resume={sweep} continues the sweep typed as `uabs-train -m "
                       f"{command}`; this command {said}: re-type that one with "
                       f"resume={sweep} appended (another sweep goes into another "
@@ -385,13 +385,15 @@ def _in_study() -> bool:
 
 def _check_job(composed) -> None:
     """A sweep's job's start-up checks, before any job of the sweep runs (a resumed
-    job's settings are its run's, checked when it continues)."""
+    job's settings are its run's, checked when it continues): those of its settings
+    alone, not of the machine (its device and memory are the machine's the job runs
+    on, a SLURM node's perhaps: checked there, as it starts)."""
     from uabs_rl.config import to_container
-    from uabs_rl.training.startup import validate_run
+    from uabs_rl.training.startup import validate_settings
 
     cfg = to_container(composed)
     if not cfg.resume:
-        validate_run(cfg)
+        validate_settings(cfg)
 
 
 if __name__ == "__main__":

@@ -145,7 +145,12 @@ def check_config_dirs(dirs: list[Path], chosen: list[tuple[str, str]],
     package's ``conf/`` first, so ``uabs-train`` would ignore such a file of yours
     where ``uabs-eval`` reads it; refused in both."""
     for d in dirs:
-        if not d.is_dir():
+        try:
+            here = d.is_dir()
+        except OSError as e:  # a name too long, a folder that cannot be searched
+            raise ConfigError(f"{flag} {d}: cannot be read ({e.strerror}): give a folder "
+                              f"you can read.") from None
+        if not here:
             raise ConfigError(f"{flag} {d}: no such folder: give the folder that holds "
                               f"your <group>/<option>.yaml files (e.g. scenario/).")
         for group, option in chosen:

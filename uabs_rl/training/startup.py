@@ -33,14 +33,21 @@ from uabs_rl.evaluation.evaluator import eval_window_count
 def validate_run(cfg: RunConfig) -> None:
     """Every start-up check of ``uabs-train``, each naming the offending key: nothing is
     built or written before they pass."""
+    validate_settings(cfg)
+    validate_device(cfg.device)
+    check_memory(cfg)
+
+
+def validate_settings(cfg: RunConfig) -> None:
+    """The start-up checks of the settings alone, not of the machine (its device and
+    memory): what a sweep checks for each of its jobs before any starts, where a job
+    may run on another machine (a SLURM node)."""
     check_finite(cfg)
     validate_world(cfg)
     validate_family(cfg, CHANNELS)
     validate_algo_name(cfg.algo)
     validate_learning(cfg)
     check_eval_windows(cfg)
-    validate_device(cfg.device)
-    check_memory(cfg)
 
 
 def validate_algo_name(algo: AlgoConfig) -> None:
