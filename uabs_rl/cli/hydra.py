@@ -119,6 +119,9 @@ def config_dirs(argv: list[str]) -> list[Path]:
     return out
 
 
+# the command of each config (its messages name it)
+COMMANDS = {"config": "uabs-train", "build_traces": "uabs-traces"}
+
 # a sweep of at most this many jobs has each job's settings checked before any starts
 # (each a composition, ~0.1 s); of a longer sweep, each setting's first values
 MOST_JOBS_CHECKED = 32
@@ -162,7 +165,8 @@ def check_composition(config_name: str, argv: list[str],
                   and not o.get_key_element().lstrip("+~").startswith("hydra")]
         if sweeps and not multirun:
             raise ConfigError(f"{sweeps[0]} is a sweep (several values): add -m to run one "
-                              f"job per value (uabs-train -m ...), or give one value.")
+                              f"job per value ({COMMANDS.get(config_name, 'uabs-train')} "
+                              f"-m ...), or give one value.")
         fixed = [o.input_line for o in parsed if not o.is_sweep_override()]
         tries = [fixed]
         listed = [[f"{o.get_key_element()}={v}" for v in o.sweep_string_iterator()]
@@ -198,7 +202,9 @@ def check_composition(config_name: str, argv: list[str],
                     known = _flat_keys(OmegaConf.to_container(chosen, resolve=False))
                 except HydraException:
                     known = []
-                raise ConfigError(composition_error(f"{e}{cause}", known, bool(dirs))) from None
+                raise ConfigError(composition_error(
+                    f"{e}{cause}", known, bool(dirs),
+                    COMMANDS.get(config_name, "uabs-train"))) from None
             except Exception:  # anything else (scenario=null, ...): Hydra's own answer
                 return
         for job in jobs if len(jobs) > 1 else []:  # one run checks itself as it starts
@@ -220,7 +226,8 @@ def _flat_keys(node, prefix: str = "") -> list[str]:
     return [k for key, value in node.items() for k in _flat_keys(value, f"{prefix}{key}.")]
 
 
-def composition_error(message: str, known: list[str] = (), yours: bool = False) -> str:
+def composition_error(message: str, known: list[str] = (), yours: bool = False,
+                      command: str = "uabs-train") -> str:
     """Hydra's message of a failed composition as one line: what is wrong and what to
     type instead (the options of a group without its schema, ``<group>_schema``; for a
     key no setting has, the closest of ``known``, the config's settings)."""
@@ -243,7 +250,7 @@ def composition_error(message: str, known: list[str] = (), yours: bool = False) 
         close = difflib.get_close_matches(key, sorted(known), n=3, cutoff=0.6)
         hint = f"did you mean {' or '.join(close)}? " if close else ""
         return (f"{key} is not a setting ({schema} has no {missing!r}): "
-                f"{hint}fix its spelling; uabs-train --cfg job prints every setting.")
+                f"{hint}fix its spelling; {command} --cfg job prints every setting.")
     first = next((i for i, ln in enumerate(lines) if ln.startswith("Error merging override ")),
                  None)
     if first is not None:

@@ -158,6 +158,6 @@ def check_config_dirs(dirs: list[Path], chosen: list[tuple[str, str]],
             if mine.is_file() and ours.is_file():
                 raise ConfigError(
                     f"{flag} {d}: {mine} has the name of the package's "
-                    f"conf/{group}/{option}.yaml, and uabs-train reads the package's "
+                    f"conf/{group}/{option}.yaml, and Hydra reads the package's "
                     f"first: rename yours (e.g. {group}/my_{option}.yaml, chosen with "
                     f"{group}=my_{option}).")
