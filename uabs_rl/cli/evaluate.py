@@ -342,12 +342,10 @@ def output_folder(out: Path, given: bool) -> OutputFolder:
 
 
 def _evaluate_and_write(ev: Evaluation, args: argparse.Namespace, out: Path,
-                        governor: ThreadGovernor | None = None,
-                        checkpoint: str | None = None) -> None:
+                        governor: ThreadGovernor | None, checkpoint: str) -> None:
     """Evaluate the policies ``args`` asks for, print the tables, and write eval.json and
     the pictures into ``out``. ``checkpoint``: what was evaluated, "best" or "last" of a
-    run folder or a checkpoint file's path (default ``args.checkpoint``)."""
-    checkpoint = checkpoint or args.checkpoint
+    run folder or a checkpoint file's path."""
     policies = tuple(dict.fromkeys(
         q for p in args.policy or ["learned"] for q in (POLICIES if p == "all" else [p])))
     t0 = time.perf_counter()

@@ -22,6 +22,7 @@ from uabs_rl.config import (
     check_duplicate_overrides,
     check_moved_overrides,
     command_line_overrides,
+    flatten,
     override_key,
     register_configs,
     to_container,
@@ -50,6 +51,11 @@ OWNED = ("hydra.output_subdir", "hydra.job.name", "hydra.job.chdir", "hydra.job_
          "hydra/job_logging", "hydra.hydra_logging", "hydra/hydra_logging", "hydra.runtime")
 
 
+def config_groups() -> set[str]:
+    """The config groups of the package's ``conf/`` (``scenario``, ``masking``, ...)."""
+    return {d.name for d in CONF_DIR.iterdir() if d.is_dir()}
+
+
 def check_command_line(argv: list[str]) -> None:
     """Refuse, before Hydra reads them, overrides Hydra would fail on in several lines
     (its grammar), a Hydra setting the project owns (``OWNED``), a config group option
@@ -67,7 +73,7 @@ def check_command_line(argv: list[str]) -> None:
         raise ConfigError(f"the command line does not parse: {first} (quote a value "
                           f"holding brackets, braces, commas, spaces or an =, for the shell "
                           f"too: \"key='a=b'\").") from None
-    groups = {d.name for d in CONF_DIR.iterdir() if d.is_dir()}
+    groups = config_groups()
     keys = []
     for word in words:
         key = override_key(word)
@@ -145,7 +151,7 @@ def check_composition(config_name: str, argv: list[str],
             w.lstrip("+~").startswith("hydra.searchpath") for w in words):
         return  # another primary config or search path: Hydra's composition alone
     dirs = config_dirs(argv)
-    groups = {d.name for d in CONF_DIR.iterdir() if d.is_dir()}
+    groups = config_groups()
     check_config_dirs(dirs, [(w.split("=", 1)[0], v.strip().strip("'\""))
                              for w in words if w.split("=", 1)[0] in groups
                              for v in w.split("=", 1)[1].split(",")])
@@ -168,25 +174,25 @@ def check_composition(config_name: str, argv: list[str],
                               f"job per value ({COMMANDS.get(config_name, 'uabs-train')} "
                               f"-m ...), or give one value.")
         fixed = [o.input_line for o in parsed if not o.is_sweep_override()]
-        tries = [fixed]
         listed = [[f"{o.get_key_element()}={v}" for v in o.sweep_string_iterator()]
                   for o in parsed if o.is_sweep_override() and not o.is_interval_sweep()]
-        for values in listed:  # a composition is ~0.1 s: a long sweep's first values only
-            tries += [fixed + [v] for v in values][:MOST_JOBS_CHECKED]
-        # every job of the sweep, where they are few enough to check each before any runs
-        # (an interval sweep's values are drawn by its sweeper: none listed here)
-        jobs = ([fixed + list(job) for job in itertools.product(*listed)]
-                if check is not None and math.prod(map(len, listed)) <= MOST_JOBS_CHECKED
+        # every job of the sweep, composed and checked, where they are few enough (an
+        # interval sweep's values, a study's trials, are drawn, not listed: a study stops
+        # on refusals itself); else the fixed settings, then each listed value with them
+        # (a composition is ~0.1 s: a long sweep's first values only)
+        jobs = (check is not None and 1 < math.prod(map(len, listed)) <= MOST_JOBS_CHECKED
                 and not any(o.is_interval_sweep() for o in parsed)
-                and not any(w.startswith("hydra/sweeper=") for w in words)  # a study's
-                else [])  # trials are drawn, not listed: it stops on refusals itself
+                and not any(w.startswith("hydra/sweeper=") for w in words))
+        tries = ([fixed + list(job) for job in itertools.product(*listed)] if jobs else
+                 [fixed, *(fixed + [v] for values in listed
+                           for v in values[:MOST_JOBS_CHECKED])])
     except HydraException:  # a sweep this cannot list: Hydra's own path decides
         return
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         for overrides in tries:
             mine = [o for o in overrides if not o.lstrip("+~").startswith("hydra")]
             try:
-                compose(config_name=config_name, overrides=search + mine)
+                composed = compose(config_name=config_name, overrides=search + mine)
             except (yaml.YAMLError, UnicodeDecodeError) as e:  # a file of --config-dir's
                 # that is not YAML (or not text)
                 where = getattr(e, "problem_mark", None)
@@ -199,7 +205,7 @@ def check_composition(config_name: str, argv: list[str],
                 try:  # the settings there are, with the groups and presets chosen
                     chosen = compose(config_name=config_name, overrides=search + [
                         o for o in mine if "." not in o.split("=", 1)[0]])
-                    known = _flat_keys(OmegaConf.to_container(chosen, resolve=False))
+                    known = list(flatten(OmegaConf.to_container(chosen, resolve=False)))
                 except HydraException:
                     known = []
                 raise ConfigError(composition_error(
@@ -207,23 +213,16 @@ def check_composition(config_name: str, argv: list[str],
                     COMMANDS.get(config_name, "uabs-train"))) from None
             except Exception:  # anything else (scenario=null, ...): Hydra's own answer
                 return
-        for job in jobs if len(jobs) > 1 else []:  # one run checks itself as it starts
-            mine = [o for o in job if not o.lstrip("+~").startswith("hydra")]
+            if not jobs:  # one run checks itself as it starts
+                continue
             try:
-                check(compose(config_name=config_name, overrides=search + mine))
+                check(composed)
             except ConfigError as e:
                 which = " ".join(j for j in mine if j not in fixed)
                 raise ConfigError(f"the job {which} of this sweep: {e} No job was "
                                   f"started.") from None
             except Exception:  # anything else is the job's to report, as it starts
                 return
-
-
-def _flat_keys(node, prefix: str = "") -> list[str]:
-    """Every setting of a config as ``section.key``."""
-    if not isinstance(node, dict):
-        return [prefix[:-1]]
-    return [k for key, value in node.items() for k in _flat_keys(value, f"{prefix}{key}.")]
 
 
 def composition_error(message: str, known: list[str] = (), yours: bool = False,

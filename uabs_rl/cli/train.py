@@ -227,8 +227,6 @@ def _sweep_settings(words: list[str]) -> dict[str, frozenset[str]]:
     out = {}
     for o in OverridesParser.create().parse_overrides(overrides=words):
         key = o.get_key_element()
-        if key.lstrip("+~").startswith("hydra") or key.lstrip("+~") in free:
-            continue
         values = (list(o.sweep_string_iterator()) if o.is_sweep_override()
                   and not o.is_interval_sweep() else [o.get_value_element_as_str()])
         out[key] = frozenset(values)

@@ -85,15 +85,15 @@ def refused_at_start() -> bool:
     """True when this job ended before its run began: its folder holds no
     ``metrics.jsonl`` (the start-up checks pass before anything is written), so its
     settings, not its training, failed."""
-    from pathlib import Path
-
     from hydra.core.hydra_config import HydraConfig
 
+    from uabs_rl.runs.layout import RunFolder
+
     try:
-        out = Path(HydraConfig.get().runtime.output_dir)
+        out = HydraConfig.get().runtime.output_dir
     except ValueError:  # outside a Hydra job
         return False
-    return not (out / "metrics.jsonl").exists()
+    return not RunFolder(out).metrics.exists()
 
 
 @dataclass
