@@ -199,6 +199,31 @@ def test_a_study_whose_trials_are_all_refused_at_start_up_stops_after_three(trac
     assert len(load(tmp_path).trials) == 3
 
 
+def test_a_study_whose_trials_all_fail_ends_with_an_error_and_its_report_says_so(
+        trace_cache, tmp_path, monkeypatch):
+    """Every trial's run diverges after it started (not refused: the study goes on): the
+    study ended with exit status 0 and "next: uabs-report", as if it had a best trial;
+    now status 1 and one error line. Its report does not head failed trials "best", and
+    draws its history without matplotlib's warning of a legend with nothing in it."""
+    from tests.conftest import run_command
+    from tests.test_value_faults import diverge_after
+
+    diverge_after(monkeypatch, 20)
+    p = uabs_train_here(tmp_path, *study_args(trace_cache, 2))
+    assert p.returncode == 1, p.stderr[-3000:]
+    assert "trial 0 failed" in p.stderr and "trial 1 failed" in p.stderr
+    last = [ln for ln in p.stderr.splitlines() if ln.startswith("error:")][-1]
+    assert last.startswith("error: every trial of the study failed (2;")
+    assert [t.state for t in load(tmp_path).trials] == [optuna.trial.TrialState.FAIL] * 2
+    r = run_command("report", "study", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr[-3000:]
+    text = (tmp_path / "study" / "report" / "study.md").read_text()
+    assert "## best" not in text
+    assert "## 2 trials: the 0 complete ones, best first, then the pruned and failed" in text
+    assert "Only 0 trials completed" in text
+    assert "No artists with labels" not in r.stderr + r.stdout
+
+
 def test_search_space_overrides_as_distributions():
     from optuna.distributions import CategoricalDistribution, FloatDistribution, IntDistribution
 

@@ -79,6 +79,8 @@ def markdown(study, rows: list[dict[str, Any]], top: int, importances: dict[str,
     counts: dict[str, int] = {}
     for r in rows:
         counts[r["state"]] = counts.get(r["state"], 0) + 1
+    complete = counts.get("complete", 0)
+    shown = min(top, len(rows))
     lines = [f"# study {study.study_name}",
              "",
              f"{len(rows)} trials (" + ", ".join(f"{n} {s}" for s, n in counts.items())
@@ -86,7 +88,18 @@ def markdown(study, rows: list[dict[str, Any]], top: int, importances: dict[str,
                "population's mean over its members), to "
              + study.direction.name.lower(),
              "",
-             f"## best {min(top, len(rows))} trials",
+             # each value is one run's, and the best of many runs is the luckiest too
+             "The best trial's value is the best of "
+             + (f"{complete} single runs" if complete != 1 else "one single run")
+             + ": selection makes it high. Before relying on its settings, train "
+               "them with several seeds (`uabs-train -m <its settings> "
+               "seed=0,1,2,3,4`) and compare with `uabs-report`."
+             + (f" Only {complete} trial{'s' * (complete != 1)} completed: too few to "
+                "say which settings matter." if complete < 10 else ""),
+             "",
+             (f"## best {shown} trials" if shown <= complete else
+              f"## {shown} trials: the {complete} complete ones, best first, then "
+              f"the pruned and failed"),
              "",
              "| trial | state | validation R | last eval ep | " + " | ".join(params) + " |",
              "|---:|---|---:|---:|" + "---|" * len(params)]
@@ -144,7 +157,11 @@ def figures(study, importances: dict[str, float], out: Path) -> list[Path]:
     ax.set_xlabel("trial")
     ax.set_ylabel("validation return")
     ax.set_title("optimisation history")
-    ax.legend(fontsize=8)
+    if done or pruned:
+        ax.legend(fontsize=8)
+    else:
+        ax.text(0.5, 0.5, "no complete or pruned trial", ha="center", va="center",
+                transform=ax.transAxes)
     fig.tight_layout()
     for ext in ("png", "pdf"):
         fig.savefig(out / f"history.{ext}")

@@ -191,7 +191,12 @@ def _run_study(sweeper, arguments: list[str]) -> list[dict[str, Any]]:
         overrides = [[*fixed, *trial_overrides(params),
                       f"+hydra.job.env_set.{TRIAL_ENV}={number}",
                       f"hydra.sweep.subdir='trial={number}'"] for number, params in batch]
-        returns = launcher.launch(overrides, initial_job_idx=job)
+        numbers = [number for number, _ in batch]
+        # Hydra labels the jobs #first, #first+1, ...: the trials' numbers where they
+        # follow each other (after a resume they run on from the study's, not from 0)
+        first = numbers[0] if numbers == list(range(numbers[0], numbers[0] + len(numbers))) \
+            else job
+        returns = launcher.launch(overrides, initial_job_idx=first)
         job += len(batch)
         todo -= len(batch)
         for (number, _), ret in zip(batch, returns, strict=True):
@@ -205,6 +210,15 @@ def _run_study(sweeper, arguments: list[str]) -> list[dict[str, Any]]:
                 f"another sweep folder (these trials stay in {hidden(url)} as failed, and "
                 f"count as done there).")
     _print_end(study, sweep_dir, url)
+    trials = study.get_trials(deepcopy=False)
+    if trials and all(t.state == TrialState.FAIL for t in trials):
+        # nothing to report or go on from: a script that chains the study's report or a
+        # re-training of its best settings must not carry on as after a success (a
+        # study its pruner stopped everywhere ran as asked: its end says so, exit 0)
+        print(f"error: every trial of the study failed ({len(trials)}; the 'trial N "
+              f"failed' lines above say why): fix the settings and start the study again "
+              f"in another sweep folder.", file=sys.stderr)
+        sys.exit(1)
     return results
 
 
@@ -244,6 +258,8 @@ def _print_end(study, sweep_dir: Path, url: str) -> None:
         lines += [f"  best: trial {best.number}, validation return {value}",
                   "  " + " ".join(trial_overrides(best.params)),
                   f"  run folder: {sweep_dir / f'trial={best.number}'}"]
+    else:
+        lines.append("  no trial completed: the study has no best settings yet")
     q = shlex.quote(str(sweep_dir))
     # the tune extra installs the dashboard; the dev extra (optuna alone) does not
     install = ("" if importlib.util.find_spec("optuna_dashboard") is not None
