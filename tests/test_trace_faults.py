@@ -103,20 +103,30 @@ def test_a_cache_file_saved_without_its_key_is_checked_on_its_parameters(
     assert "eval traces of other parameters" in warning and train_path.stem in warning
 
 
-def test_a_damaged_cache_warning_gives_no_unsafe_advice(trace_cache, tmp_path, train, caplog):
-    class Evil:
-        def __reduce__(self):
-            return (print, ("pwned",))
+class _Evil:
+    def __reduce__(self):
+        return (print, ("pwned",))
 
+
+@pytest.mark.parametrize("write,reason", [
+    # a pickle payload: named, never run, and no advice to load it unsafely
+    (lambda p: torch.save({"positions": _Evil()}, p, pickle_module=pickle),
+     "it holds Python objects: print"),
+    # random bytes said "it holds objects beyond tensors", an empty file "(EOFError: )"
+    (lambda p: p.write_bytes(b""), "the file is empty"),
+    (lambda p: p.write_bytes(bytes(range(256)) * 8), "not a file written by torch.save"),
+], ids=["payload", "empty", "random"])
+def test_a_damaged_cache_file_is_rebuilt_saying_what_is_wrong_with_it(
+        trace_cache, tmp_path, train, caplog, write, reason):
     cfg = private_copy(trace_cache, tmp_path)
     path = cache_path(cfg.scenario, cfg.traces, "train")
-    torch.save({"positions": Evil()}, path, pickle_module=pickle)
+    write(path)
     with caplog.at_level(logging.WARNING, logger="uabs_rl.traces.cache"):
         ts = get_traces(cfg.scenario, cfg.traces, "train")
     assert ts.source == "built" and torch.equal(ts.positions, train.positions)
     [warning] = warnings_of(caplog)
-    assert warning == (f"trace cache file {path} is damaged or not a trace cache (it holds "
-                       f"objects beyond tensors); rebuilding it")
+    assert warning == (f"trace cache file {path} is damaged or not a trace cache "
+                       f"({reason}); rebuilding it")
     assert "weights_only" not in caplog.text
 
 

@@ -19,7 +19,6 @@ import json
 import logging
 import math
 import os
-import pickle
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -163,15 +162,14 @@ def save_traceset(ts: TraceSet, path: Path) -> None:
 
 def load_traceset(path: Path) -> TraceSet:
     """Load and verify a cache file; raise :class:`TraceCacheError` if it is not sound."""
+    from uabs_rl.runs.checkpoint import UnreadableFile, read_weights
+
     damaged = f"{path} is damaged or not a trace cache"
-    try:
-        blob = torch.load(path, map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError:  # torch's text advises an unsafe retry: not repeated
-        raise TraceCacheError(f"{damaged} (it holds objects beyond tensors)") from None
-    except Exception as e:  # truncated zip, wrong format, ...
-        first = (str(e).splitlines() or [""])[0][:160]
-        reason = type(e).__name__ + ("" if "weights_only" in first else f": {first}")
-        raise TraceCacheError(f"{damaged} ({reason})") from None
+    try:  # why torch refused it, in a few words (never torch's unsafe retry advice)
+        blob = read_weights(path)
+    except UnreadableFile as e:
+        objects = f": {e.objects}" if e.objects else ""
+        raise TraceCacheError(f"{damaged} ({e}{objects})") from None
     if not isinstance(blob, dict) or not {"positions", "present", "meta_json"} <= blob.keys():
         raise TraceCacheError(f"{damaged} (it lacks the keys positions/present/meta_json)")
     pos, pres = blob["positions"], blob["present"]
