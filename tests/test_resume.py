@@ -70,6 +70,23 @@ def test_kill_9_and_resume_gives_the_uninterrupted_run(trace_cache, tmp_path):
     assert not (tmp_path / "outputs").exists()  # no stray run folder in the cwd
 
 
+def test_resume_without_a_replay_buffer_warns_only_where_learning_goes_on(
+        trace_cache, tmp_path, caplog):
+    """A checkpoint without its buffer (the default): resuming a stopped run warns that
+    learning restarts after algo.learning_starts; a finished one, with nothing left to
+    learn, said so too."""
+    import logging
+
+    run_dir = tmp_path / "run"
+    run(smoke(trace_cache, "train.episodes=3", "train.trajectory_images=false"), run_dir)
+    for episodes, warned in ((3, False), (4, True)):
+        caplog.clear()
+        args = [f"resume={run_dir}", f"train.episodes={episodes}"]
+        with caplog.at_level(logging.WARNING, logger="uabs_rl.training.members"):
+            prepare(smoke(trace_cache, *args), Path("unused"), overrides=args).fit()
+        assert ("learning restarts after algo.learning_starts" in caplog.text) == warned
+
+
 def test_resume_takes_the_runs_own_config_and_refuses_result_changes(trace_cache, tmp_path):
     run_dir = tmp_path / "run"
     run(smoke(trace_cache, "train.episodes=3", "train.trajectory_images=false",

@@ -186,7 +186,7 @@ class Checkpoints:
             check_compatible(st, m.cfg, path)
             buffers &= exp.load_member_state(i, st)
         exp.load_counters(states[0])  # the members' counters are equal
-        if not buffers:
+        if not buffers and exp.episode < exp.cfg.train.episodes:  # learning goes on
             log.warning(NO_REPLAY)
 
     def check_member(self, state: dict, i: int, path: Path) -> None:
