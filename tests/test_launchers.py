@@ -4,10 +4,15 @@ for real through its local executor (slow), and the SLURM config."""
 from __future__ import annotations
 
 import json
+import os
+import signal
 import subprocess
 import sys
+import time
+from pathlib import Path
 
 import pytest
+import torch
 from hydra import compose, initialize_config_dir
 from hydra.utils import get_class
 
@@ -27,6 +32,58 @@ def test_two_job_local_parallel_multirun(trace_cache, tmp_path):
         lines = (run_dir / "metrics.jsonl").read_text().splitlines()
         assert [json.loads(x)["kind"] for x in lines].count("train") == 6
         assert (run_dir / "checkpoints" / "last.pt").is_file()
+
+
+def _train_episodes(run_dir: Path) -> list[int]:
+    path = run_dir / "metrics.jsonl"
+    lines = path.read_text().splitlines() if path.is_file() else []
+    return [r["episode"] for r in map(json.loads, lines) if r["kind"] == "train"]
+
+
+def _ctrl_c_when(proc: subprocess.Popen, ready, timeout: float = 300) -> tuple[str, str]:
+    """Ctrl-C as a terminal sends it (to the command's whole process group) once
+    ``ready()``; the command's output."""
+    deadline = time.monotonic() + timeout
+    while not ready():
+        assert proc.poll() is None, proc.communicate()[1][-3000:]
+        assert time.monotonic() < deadline, "the sweep never got that far"
+        time.sleep(0.2)
+    os.killpg(proc.pid, signal.SIGINT)
+    return proc.communicate(timeout=300)
+
+
+def test_ctrl_c_stops_a_parallel_sweep_with_every_running_job_saved(trace_cache, tmp_path):
+    """Before, joblib killed the workers at the first Ctrl-C: a job kept the checkpoint
+    of episode 306 after logging 309. Now each running job saves after its round, the
+    job not yet started never starts, and the command re-typed with resume= continues
+    every job from its own last episode, each episode once."""
+    sweep = tmp_path / "sweep"
+    command = [sys.executable, "-m", "uabs_rl.cli.train", "-m",
+               "hydra/launcher=local_parallel", "hydra.launcher.n_jobs=2",
+               "experiment=smoke", "train.threads=1", "train.logger=none",
+               "train.trajectory_images=false", f"traces.cache_dir={trace_cache}",
+               "train.progress=false", "train.episodes=100000", "seed=0,1,2",
+               f"hydra.sweep.dir={sweep}"]
+    jobs = [sweep / f"experiment=smoke,seed={s},train.episodes=100000" for s in (0, 1, 2)]
+    saved = {}
+    for resume in ([], [f"resume={sweep}"]):
+        # its own process group, as a terminal's foreground job has
+        p = subprocess.Popen(command + resume, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                             text=True, start_new_session=True)
+        out, err = _ctrl_c_when(p, lambda: all(
+            len(_train_episodes(j)) >= saved.get(j, 0) + 3 for j in jobs[:2]))
+        for j in jobs[:2]:
+            episodes = _train_episodes(j)
+            assert episodes == list(range(1, len(episodes) + 1))  # each once, none lost
+            last = torch.load(j / "checkpoints" / "last.pt", weights_only=False)
+            assert last["counters"]["episode"] == len(episodes) > saved.get(j, 0), err[-3000:]
+            saved[j] = len(episodes)
+        assert p.returncode == 130, err[-3000:]
+        assert err.rstrip().splitlines()[-1] == (
+            f"interrupted: every job that was running saved its last checkpoint; continue "
+            f"the sweep by re-typing its command (with -m) and resume={sweep} appended")
+        assert not jobs[2].exists()  # dispatched after the stop: it never started
+        assert not (sweep / ".stopping").exists()
 
 
 def test_slurm_launcher_config_composes():

@@ -15,6 +15,7 @@ from typing import Any
 import yaml
 from omegaconf import OmegaConf
 
+from uabs_rl.cli import parallel
 from uabs_rl.config import (
     CONF_DIR,
     ConfigError,
@@ -286,12 +287,19 @@ def hydra_main(config_name: str, body: Callable[..., Any],
         # (the run says what failed, in one line); no "--- Logging error ---" traces
         logging.raiseExceptions = False
         extra = (list(hc.overrides.task),) if pass_overrides else ()
+        out = Path(hc.runtime.output_dir)
+        ours = {HYDRA, LOCK, IDENTITY, f"{hc.job.name}.log"}
+        stop = parallel.job_stop_file(hc)  # a job of a parallel sweep: None otherwise
+        if stop is not None:
+            parallel.job_signals(running=True)
         try:
-            return body(to_container(dcfg), Path(hc.runtime.output_dir), *extra)
+            if stop is not None and stop.exists():  # the sweep stopped before this job
+                before.undo_start(out, ours)
+                return None
+            return body(to_container(dcfg), out, *extra)
         except (ConfigError, CheckpointError, OSError) as e:
             # only what this invocation made: never a folder or file that was there
-            before.undo_start(Path(hc.runtime.output_dir),
-                              {HYDRA, LOCK, IDENTITY, f"{hc.job.name}.log"})
+            before.undo_start(out, ours)
             if isinstance(e, OSError):  # a path the file system refuses (too long, ...)
                 where = f" ({e.filename})" if getattr(e, "filename", None) else ""
                 e = f"{e.strerror or e}{where}: check the paths of the command line and " \
@@ -300,10 +308,26 @@ def hydra_main(config_name: str, body: Callable[..., Any],
             sys.exit(2)
         except Interrupted as e:
             print(str(e), file=sys.stderr)
+            from uabs_rl.training.experiment import Stopped
+
+            if stop is not None and isinstance(e, Stopped):  # saved: the sweep goes on
+                stop.touch()  # to its end, where its launcher says it stopped
+                return None
             sys.exit(getattr(e, "exit_code", 130))
         except KeyboardInterrupt as e:  # a second Ctrl-C, or one outside training
+            from uabs_rl.training.experiment import StoppedNow
+
+            if stop is not None and not isinstance(e, StoppedNow):
+                # a parallel sweep's job stopped before or after its training: nothing
+                # to save (a run folder it began is kept: undo_start removes only a
+                # folder that holds nothing but the start's own records)
+                before.undo_start(out, ours)
+                return None
             print(str(e) or interrupted, file=sys.stderr)
             sys.exit(getattr(e, "exit_code", 130))
+        finally:
+            if stop is not None:
+                parallel.job_signals(running=False)
 
     try:  # before Hydra, whose own message would not say what to type instead
         check_moved_overrides(sys.argv[1:])
@@ -320,4 +344,9 @@ def hydra_main(config_name: str, body: Callable[..., Any],
                                     else "", replace=True)
     # ${path_safe:<text>}: <text> as one folder name (run and sweep job folder names)
     OmegaConf.register_new_resolver("path_safe", path_safe, replace=True)
-    hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name=config_name)(app)()
+    try:
+        hydra.main(version_base="1.3", config_path=str(CONF_DIR),
+                   config_name=config_name)(app)()
+    except parallel.SweepStopped as e:  # raised by the parallel launcher, after its jobs
+        print(str(e), file=sys.stderr)
+        sys.exit(e.exit_code)

@@ -123,6 +123,9 @@ class TrialTask:
                               f"above)", "refused": refused_at_start()}
         finally:
             _current = None
+        if summary is None:  # a parallel study's job stopped by a signal: its launcher
+            return {"number": number, "value": None, "pruned_at": None,  # stops the study
+                    "failed": "stopped"}
         value = score(summary)
         return {"number": number, "value": value if math.isfinite(value) else None,
                 "pruned_at": reporter.pruned_at,
