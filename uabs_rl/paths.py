@@ -392,3 +392,15 @@ class OutputFolder:
 def glob_escape(name: str) -> str:
     """``name`` with glob's special characters taken literally."""
     return re.sub(r"([*?\[])", r"[\1]", name)
+
+
+def detach_terminal() -> None:
+    """Point standard output and error that write to a terminal at /dev/null (after
+    SIGHUP the terminal is gone: writing to it would fail); files stay as they are."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        for fd in (1, 2):
+            if os.isatty(fd):
+                os.dup2(devnull, fd)
+    finally:
+        os.close(devnull)

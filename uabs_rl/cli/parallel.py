@@ -21,6 +21,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+from uabs_rl.paths import detach_terminal
+
 STOP_FILE = ".stopping"  # in the sweep folder while a stopped sweep's jobs return
 # hydra_plugins.uabs_rl_launcher's class (conf/hydra/launcher/local_parallel.yaml)
 LAUNCHER = "hydra_plugins.uabs_rl_launcher.StoppableJoblibLauncher"
@@ -36,9 +38,10 @@ class SweepStopped(KeyboardInterrupt):
         self.exit_code = 128 + signum
 
 
-def children() -> list[int]:
-    """The process ids of this process's children (Linux: /proc; elsewhere none, and
-    only a terminal's own Ctrl-C reaches the workers)."""
+def workers() -> list[int]:
+    """The process ids of this process's children but loky's resource tracker (which
+    ignores SIGINT and SIGTERM and would end on SIGHUP, leaving tracebacks); Linux's
+    /proc, elsewhere none (and only a terminal's own Ctrl-C reaches the workers)."""
     pids: list[int] = []
     try:
         for task in os.listdir("/proc/self/task"):
@@ -46,7 +49,16 @@ def children() -> list[int]:
                 pids += [int(p) for p in f.read().split()]
     except OSError:
         return []
-    return pids
+    out = []
+    for pid in pids:
+        try:
+            with open(f"/proc/{pid}/cmdline", "rb") as f:
+                if b"resource_tracker" in f.read():
+                    continue
+        except OSError:  # ended meanwhile
+            continue
+        out.append(pid)
+    return out
 
 
 def launch_stoppable(launch: Callable[[], Sequence[Any]], sweep_dir: Path) -> Sequence[Any]:
@@ -58,7 +70,7 @@ def launch_stoppable(launch: Callable[[], Sequence[Any]], sweep_dir: Path) -> Se
     held: list[int] = []
 
     def handle(signum, frame) -> None:
-        for pid in children():  # loky's resource tracker ignores them
+        for pid in workers():
             try:
                 os.kill(pid, signum)
             except OSError:
@@ -66,6 +78,8 @@ def launch_stoppable(launch: Callable[[], Sequence[Any]], sweep_dir: Path) -> Se
         if held:
             raise KeyboardInterrupt("stopped at once: each job keeps its last checkpoint")
         held.append(signum)
+        if signum == signal.SIGHUP:  # the terminal is gone: later lines go nowhere
+            detach_terminal()
         stop.parent.mkdir(parents=True, exist_ok=True)
         stop.touch()
         name = "Ctrl-C" if signum == signal.SIGINT else signal.Signals(signum).name

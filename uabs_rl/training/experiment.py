@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 import signal
 import sys
 import threading
@@ -22,6 +21,7 @@ from uabs_rl.algorithms import Dims, make_algorithm
 from uabs_rl.config import RunConfig, TrainConfig
 from uabs_rl.env.uabs_env import N_ACTIONS
 from uabs_rl.evaluation.evaluator import Evaluator, greedy_policy, make_eval_env
+from uabs_rl.paths import detach_terminal
 from uabs_rl.rng import Generators, make_generator
 from uabs_rl.runs.checkpoint import Interrupted
 from uabs_rl.runs.folder import write_error
@@ -88,7 +88,7 @@ class DeferredInterrupt:
 
     def _handle(self, signum, frame) -> None:
         if signum == signal.SIGHUP:
-            _detach_terminal()
+            detach_terminal()
         if self.requested is not None:
             raise StoppedNow(f"stopped at once: {self._kept()}", signum)
         self.requested = signum
@@ -128,16 +128,6 @@ class DeferredInterrupt:
         raise Stopped(message, signum)
 
 
-def _detach_terminal() -> None:
-    """Point standard output and error that write to a terminal at /dev/null (after
-    SIGHUP the terminal is gone: writing to it would fail); files stay as they are."""
-    devnull = os.open(os.devnull, os.O_WRONLY)
-    try:
-        for fd in (1, 2):
-            if os.isatty(fd):
-                os.dup2(devnull, fd)
-    finally:
-        os.close(devnull)
 
 
 def member_generator(gen: torch.Generator | Generators, i: int) -> torch.Generator:
