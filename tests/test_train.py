@@ -330,6 +330,9 @@ def test_misspelt_keys_and_unknown_groups_fail_at_composition(trace_cache, overr
     (["-m", "algo.lr=0.001,-1", "seed=0,1"], "the job algo.lr=-1 seed=0 of this sweep: "
                                              "algo.lr must be > 0, got -1.0. No job was "
                                              "started."),
+    # Hydra's own sweeper named: before, any hydra/sweeper= was taken for a study
+    (["-m", "hydra/sweeper=basic", "algo.lr=0.001,-1", "seed=0,1"],
+     "the job algo.lr=-1 seed=0 of this sweep: algo.lr must be > 0"),
 ])
 def test_a_command_line_hydra_cannot_compose_is_one_line_before_any_run(trace_cache, tmp_path,
                                                                       args, said):

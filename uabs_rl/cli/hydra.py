@@ -22,6 +22,7 @@ from uabs_rl.config import (
     check_config_dirs,
     check_duplicate_overrides,
     check_moved_overrides,
+    chooses_study,
     command_line_overrides,
     flatten,
     override_key,
@@ -183,7 +184,7 @@ def check_composition(config_name: str, argv: list[str],
         # (a composition is ~0.1 s: a long sweep's first values only)
         jobs = (check is not None and 1 < math.prod(map(len, listed)) <= MOST_JOBS_CHECKED
                 and not any(o.is_interval_sweep() for o in parsed)
-                and not any(w.startswith("hydra/sweeper=") for w in words))
+                and not chooses_study(words))
         tries = ([fixed + list(job) for job in itertools.product(*listed)] if jobs else
                  [fixed, *(fixed + [v] for values in listed
                            for v in values[:MOST_JOBS_CHECKED])])

@@ -241,7 +241,7 @@ def _check_sweep_command(sweep: Path, argv: list[str]) -> None:
     sweeper) checks its own resume."""
     from hydra.errors import HydraException
 
-    from uabs_rl.config import command_line_overrides
+    from uabs_rl.config import chooses_study, command_line_overrides
 
     try:
         record = OmegaConf.load(RunFolder(sweep).sweep_record)
@@ -249,7 +249,7 @@ def _check_sweep_command(sweep: Path, argv: list[str]) -> None:
     except Exception:  # no readable record of the command: the jobs' own checks decide
         return
     words = command_line_overrides(argv)
-    if any(w.startswith("hydra/sweeper=") for w in [*typed, *words]):
+    if chooses_study([*typed, *words]):
         return
     try:
         then, now = _sweep_settings(typed), _sweep_settings(words)

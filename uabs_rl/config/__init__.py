@@ -61,6 +61,7 @@ from uabs_rl.config.overrides import (
     APPENDED_KEYS,
     check_duplicate_overrides,
     check_moved_overrides,
+    chooses_study,
     command_line_overrides,
     override_key,
 )
@@ -151,6 +152,7 @@ __all__ = [
     "check_fits",
     "check_moved_overrides",
     "check_ranges",
+    "chooses_study",
     "command_line_overrides",
     "compose",
     "default_settings",

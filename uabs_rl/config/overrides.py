@@ -55,6 +55,13 @@ def command_line_overrides(argv: list[str]) -> list[str]:
     return out
 
 
+def chooses_study(words: list[str]) -> bool:
+    """Whether overrides choose a sweeper other than Hydra's own ``basic``: a tuning study
+    (``hydra/sweeper=optuna``), whose trials are drawn, not listed."""
+    return any(w.startswith("hydra/sweeper=") and w.split("=", 1)[1].strip() != "basic"
+               for w in words)
+
+
 def check_duplicate_overrides(argv: list[str]) -> None:
     """Refuse a setting given twice on the command line (``masking=flat
     masking=penalty``, ``seed=1 seed=2``; with ``-m`` too): Hydra would keep the last
