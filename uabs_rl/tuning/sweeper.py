@@ -206,9 +206,9 @@ def _run_study(sweeper, arguments: list[str]) -> list[dict[str, Any]]:
             raise ConfigError(
                 f"the study stops: its first {len(results)} trials were refused before "
                 f"their runs began (the error lines above), so a setting of the command "
-                f"line is wrong for every trial; fix it and start the study again in "
-                f"another sweep folder (these trials stay in {hidden(url)} as failed, and "
-                f"count as done there).")
+                f"line, or a range of the search space, is wrong for the trials drawn; fix "
+                f"it and start the study again in another sweep folder (these trials stay "
+                f"in {hidden(url)} as failed, and count as done there).")
     _print_end(study, sweep_dir, url)
     trials = study.get_trials(deepcopy=False)
     if trials and all(t.state == TrialState.FAIL for t in trials):
