@@ -80,10 +80,55 @@ def test_ctrl_c_stops_a_parallel_sweep_with_every_running_job_saved(trace_cache,
             saved[j] = len(episodes)
         assert p.returncode == 130, err[-3000:]
         assert err.rstrip().splitlines()[-1] == (
-            f"interrupted: every job that was running saved its last checkpoint; continue "
-            f"the sweep by re-typing its command (with -m) and resume={sweep} appended")
+            f"interrupted: every job that was running saved its last checkpoint and none "
+            f"started after the stop; continue the sweep by re-typing its command (with "
+            f"-m) and resume={sweep} appended")
         assert not jobs[2].exists()  # dispatched after the stop: it never started
         assert not (sweep / ".stopping").exists()
+
+
+def _process_tree(pid: int) -> list[int]:
+    out = [pid]
+    for task in os.listdir(f"/proc/{pid}/task"):
+        with open(f"/proc/{pid}/task/{task}/children") as f:
+            for child in map(int, f.read().split()):
+                out += _process_tree(child)
+    return out
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="needs Linux's /proc")
+def test_sigterm_to_every_process_of_a_parallel_sweep_saves_each_job_once(trace_cache,
+                                                                          tmp_path):
+    """A scheduler's scancel (SIGTERM to every process) with a worker more than jobs:
+    the idle worker must not die of it (joblib would kill the others), and a job that
+    gets the signal from the scheduler must not take the launcher's stop for a second
+    signal (it would stop at once, without saving)."""
+    sweep = tmp_path / "sweep"
+    p = subprocess.Popen(
+        [sys.executable, "-m", "uabs_rl.cli.train", "-m", "hydra/launcher=local_parallel",
+         "hydra.launcher.n_jobs=3", "experiment=smoke", "train.threads=1",
+         "train.logger=none", "train.trajectory_images=false",
+         f"traces.cache_dir={trace_cache}", "train.progress=false", "train.episodes=100000",
+         "seed=0,1", f"hydra.sweep.dir={sweep}"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    jobs = [sweep / f"experiment=smoke,seed={s},train.episodes=100000" for s in (0, 1)]
+    deadline = time.monotonic() + 300
+    while not all(len(_train_episodes(j)) >= 3 for j in jobs):
+        assert p.poll() is None, p.communicate()[1][-3000:]
+        assert time.monotonic() < deadline, "the sweep never got that far"
+        time.sleep(0.2)
+    for pid in _process_tree(p.pid):
+        try:
+            os.kill(pid, signal.SIGTERM)
+        except OSError:
+            pass
+    _, err = p.communicate(timeout=300)
+    for j in jobs:
+        episodes = _train_episodes(j)
+        last = torch.load(j / "checkpoints" / "last.pt", weights_only=False)
+        assert last["counters"]["episode"] == len(episodes) >= 3, err[-3000:]
+    assert p.returncode == 143, err[-3000:]
+    assert "stopped at once" not in err
 
 
 def test_slurm_launcher_config_composes():

@@ -20,8 +20,11 @@ if JoblibLauncher is not None:
         saved (conf/hydra/launcher/local_parallel.yaml)."""
 
         def launch(self, job_overrides, initial_job_idx):
-            from uabs_rl.cli.parallel import launch_stoppable
+            from uabs_rl.cli.parallel import launch_stoppable, worker_start
 
+            # each worker out of the terminal's process group, ignoring the signals
+            # between jobs (joblib passes it on to loky's executor)
+            self.joblib["initializer"] = worker_start
             sweep_dir = Path(str(self.config.hydra.sweep.dir)).absolute()
             return launch_stoppable(lambda: super(StoppableJoblibLauncher, self).launch(
                 job_overrides, initial_job_idx), sweep_dir)

@@ -6,7 +6,9 @@ import difflib
 import itertools
 import logging
 import math
+import os
 import re
+import signal
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -292,7 +294,10 @@ def hydra_main(config_name: str, body: Callable[..., Any],
         ours = {HYDRA, LOCK, IDENTITY, f"{hc.job.name}.log"}
         stop = parallel.job_stop_file(hc)  # a job of a parallel sweep: None otherwise
         if stop is not None:
+            from uabs_rl.training.experiment import STOP_ENV
+
             parallel.job_signals(running=True)
+            os.environ[STOP_ENV] = str(stop)  # training stops when the sweep does
         try:
             if stop is not None and stop.exists():  # the sweep stopped before this job
                 before.undo_start(out, ours)
@@ -312,7 +317,8 @@ def hydra_main(config_name: str, body: Callable[..., Any],
             from uabs_rl.training.experiment import Stopped
 
             if stop is not None and isinstance(e, Stopped):  # saved: the sweep goes on
-                stop.touch()  # to its end, where its launcher says it stopped
+                # to its end (no other job starts), where its launcher says it stopped
+                parallel.stop_sweep(stop, e.exit_code - 128)
                 return None
             sys.exit(getattr(e, "exit_code", 130))
         except KeyboardInterrupt as e:  # a second Ctrl-C, or one outside training
@@ -323,12 +329,14 @@ def hydra_main(config_name: str, body: Callable[..., Any],
                 # to save (a run folder it began is kept: undo_start removes only a
                 # folder that holds nothing but the start's own records)
                 before.undo_start(out, ours)
+                parallel.stop_sweep(stop, signal.SIGINT)
                 return None
             print(str(e) or interrupted, file=sys.stderr)
             sys.exit(getattr(e, "exit_code", 130))
         finally:
             if stop is not None:
                 parallel.job_signals(running=False)
+                os.environ.pop(STOP_ENV, None)
 
     try:  # before Hydra, whose own message would not say what to type instead
         check_moved_overrides(sys.argv[1:])

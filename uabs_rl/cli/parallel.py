@@ -4,13 +4,28 @@ job saves after its round, none starts after it, and the sweep ends with one lin
 Without this, joblib answered the first Ctrl-C in the launching process by killing its
 worker processes at once (SIGKILL), so a job saved only if its own copy of the signal
 ran its save first: a job that had logged 309 episodes kept the checkpoint of episode
-306. Now the jobs leave the terminal's process group (a Ctrl-C reaches the launching
-process alone), which hands each signal on to its workers once: each running job saves
-at the end of its round and returns, jobs not yet started return at once (the sweep's
-stop file says so), and the launcher raises :class:`SweepStopped` when all have
-returned. A second signal stops at once, as in a single run (each job keeps its last
-checkpoint). The sweep continues when its command is re-typed with ``resume=<sweep
-folder>`` appended."""
+306. Now:
+
+- the workers leave the terminal's process group as they start and ignore the signals
+  between jobs (:func:`worker_start`, loky's initializer): a terminal's Ctrl-C reaches
+  the launching process alone, and a signal can no longer end an idle worker (joblib
+  would then kill every other one);
+- the launching process answers the first signal (SIGINT, SIGTERM, SIGHUP) by writing
+  the sweep's stop file; each running job sees it at the end of its round (training's
+  :class:`~uabs_rl.training.experiment.DeferredInterrupt` looks, through
+  :data:`~uabs_rl.training.experiment.STOP_ENV`), saves and returns; a job that starts
+  after it returns at once. When all have returned the launcher raises
+  :class:`SweepStopped` (one line, exit 128 + the signal). A second signal stops at once
+  (joblib ends the workers; each job keeps its last checkpoint);
+- a signal sent to one worker alone (``kill <pid>``, or to every process, as a
+  scheduler's ``scancel`` does) stops its job as in a single run; the job writes the
+  stop file, so the other jobs stop too, and the sweep ends in the same way. Each
+  process acts on one signal once: the launcher hands none on.
+
+The sweep continues when its command is re-typed with ``resume=<sweep folder>``
+appended. A worker being spawned (the first seconds of a sweep, before loky's
+initializer runs) is still in the terminal's group: a Ctrl-C then ends it, before any job
+ran on it, and the sweep ends with the same line."""
 
 from __future__ import annotations
 
@@ -30,63 +45,64 @@ SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 
 class SweepStopped(KeyboardInterrupt):
-    """A parallel sweep stopped on a signal after its running jobs saved; ``exit_code``
-    is 128 + the signal's number."""
+    """A parallel sweep stopped on a signal; ``exit_code`` is 128 + the signal's
+    number."""
 
     def __init__(self, message: str, signum: int):
         super().__init__(message)
         self.exit_code = 128 + signum
 
 
-def workers() -> list[int]:
-    """The process ids of this process's children but loky's resource tracker (which
-    ignores SIGINT and SIGTERM and would end on SIGHUP, leaving tracebacks); Linux's
-    /proc, elsewhere none (and only a terminal's own Ctrl-C reaches the workers)."""
-    pids: list[int] = []
-    try:
-        for task in os.listdir("/proc/self/task"):
-            with open(f"/proc/self/task/{task}/children") as f:
-                pids += [int(p) for p in f.read().split()]
-    except OSError:
-        return []
-    out = []
-    for pid in pids:
+def worker_start() -> None:
+    """loky's initializer of each worker: out of the terminal's process group, the
+    signals ignored until a job runs (:func:`job_signals`)."""
+    if hasattr(os, "setpgid"):
         try:
-            with open(f"/proc/{pid}/cmdline", "rb") as f:
-                if b"resource_tracker" in f.read():
-                    continue
-        except OSError:  # ended meanwhile
-            continue
-        out.append(pid)
-    return out
+            os.setpgid(0, 0)
+        except OSError:
+            pass
+    job_signals(running=False)
+
+
+def job_signals(running: bool) -> None:
+    """In a worker: while a job runs (``running``), each signal raises KeyboardInterrupt
+    as Ctrl-C does (training's own handling takes over while it trains and chains to
+    none of these); between jobs they are ignored."""
+    for sig in SIGNALS:
+        signal.signal(sig, signal.default_int_handler if running else signal.SIG_IGN)
+
+
+def stop_sweep(stop: Path, signum: int) -> None:
+    """Write the stop file of a sweep (the signal's number in it), if not there yet."""
+    try:
+        with open(stop, "x") as f:
+            f.write(str(signum))
+    except FileExistsError:
+        pass
 
 
 def launch_stoppable(launch: Callable[[], Sequence[Any]], sweep_dir: Path) -> Sequence[Any]:
-    """``launch()`` (the joblib launcher's) with the signals of :data:`SIGNALS` handed
-    on to the workers: the first one writes the stop file and lets the jobs return; a
-    second one stops at once (KeyboardInterrupt here, the jobs' own second signal)."""
+    """``launch()`` (the joblib launcher's) stopped by the stop file on a signal (the
+    module docstring); its returns, unless a job or this process was stopped."""
     stop = Path(sweep_dir) / STOP_FILE
     stop.unlink(missing_ok=True)  # left by a sweep killed while it stopped
     held: list[int] = []
 
     def handle(signum, frame) -> None:
-        for pid in workers():
-            try:
-                os.kill(pid, signum)
-            except OSError:
-                pass
-        if held:
-            raise KeyboardInterrupt("stopped at once: each job keeps its last checkpoint")
+        if held:  # joblib ends its workers; each keeps its last checkpoint
+            raise SweepStopped("stopped at once: each job keeps its last checkpoint; "
+                               f"continue the {_what(sweep_dir)} by re-typing its command "
+                               f"(with -m) and resume={sweep_dir} appended", signum)
         held.append(signum)
         if signum == signal.SIGHUP:  # the terminal is gone: later lines go nowhere
             detach_terminal()
         stop.parent.mkdir(parents=True, exist_ok=True)
-        stop.touch()
+        stop_sweep(stop, signum)
         name = "Ctrl-C" if signum == signal.SIGINT else signal.Signals(signum).name
         try:
-            print(f"\n{name}: the sweep stops: each running job saves after its round, "
-                  f"no other starts; again to stop now", file=sys.stderr)
-        except OSError:  # the terminal is gone (SIGHUP)
+            print(f"\n{name}: the {_what(sweep_dir)} stops: each running job saves after "
+                  f"its round, no other starts; again to stop now", file=sys.stderr)
+        except OSError:
             pass
 
     previous = {}
@@ -95,41 +111,49 @@ def launch_stoppable(launch: Callable[[], Sequence[Any]], sweep_dir: Path) -> Se
             continue  # started with nohup: a hang-up stops nothing
         previous[sig] = signal.signal(sig, handle)
     try:
-        returns = launch()
+        try:
+            returns = launch()
+        except Exception:  # joblib's TerminatedWorkerError, ...
+            if not held:
+                raise
+            # a terminal's signal ended workers still being spawned (in its process
+            # group until loky's initializer runs): no job had run on them
+            returns = []
+        stopped = _signal_of(stop)  # this process's, or a job's own
     finally:
         for sig, before in previous.items():
             signal.signal(sig, before)
         stop.unlink(missing_ok=True)
-    if held:
-        from uabs_rl.tuning.sweeper import STUDY_FILE
-
-        what = "study" if (Path(sweep_dir) / STUDY_FILE).is_file() else "sweep"
+    if held or stopped is not None:
         raise SweepStopped(f"interrupted: every job that was running saved its last "
-                           f"checkpoint; continue the {what} by re-typing its command "
-                           f"(with -m) and resume={sweep_dir} appended", held[0])
+                           f"checkpoint and none started after the stop; continue the "
+                           f"{_what(sweep_dir)} by re-typing its command (with -m) and "
+                           f"resume={sweep_dir} appended",
+                           held[0] if held else stopped)
     return returns
 
 
-def job_stop_file(hydra_cfg: Any) -> Path | None:
-    """In a job of a sweep run by :data:`LAUNCHER` (a worker process): leave the
-    terminal's process group (the launching process hands signals on, once), and
-    return the sweep's stop file; None in any other job."""
-    launcher = hydra_cfg.launcher
-    if launcher is None or launcher.get("_target_") != LAUNCHER:
+def _signal_of(stop: Path) -> int | None:
+    try:
+        text = stop.read_text().strip()
+    except OSError:
         return None
-    if hasattr(os, "setpgid") and os.getpgrp() != os.getpid():
-        try:
-            os.setpgid(0, 0)
-        except OSError:
-            pass
+    return int(text) if text.isdigit() else signal.SIGINT
+
+
+def _what(sweep_dir: Path) -> str:
+    from uabs_rl.tuning.sweeper import STUDY_FILE
+
+    return "study" if (Path(sweep_dir) / STUDY_FILE).is_file() else "sweep"
+
+
+def job_stop_file(hydra_cfg: Any) -> Path | None:
+    """The sweep's stop file in a job of a sweep run by :data:`LAUNCHER` (a worker
+    process); None in any other job, and in a single run."""
+    from hydra.types import RunMode
+
+    launcher = hydra_cfg.launcher
+    if (hydra_cfg.mode != RunMode.MULTIRUN or launcher is None
+            or launcher.get("_target_") != LAUNCHER):
+        return None
     return Path(hydra_cfg.runtime.cwd, str(hydra_cfg.sweep.dir)) / STOP_FILE
-
-
-def job_signals(running: bool) -> None:
-    """In a worker of :data:`LAUNCHER`: while a job runs (``running``), each signal
-    raises KeyboardInterrupt as Ctrl-C does (training's own handling takes over while it
-    trains, and chains to none of these); between jobs they are ignored: one that
-    reached loky's idle loop would end the worker, and joblib would then kill every
-    other one before they save."""
-    for sig in SIGNALS:
-        signal.signal(sig, signal.default_int_handler if running else signal.SIG_IGN)

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import signal
 import sys
 import threading
@@ -68,6 +69,11 @@ class StoppedNow(KeyboardInterrupt):
         self.exit_code = 128 + signum
 
 
+# set in a job of a parallel sweep (uabs_rl.cli.parallel): the sweep's stop file, which
+# the launching process writes on a signal; the job saves and stops as on its own signal
+STOP_ENV = "UABS_RL_SWEEP_STOP"
+
+
 class DeferredInterrupt:
     """While active, Ctrl-C (SIGINT), SIGTERM (a scheduler's preemption) and SIGHUP (a
     closed terminal, a dropped SSH connection) only set :attr:`requested`: the loop
@@ -82,6 +88,7 @@ class DeferredInterrupt:
 
     def __init__(self, kept: Any = None, round_s: Any = None):
         self.requested: int | None = None  # the signal received
+        self._stop_file = os.environ.get(STOP_ENV)  # a parallel sweep's (STOP_ENV)
         self._previous: dict[int, Any] = {}
         self._kept = kept or (lambda: "the last checkpoint, if any, is kept")
         self._round_s = round_s or (lambda: None)  # seconds a round takes, if known
@@ -100,6 +107,17 @@ class DeferredInterrupt:
                   f"keeping the last checkpoint", file=sys.stderr)
         except OSError:
             pass
+
+    def asked(self) -> bool:
+        """A signal came, or the parallel sweep this job belongs to stopped (its stop
+        file, holding the launching process's signal)."""
+        if self.requested is None and self._stop_file and os.path.exists(self._stop_file):
+            try:
+                text = Path(self._stop_file).read_text().strip()
+            except OSError:
+                text = ""
+            self.requested = int(text) if text.isdigit() else signal.SIGINT
+        return self.requested is not None
 
     def __enter__(self) -> DeferredInterrupt:
         if threading.current_thread() is threading.main_thread():
@@ -391,7 +409,7 @@ class Experiment:
                 self.progress.last_eval = sum(returns) / self.n
                 if self.on_eval is not None and self.on_eval(self.episode, returns):
                     break  # stopped early: fit saves last.pt
-            if self.interrupt.requested:
+            if self.interrupt.asked():
                 self.check_weights()
                 path = self.checkpoints.save_all("last")
                 saved = path if self.solo else "every member's last.pt"
