@@ -131,6 +131,43 @@ def test_sigterm_to_every_process_of_a_parallel_sweep_saves_each_job_once(trace_
     assert "stopped at once" not in err
 
 
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
+def test_a_parallel_sweep_whose_launcher_is_killed_saves_its_jobs_and_frees_them(
+        trace_cache, tmp_path):
+    """``kill -9`` of the launching process: before, its jobs (out of its reach) trained
+    on to their ends holding their folders' locks, so a resume was refused; now each
+    saves after its round and its worker ends."""
+    from uabs_rl.runs.folder import RunLock
+
+    sweep = tmp_path / "sweep"
+    p = subprocess.Popen(
+        [sys.executable, "-m", "uabs_rl.cli.train", "-m", "hydra/launcher=local_parallel",
+         "experiment=smoke", "train.threads=1", "train.logger=none",
+         "train.trajectory_images=false", f"traces.cache_dir={trace_cache}",
+         "train.progress=false", "train.episodes=100000", "seed=0,1",
+         f"hydra.sweep.dir={sweep}"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    jobs = [sweep / f"experiment=smoke,seed={s},train.episodes=100000" for s in (0, 1)]
+    deadline = time.monotonic() + 300
+    while not all(len(_train_episodes(j)) >= 3 for j in jobs):
+        assert p.poll() is None and time.monotonic() < deadline
+        time.sleep(0.2)
+    tree = _process_tree(p.pid)
+    p.kill()
+    p.wait()
+    deadline = time.monotonic() + 120
+    while any(Path(f"/proc/{pid}").exists() for pid in tree[1:]):
+        assert time.monotonic() < deadline, "the workers outlived their launcher"
+        time.sleep(0.2)
+    for j in jobs:
+        episodes = _train_episodes(j)
+        last = torch.load(j / "checkpoints" / "last.pt", weights_only=False)
+        assert last["counters"]["episode"] == len(episodes) >= 3
+        lock = RunLock(j)
+        assert lock.acquire(record=False)  # what a resume takes first
+        lock.release()
+
+
 def test_slurm_launcher_config_composes():
     register_configs()
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):

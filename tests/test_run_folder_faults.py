@@ -305,6 +305,42 @@ def test_a_nohup_run_is_not_stopped_by_a_hang_up():
         signal.signal(signal.SIGHUP, before)
 
 
+@pytest.mark.skipif(not hasattr(os, "openpty"), reason="needs a pseudo-terminal")
+def test_a_run_whose_terminal_hangs_up_saves_and_exits_129(trace_cache, tmp_path):
+    """A closed terminal window: the kernel sends SIGHUP, and the terminal is no longer
+    one to ``isatty``. Before, the run saved and then died writing its last line to it
+    (exit 1); now its output goes to /dev/null and it exits 129."""
+    import fcntl
+    import select
+    import sys
+    import termios
+
+    import torch
+
+    run = tmp_path / "run"
+    master, slave = os.openpty()
+    p = subprocess.Popen(
+        [sys.executable, "-m", "uabs_rl.cli.train", "experiment=smoke", *QUIET,
+         f"traces.cache_dir={trace_cache}", "train.episodes=100000",
+         f"hydra.run.dir={run}"], stdin=slave, stdout=slave, stderr=slave,
+        start_new_session=True, preexec_fn=lambda: fcntl.ioctl(0, termios.TIOCSCTTY, 0))
+    os.close(slave)
+    metrics, deadline = run / "metrics.jsonl", time.monotonic() + 300
+    while not (metrics.is_file() and metrics.read_text().count('"train"') >= 3):
+        assert p.poll() is None and time.monotonic() < deadline
+        if select.select([master], [], [], 0.2)[0]:  # the terminal shows what it writes
+            try:
+                os.read(master, 65536)
+            except OSError:
+                break
+    os.close(master)  # the window closes
+    assert p.wait(timeout=120) == 129
+    episodes = [json.loads(x)["episode"] for x in metrics.read_text().splitlines()
+                if '"train"' in x]
+    last = torch.load(run / "checkpoints" / "last.pt", weights_only=False)
+    assert last["counters"]["episode"] == len(episodes) >= 3
+
+
 @pytest.mark.parametrize("override", ["hydra.run.dir", "resume"])
 def test_a_folder_name_too_long_for_the_file_system_is_one_line(tmp_path, override):
     err = one_error(uabs_train_here(tmp_path, "experiment=smoke",

@@ -396,11 +396,18 @@ def glob_escape(name: str) -> str:
 
 def detach_terminal() -> None:
     """Point standard output and error that write to a terminal at /dev/null (after
-    SIGHUP the terminal is gone: writing to it would fail); files stay as they are."""
+    SIGHUP the terminal is gone: writing to it would fail); files and pipes stay as they
+    are. A terminal that has hung up is no longer a tty to ``isatty``: any character
+    device is taken for one (/dev/null again is harmless)."""
+    import stat
+
     devnull = os.open(os.devnull, os.O_WRONLY)
     try:
         for fd in (1, 2):
-            if os.isatty(fd):
-                os.dup2(devnull, fd)
+            try:
+                if stat.S_ISCHR(os.fstat(fd).st_mode):
+                    os.dup2(devnull, fd)
+            except OSError:  # closed
+                pass
     finally:
         os.close(devnull)

@@ -34,7 +34,7 @@ from uabs_rl.config import (
 from uabs_rl.paths import safe_component
 from uabs_rl.runs.checkpoint import CheckpointError, Interrupted
 from uabs_rl.runs.folder import Before
-from uabs_rl.runs.layout import HYDRA, IDENTITY, LOCK
+from uabs_rl.runs.layout import HYDRA, IDENTITY, LOCK, STOP_ENV
 
 
 def start_folders(argv: list[str]) -> list[Path]:
@@ -294,8 +294,6 @@ def hydra_main(config_name: str, body: Callable[..., Any],
         ours = {HYDRA, LOCK, IDENTITY, f"{hc.job.name}.log"}
         stop = parallel.job_stop_file(hc)  # a job of a parallel sweep: None otherwise
         if stop is not None:
-            from uabs_rl.training.experiment import STOP_ENV
-
             parallel.job_signals(running=True)
             os.environ[STOP_ENV] = str(stop)  # training stops when the sweep does
         try:
@@ -329,7 +327,8 @@ def hydra_main(config_name: str, body: Callable[..., Any],
                 # to save (a run folder it began is kept: undo_start removes only a
                 # folder that holds nothing but the start's own records)
                 before.undo_start(out, ours)
-                parallel.stop_sweep(stop, signal.SIGINT)
+                parallel.stop_sweep(stop, e.signum if isinstance(e, parallel.JobSignal)
+                                    else signal.SIGINT)
                 return None
             print(str(e) or interrupted, file=sys.stderr)
             sys.exit(getattr(e, "exit_code", 130))
@@ -337,6 +336,13 @@ def hydra_main(config_name: str, body: Callable[..., Any],
             if stop is not None:
                 parallel.job_signals(running=False)
                 os.environ.pop(STOP_ENV, None)
+                if parallel.orphaned():  # no one to return to: end the worker here
+                    for stream in (sys.stdout, sys.stderr):
+                        try:
+                            stream.flush()
+                        except (OSError, ValueError, AttributeError):
+                            pass
+                    os._exit(128 + signal.SIGTERM)
 
     try:  # before Hydra, whose own message would not say what to type instead
         check_moved_overrides(sys.argv[1:])

@@ -13,7 +13,7 @@ ran its save first: a job that had logged 309 episodes kept the checkpoint of ep
 - the launching process answers the first signal (SIGINT, SIGTERM, SIGHUP) by writing
   the sweep's stop file; each running job sees it at the end of its round (training's
   :class:`~uabs_rl.training.experiment.DeferredInterrupt` looks, through
-  :data:`~uabs_rl.training.experiment.STOP_ENV`), saves and returns; a job that starts
+  :data:`~uabs_rl.runs.layout.STOP_ENV`), saves and returns; a job that starts
   after it returns at once. When all have returned the launcher raises
   :class:`SweepStopped` (one line, exit 128 + the signal). A second signal stops at once
   (joblib ends the workers; each job keeps its last checkpoint);
@@ -24,8 +24,11 @@ ran its save first: a job that had logged 309 episodes kept the checkpoint of ep
 
 The sweep continues when its command is re-typed with ``resume=<sweep folder>``
 appended. A worker being spawned (the first seconds of a sweep, before loky's
-initializer runs) is still in the terminal's group: a Ctrl-C then ends it, before any job
-ran on it, and the sweep ends with the same line."""
+initializer runs) is still in the terminal's group: a Ctrl-C then ends it (its own error
+lines may show), before any job ran on it, and the sweep ends with the same line. A job
+checks the stop file as its training starts and at the end of each round, not while it
+builds traces. When the launching process ends, even by ``kill -9``, its running jobs
+save after their round and end (Linux: :func:`worker_start`)."""
 
 from __future__ import annotations
 
@@ -37,8 +40,8 @@ from pathlib import Path
 from typing import Any
 
 from uabs_rl.paths import detach_terminal
+from uabs_rl.runs.layout import STOP_ENV, STOP_FILE
 
-STOP_FILE = ".stopping"  # in the sweep folder while a stopped sweep's jobs return
 # hydra_plugins.uabs_rl_launcher's class (conf/hydra/launcher/local_parallel.yaml)
 LAUNCHER = "hydra_plugins.uabs_rl_launcher.StoppableJoblibLauncher"
 SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
@@ -53,23 +56,74 @@ class SweepStopped(KeyboardInterrupt):
         self.exit_code = 128 + signum
 
 
+class JobSignal(KeyboardInterrupt):
+    """A signal that reached a job of a parallel sweep outside its training (as it sets
+    up, or after it trained): ``signum`` is the signal's number."""
+
+    def __init__(self, signum: int):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+def _raise_job_signal(signum, frame) -> None:
+    raise JobSignal(signum)
+
+
+_raise_job_signal.chained = False  # training's handling, which takes over, calls it not
+
+
+_orphaned = False  # in a worker: the launching process has ended
+
+
+def _parent_gone(signum, frame) -> None:
+    """The launching process ended (PR_SET_PDEATHSIG; the kernel may send it once per
+    thread of that process): a running job is told through the stop file, which its
+    training reads at the end of its round, and ends the worker when it returns
+    (:func:`orphaned`); an idle worker ends now. Left to loky, orphaned workers wait on
+    each other's ends of its pipes for ever."""
+    global _orphaned
+    _orphaned = True
+    stop = os.environ.get(STOP_ENV)
+    if stop:
+        stop_sweep(Path(stop), signal.SIGTERM)
+    else:
+        os._exit(0)
+
+
+def orphaned() -> bool:
+    """In a worker: whether the launching process has ended."""
+    return _orphaned
+
+
 def worker_start() -> None:
     """loky's initializer of each worker: out of the terminal's process group, the
-    signals ignored until a job runs (:func:`job_signals`)."""
+    signals ignored until a job runs (:func:`job_signals`), and on Linux told when the
+    launching process ends, even by ``kill -9`` (PR_SET_PDEATHSIG, SIGUSR1): a running
+    job then saves after its round and lets its folder go, where it would otherwise
+    train to its end, holding the folder's lock against the resume (an idle worker
+    ends by itself: loky's queue closes)."""
     if hasattr(os, "setpgid"):
         try:
             os.setpgid(0, 0)
         except OSError:
             pass
     job_signals(running=False)
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        signal.signal(signal.SIGUSR1, _parent_gone)
+        try:
+            ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGUSR1), 0, 0, 0)
+        except (OSError, AttributeError):
+            pass
 
 
 def job_signals(running: bool) -> None:
-    """In a worker: while a job runs (``running``), each signal raises KeyboardInterrupt
-    as Ctrl-C does (training's own handling takes over while it trains and chains to
-    none of these); between jobs they are ignored."""
+    """In a worker: while a job runs (``running``), each signal raises :class:`JobSignal`
+    (training's own handling takes over while it trains); between jobs they are
+    ignored."""
     for sig in SIGNALS:
-        signal.signal(sig, signal.default_int_handler if running else signal.SIG_IGN)
+        signal.signal(sig, _raise_job_signal if running else signal.SIG_IGN)
 
 
 def stop_sweep(stop: Path, signum: int) -> None:
@@ -113,8 +167,8 @@ def launch_stoppable(launch: Callable[[], Sequence[Any]], sweep_dir: Path) -> Se
     try:
         try:
             returns = launch()
-        except Exception:  # joblib's TerminatedWorkerError, ...
-            if not held:
+        except Exception as e:  # joblib's TerminatedWorkerError, ...
+            if not (held and _ended_by_signals(e)):
                 raise
             # a terminal's signal ended workers still being spawned (in its process
             # group until loky's initializer runs): no job had run on them
@@ -131,6 +185,15 @@ def launch_stoppable(launch: Callable[[], Sequence[Any]], sweep_dir: Path) -> Se
                            f"resume={sweep_dir} appended",
                            held[0] if held else stopped)
     return returns
+
+
+def _ended_by_signals(e: Exception) -> bool:
+    """joblib's error of workers that the signals of :data:`SIGNALS` ended, and none
+    else (an out-of-memory kill is SIGKILL: not this)."""
+    import re
+
+    codes = re.findall(r"\b(SIG[A-Z]+)\(-\d+\)", str(e))
+    return bool(codes) and all(c in {s.name for s in SIGNALS} for c in codes)
 
 
 def _signal_of(stop: Path) -> int | None:

@@ -25,6 +25,10 @@ IDENTITY = "run.json"
 LOCK = ".lock"
 EVALUATION = "evaluation"
 MULTIRUN = "multirun.yaml"
+# a parallel sweep's stop file (uabs_rl.cli.parallel), in its folder while its jobs stop,
+# and the environment variable that names it to a job's training
+STOP_FILE = ".stopping"
+STOP_ENV = "UABS_RL_SWEEP_STOP"
 MEMBER_PREFIX = "seed="
 
 

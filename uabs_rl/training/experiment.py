@@ -26,7 +26,7 @@ from uabs_rl.paths import detach_terminal
 from uabs_rl.rng import Generators, make_generator
 from uabs_rl.runs.checkpoint import Interrupted
 from uabs_rl.runs.folder import write_error
-from uabs_rl.runs.layout import RunFolder
+from uabs_rl.runs.layout import STOP_ENV, RunFolder
 from uabs_rl.safety.make import make_env, make_selector, resolve_device
 from uabs_rl.traces.build import training_traces
 from uabs_rl.traces.cache import TraceSet
@@ -69,11 +69,6 @@ class StoppedNow(KeyboardInterrupt):
         self.exit_code = 128 + signum
 
 
-# set in a job of a parallel sweep (uabs_rl.cli.parallel): the sweep's stop file, which
-# the launching process writes on a signal; the job saves and stops as on its own signal
-STOP_ENV = "UABS_RL_SWEEP_STOP"
-
-
 class DeferredInterrupt:
     """While active, Ctrl-C (SIGINT), SIGTERM (a scheduler's preemption) and SIGHUP (a
     closed terminal, a dropped SSH connection) only set :attr:`requested`: the loop
@@ -88,7 +83,9 @@ class DeferredInterrupt:
 
     def __init__(self, kept: Any = None, round_s: Any = None):
         self.requested: int | None = None  # the signal received
-        self._stop_file = os.environ.get(STOP_ENV)  # a parallel sweep's (STOP_ENV)
+        # in a job of a parallel sweep (uabs_rl.cli.parallel): the sweep's stop file, which
+        # its launching process writes on a signal; the job then stops as on its own
+        self._stop_file = os.environ.get(STOP_ENV)
         self._previous: dict[int, Any] = {}
         self._kept = kept or (lambda: "the last checkpoint, if any, is kept")
         self._round_s = round_s or (lambda: None)  # seconds a round takes, if known
@@ -108,15 +105,19 @@ class DeferredInterrupt:
         except OSError:
             pass
 
-    def asked(self) -> bool:
-        """A signal came, or the parallel sweep this job belongs to stopped (its stop
-        file, holding the launching process's signal)."""
-        if self.requested is None and self._stop_file and os.path.exists(self._stop_file):
+    def asked(self, more: bool = True) -> bool:
+        """A signal came, or (with ``more`` episodes to train) the parallel sweep this job
+        belongs to stopped: its stop file, holding the signal (after SIGHUP the
+        terminal the job writes to is gone too)."""
+        if (more and self.requested is None and self._stop_file
+                and os.path.exists(self._stop_file)):
             try:
                 text = Path(self._stop_file).read_text().strip()
             except OSError:
                 text = ""
             self.requested = int(text) if text.isdigit() else signal.SIGINT
+            if self.requested == signal.SIGHUP:
+                detach_terminal()
         return self.requested is not None
 
     def __enter__(self) -> DeferredInterrupt:
@@ -141,7 +142,8 @@ class DeferredInterrupt:
         signum = self.requested
         before = self._previous.get(signum)
         self.__exit__()
-        if callable(before) and before is not signal.default_int_handler:
+        if (callable(before) and before is not signal.default_int_handler
+                and getattr(before, "chained", True)):  # uabs_rl.cli.parallel's: not
             before(signum, None)
         raise Stopped(message, signum)
 
@@ -409,7 +411,7 @@ class Experiment:
                 self.progress.last_eval = sum(returns) / self.n
                 if self.on_eval is not None and self.on_eval(self.episode, returns):
                     break  # stopped early: fit saves last.pt
-            if self.interrupt.asked():
+            if self.interrupt.asked(more=self.episode < tr.episodes):
                 self.check_weights()
                 path = self.checkpoints.save_all("last")
                 saved = path if self.solo else "every member's last.pt"
@@ -424,6 +426,8 @@ class Experiment:
         ends, however it ends, and only after the last save. The summary's ``members``
         hold each member's returns; a single run's are also at its top level."""
         try:
+            if self.interrupt.asked():  # a parallel sweep stopped while this job set up
+                raise KeyboardInterrupt("the sweep stopped before this job trained")
             self.saved_episode = self.episode or None  # a resume: the checkpoint it loaded
             for m in self.members:
                 m.log.open(resume_episode=self.episode if self.episode else None)
