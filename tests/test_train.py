@@ -370,6 +370,8 @@ def test_config_dir_options_are_composed_with_it_and_its_mistakes_are_one_line(t
         check_composition("config", ["scenario=mine"])
     with pytest.raises(ConfigError, match="--config-dir nowhere: no such folder"):
         check_composition("config", ["--config-dir", "nowhere", "scenario=mine"])
+    with pytest.raises(ConfigError, match="^-cd nowhere: no such folder"):  # as typed
+        check_composition("config", ["-cd", "nowhere", "scenario=mine"])
     (mine / "scenario" / "broken.yaml").write_text("name: [broken\n")
     with pytest.raises(ConfigError, match=r"broken.yaml is not a readable YAML file \("):
         check_composition("config", ["--config-dir", str(mine), "scenario=broken"])

@@ -156,9 +156,11 @@ def check_composition(config_name: str, argv: list[str],
         return  # another primary config or search path: Hydra's composition alone
     dirs = config_dirs(argv)
     groups = config_groups()
+    typed = next((a.partition("=")[0] for a in argv if a.partition("=")[0] in _CONFIG_DIR),
+                 "--config-dir")  # its messages name the flag as typed (-cd or --config-dir)
     check_config_dirs(dirs, [(w.split("=", 1)[0], v.strip().strip("'\""))
                              for w in words if w.split("=", 1)[0] in groups
-                             for v in w.split("=", 1)[1].split(",")])
+                             for v in w.split("=", 1)[1].split(",")], flag=typed)
     # where Hydra looks beside conf/: the same folders, for this composition
     search = ([f"hydra.searchpath=[{','.join(_quoted(f'file://{d.resolve()}') for d in dirs)}]"]
               if dirs else [])
