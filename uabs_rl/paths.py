@@ -24,6 +24,7 @@ import os
 import re
 import shutil
 import signal
+import stat
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -399,8 +400,6 @@ def detach_terminal() -> None:
     SIGHUP the terminal is gone: writing to it would fail); files and pipes stay as they
     are. A terminal that has hung up is no longer a tty to ``isatty``: any character
     device is taken for one (/dev/null again is harmless)."""
-    import stat
-
     devnull = os.open(os.devnull, os.O_WRONLY)
     try:
         for fd in (1, 2):

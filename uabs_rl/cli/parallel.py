@@ -40,7 +40,7 @@ from pathlib import Path
 from typing import Any
 
 from uabs_rl.paths import detach_terminal
-from uabs_rl.runs.layout import STOP_ENV, STOP_FILE
+from uabs_rl.runs.layout import STOP_ENV, STOP_FILE, stop_signal
 
 # hydra_plugins.uabs_rl_launcher's class (conf/hydra/launcher/local_parallel.yaml)
 LAUNCHER = "hydra_plugins.uabs_rl_launcher.StoppableJoblibLauncher"
@@ -173,7 +173,7 @@ def launch_stoppable(launch: Callable[[], Sequence[Any]], sweep_dir: Path) -> Se
             # a terminal's signal ended workers still being spawned (in its process
             # group until loky's initializer runs): no job had run on them
             returns = []
-        stopped = _signal_of(stop)  # this process's, or a job's own
+        stopped = stop_signal(stop)  # this process's, or a job's own
     finally:
         for sig, before in previous.items():
             signal.signal(sig, before)
@@ -194,14 +194,6 @@ def _ended_by_signals(e: Exception) -> bool:
 
     codes = re.findall(r"\b(SIG[A-Z]+)\(-\d+\)", str(e))
     return bool(codes) and all(c in {s.name for s in SIGNALS} for c in codes)
-
-
-def _signal_of(stop: Path) -> int | None:
-    try:
-        text = stop.read_text().strip()
-    except OSError:
-        return None
-    return int(text) if text.isdigit() else signal.SIGINT
 
 
 def _what(sweep_dir: Path) -> str:

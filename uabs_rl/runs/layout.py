@@ -14,6 +14,7 @@
 
 from __future__ import annotations
 
+import signal
 from pathlib import Path
 
 CHECKPOINTS = "checkpoints"
@@ -118,3 +119,15 @@ class RunFolder:
 def run_of_checkpoint(ckpt: Path) -> Path | None:
     """The run folder a checkpoint file lies in (``<run>/checkpoints/x.pt``), else None."""
     return ckpt.parent.parent if ckpt.parent.name == CHECKPOINTS else None
+
+
+def stop_signal(stop: Path) -> int | None:
+    """The signal a parallel sweep's stop file holds (``STOP_FILE``; SIGINT if its text
+    is not a number); None while there is no such file."""
+    try:
+        text = stop.read_text().strip()
+    except FileNotFoundError:
+        return None
+    except OSError:  # there, but unreadable: the sweep stopped all the same
+        text = ""
+    return int(text) if text.isdigit() else int(signal.SIGINT)

@@ -26,7 +26,7 @@ from uabs_rl.paths import detach_terminal
 from uabs_rl.rng import Generators, make_generator
 from uabs_rl.runs.checkpoint import Interrupted
 from uabs_rl.runs.folder import write_error
-from uabs_rl.runs.layout import STOP_ENV, RunFolder
+from uabs_rl.runs.layout import STOP_ENV, RunFolder, stop_signal
 from uabs_rl.safety.make import make_env, make_selector, resolve_device
 from uabs_rl.traces.build import training_traces
 from uabs_rl.traces.cache import TraceSet
@@ -109,13 +109,8 @@ class DeferredInterrupt:
         """A signal came, or (with ``more`` episodes to train) the parallel sweep this job
         belongs to stopped: its stop file, holding the signal (after SIGHUP the
         terminal the job writes to is gone too)."""
-        if (more and self.requested is None and self._stop_file
-                and os.path.exists(self._stop_file)):
-            try:
-                text = Path(self._stop_file).read_text().strip()
-            except OSError:
-                text = ""
-            self.requested = int(text) if text.isdigit() else signal.SIGINT
+        if more and self.requested is None and self._stop_file:
+            self.requested = stop_signal(Path(self._stop_file))
             if self.requested == signal.SIGHUP:
                 detach_terminal()
         return self.requested is not None
