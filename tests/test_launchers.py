@@ -16,6 +16,7 @@ import torch
 from hydra import compose, initialize_config_dir
 from hydra.utils import get_class
 
+from tests.test_train import records
 from uabs_rl.config import CONF_DIR, register_configs
 
 
@@ -35,21 +36,40 @@ def test_two_job_local_parallel_multirun(trace_cache, tmp_path):
 
 
 def _train_episodes(run_dir: Path) -> list[int]:
-    path = run_dir / "metrics.jsonl"
-    lines = path.read_text().splitlines() if path.is_file() else []
-    return [r["episode"] for r in map(json.loads, lines) if r["kind"] == "train"]
+    if not (run_dir / "metrics.jsonl").is_file():
+        return []
+    return [r["episode"] for r in records(run_dir) if r["kind"] == "train"]
 
 
-def _ctrl_c_when(proc: subprocess.Popen, ready, timeout: float = 300) -> tuple[str, str]:
-    """Ctrl-C as a terminal sends it (to the command's whole process group) once
-    ``ready()``; the command's output."""
+def _endless_sweep(trace_cache: Path, sweep: Path, seeds: tuple[int, ...], *extra: str,
+                   out=subprocess.PIPE) -> tuple[subprocess.Popen, list[Path]]:
+    """A parallel sweep of smoke runs too long to end by themselves, started in its own
+    process group (as a terminal's foreground job is), and its jobs' folders."""
+    p = subprocess.Popen(
+        [sys.executable, "-m", "uabs_rl.cli.train", "-m", "hydra/launcher=local_parallel",
+         *extra, "experiment=smoke", "train.threads=1", "train.logger=none",
+         "train.trajectory_images=false", f"traces.cache_dir={trace_cache}",
+         "train.progress=false", "train.episodes=100000",
+         f"seed={','.join(map(str, seeds))}", f"hydra.sweep.dir={sweep}"],
+        stdout=out, stderr=out, text=True, start_new_session=True)
+    return p, [sweep / f"experiment=smoke,seed={s},train.episodes=100000" for s in seeds]
+
+
+def _wait_until(proc: subprocess.Popen, ready, timeout: float = 300) -> None:
     deadline = time.monotonic() + timeout
     while not ready():
-        assert proc.poll() is None, proc.communicate()[1][-3000:]
+        assert proc.poll() is None, (proc.communicate()[1] or "")[-3000:]
         assert time.monotonic() < deadline, "the sweep never got that far"
         time.sleep(0.2)
-    os.killpg(proc.pid, signal.SIGINT)
-    return proc.communicate(timeout=300)
+
+
+def _saved_each_episode_once(job: Path, err: str = "") -> int:
+    """The episodes a stopped job logged, each once, its last.pt at the last of them."""
+    episodes = _train_episodes(job)
+    assert episodes == list(range(1, len(episodes) + 1)), err[-3000:]
+    last = torch.load(job / "checkpoints" / "last.pt", weights_only=False)
+    assert last["counters"]["episode"] == len(episodes), err[-3000:]
+    return len(episodes)
 
 
 def test_ctrl_c_stops_a_parallel_sweep_with_every_running_job_saved(trace_cache, tmp_path):
@@ -58,26 +78,18 @@ def test_ctrl_c_stops_a_parallel_sweep_with_every_running_job_saved(trace_cache,
     job not yet started never starts, and the command re-typed with resume= continues
     every job from its own last episode, each episode once."""
     sweep = tmp_path / "sweep"
-    command = [sys.executable, "-m", "uabs_rl.cli.train", "-m",
-               "hydra/launcher=local_parallel", "hydra.launcher.n_jobs=2",
-               "experiment=smoke", "train.threads=1", "train.logger=none",
-               "train.trajectory_images=false", f"traces.cache_dir={trace_cache}",
-               "train.progress=false", "train.episodes=100000", "seed=0,1,2",
-               f"hydra.sweep.dir={sweep}"]
-    jobs = [sweep / f"experiment=smoke,seed={s},train.episodes=100000" for s in (0, 1, 2)]
     saved = {}
     for resume in ([], [f"resume={sweep}"]):
-        # its own process group, as a terminal's foreground job has
-        p = subprocess.Popen(command + resume, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                             text=True, start_new_session=True)
-        out, err = _ctrl_c_when(p, lambda: all(
+        p, jobs = _endless_sweep(trace_cache, sweep, (0, 1, 2), "hydra.launcher.n_jobs=2",
+                                 *resume)
+        _wait_until(p, lambda jobs=jobs: all(
             len(_train_episodes(j)) >= saved.get(j, 0) + 3 for j in jobs[:2]))
+        os.killpg(p.pid, signal.SIGINT)  # Ctrl-C as a terminal sends it: the whole group
+        _, err = p.communicate(timeout=300)
         for j in jobs[:2]:
-            episodes = _train_episodes(j)
-            assert episodes == list(range(1, len(episodes) + 1))  # each once, none lost
-            last = torch.load(j / "checkpoints" / "last.pt", weights_only=False)
-            assert last["counters"]["episode"] == len(episodes) > saved.get(j, 0), err[-3000:]
-            saved[j] = len(episodes)
+            n = _saved_each_episode_once(j, err)  # none lost
+            assert n > saved.get(j, 0)
+            saved[j] = n
         assert p.returncode == 130, err[-3000:]
         assert err.rstrip().splitlines()[-1] == (
             f"interrupted: every job that was running saved its last checkpoint and none "
@@ -103,20 +115,8 @@ def test_sigterm_to_every_process_of_a_parallel_sweep_saves_each_job_once(trace_
     the idle worker must not die of it (joblib would kill the others), and a job that
     gets the signal from the scheduler must not take the launcher's stop for a second
     signal (it would stop at once, without saving)."""
-    sweep = tmp_path / "sweep"
-    p = subprocess.Popen(
-        [sys.executable, "-m", "uabs_rl.cli.train", "-m", "hydra/launcher=local_parallel",
-         "hydra.launcher.n_jobs=3", "experiment=smoke", "train.threads=1",
-         "train.logger=none", "train.trajectory_images=false",
-         f"traces.cache_dir={trace_cache}", "train.progress=false", "train.episodes=100000",
-         "seed=0,1", f"hydra.sweep.dir={sweep}"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
-    jobs = [sweep / f"experiment=smoke,seed={s},train.episodes=100000" for s in (0, 1)]
-    deadline = time.monotonic() + 300
-    while not all(len(_train_episodes(j)) >= 3 for j in jobs):
-        assert p.poll() is None, p.communicate()[1][-3000:]
-        assert time.monotonic() < deadline, "the sweep never got that far"
-        time.sleep(0.2)
+    p, jobs = _endless_sweep(trace_cache, tmp_path / "sweep", (0, 1), "hydra.launcher.n_jobs=3")
+    _wait_until(p, lambda: all(len(_train_episodes(j)) >= 3 for j in jobs))
     for pid in _process_tree(p.pid):
         try:
             os.kill(pid, signal.SIGTERM)
@@ -124,9 +124,7 @@ def test_sigterm_to_every_process_of_a_parallel_sweep_saves_each_job_once(trace_
             pass
     _, err = p.communicate(timeout=300)
     for j in jobs:
-        episodes = _train_episodes(j)
-        last = torch.load(j / "checkpoints" / "last.pt", weights_only=False)
-        assert last["counters"]["episode"] == len(episodes) >= 3, err[-3000:]
+        assert _saved_each_episode_once(j, err) >= 3
     assert p.returncode == 143, err[-3000:]
     assert "stopped at once" not in err
 
@@ -139,19 +137,9 @@ def test_a_parallel_sweep_whose_launcher_is_killed_saves_its_jobs_and_frees_them
     saves after its round and its worker ends."""
     from uabs_rl.runs.folder import RunLock
 
-    sweep = tmp_path / "sweep"
-    p = subprocess.Popen(
-        [sys.executable, "-m", "uabs_rl.cli.train", "-m", "hydra/launcher=local_parallel",
-         "experiment=smoke", "train.threads=1", "train.logger=none",
-         "train.trajectory_images=false", f"traces.cache_dir={trace_cache}",
-         "train.progress=false", "train.episodes=100000", "seed=0,1",
-         f"hydra.sweep.dir={sweep}"],
-        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
-    jobs = [sweep / f"experiment=smoke,seed={s},train.episodes=100000" for s in (0, 1)]
-    deadline = time.monotonic() + 300
-    while not all(len(_train_episodes(j)) >= 3 for j in jobs):
-        assert p.poll() is None and time.monotonic() < deadline
-        time.sleep(0.2)
+    # nothing reads its output once it is killed
+    p, jobs = _endless_sweep(trace_cache, tmp_path / "sweep", (0, 1), out=subprocess.DEVNULL)
+    _wait_until(p, lambda: all(len(_train_episodes(j)) >= 3 for j in jobs))
     tree = _process_tree(p.pid)
     p.kill()
     p.wait()
@@ -160,9 +148,7 @@ def test_a_parallel_sweep_whose_launcher_is_killed_saves_its_jobs_and_frees_them
         assert time.monotonic() < deadline, "the workers outlived their launcher"
         time.sleep(0.2)
     for j in jobs:
-        episodes = _train_episodes(j)
-        last = torch.load(j / "checkpoints" / "last.pt", weights_only=False)
-        assert last["counters"]["episode"] == len(episodes) >= 3
+        assert _saved_each_episode_once(j) >= 3
         lock = RunLock(j)
         assert lock.acquire(record=False)  # what a resume takes first
         lock.release()

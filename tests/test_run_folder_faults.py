@@ -21,7 +21,7 @@ import pytest
 
 from tests.conftest import Ran, run_command
 from tests.test_faults import QUIET, error_lines, uabs_train, uabs_train_here, wait_for
-from tests.test_train import smoke
+from tests.test_train import records, smoke
 from uabs_rl.runs.folder import Before, RunFolderError, RunLock
 from uabs_rl.runs.metrics import MetricsError, read_metrics
 from uabs_rl.training.resume import run
@@ -335,8 +335,7 @@ def test_a_run_whose_terminal_hangs_up_saves_and_exits_129(trace_cache, tmp_path
                 break
     os.close(master)  # the window closes
     assert p.wait(timeout=120) == 129
-    episodes = [json.loads(x)["episode"] for x in metrics.read_text().splitlines()
-                if '"train"' in x]
+    episodes = [r["episode"] for r in records(run) if r["kind"] == "train"]
     last = torch.load(run / "checkpoints" / "last.pt", weights_only=False)
     assert last["counters"]["episode"] == len(episodes) >= 3
 
