@@ -71,10 +71,10 @@ def test_figures_exist_as_png_and_pdf(report):
 
 def keep_figures(monkeypatch) -> list:
     """The figures the report's functions draw, kept open (instead of closed) to look at."""
-    import matplotlib
+    import matplotlib.pyplot as plt  # imported here (a test run alone has not yet)
 
     figs: list = []
-    monkeypatch.setattr(matplotlib.pyplot, "close", figs.append)
+    monkeypatch.setattr(plt, "close", figs.append)
     return figs
 
 
@@ -656,3 +656,40 @@ def test_marl_eval_export_matches_the_layout(sweep, report, tmp_path):
     assert report_main([str(sweep), "--out", str(cli), "--no-baselines",
                         "--export", "marl-eval"]) == 0
     check_marl_eval(json.loads((cli / "marl_eval.json").read_text()))
+
+
+def test_runs_made_with_another_machines_trace_cache_are_reported_with_cache_dir(
+        trace_cache, tmp_path, capsys):
+    """A run trained with traces.cache_dir of a folder that this machine cannot use (a
+    cluster's scratch; here a file now stands there): uabs-report says so in one line
+    naming --cache-dir (it takes no settings), and with --cache-dir reads or builds the
+    test traces there and reports; uabs-eval's traces.cache_dir=, which changes no
+    result, names no evaluation folder."""
+    import shutil
+
+    cluster, laptop = tmp_path / "scratch", tmp_path / "laptop"
+    shutil.copytree(trace_cache, cluster)  # the training traces, without SUMO again
+    run_dir = tmp_path / "run"
+    run(smoke(cluster, *QUIET, "train.episodes=3"), run_dir)
+    capsys.readouterr()
+    shutil.rmtree(cluster)
+    cluster.write_text("")
+    assert report_main([str(run_dir), "--out", str(tmp_path / "r1")]) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        f"error: the trace cache {cluster} (run {run_dir}'s traces.cache_dir) cannot hold "
+        f"the test traces here (a file, not a folder): give --cache-dir <a folder you can "
+        f"write in>."]
+    assert not (tmp_path / "r1").exists()
+    assert report_main([str(run_dir), "--out", str(tmp_path / "r2"),
+                        "--cache-dir", str(laptop)]) == 0
+    assert (tmp_path / "r2" / "learned_vs_baselines.csv").exists()
+    assert list(laptop.glob("*-test-*.pt"))  # the test traces, built there
+    capsys.readouterr()
+    with pytest.raises(SystemExit, match="2"):
+        report_main([str(run_dir), "--cache-dir", str(cluster)])
+    assert capsys.readouterr().err.splitlines()[-1] == (
+        f"error: --cache-dir {cluster} is a file: give a folder (it is made if missing) (see "
+        f"uabs-report --help)")
+    assert eval_main([str(run_dir), f"traces.cache_dir={laptop}"]) == 0
+    assert (run_dir / "evaluation" / "eval.json").exists()
+    assert [p.name for p in (run_dir / "evaluation").iterdir() if p.is_dir()] == []

@@ -101,6 +101,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--mpc-rounds", type=int, metavar="R",
                     help="with --mpc: its passes over the fleet (default 2, as uabs-eval "
                          "--mpc-rounds)")
+    ap.add_argument("--cache-dir", type=Path, metavar="DIR",
+                    help="the trace cache to read (or build) the test traces in, in place "
+                         "of the runs' traces.cache_dir (runs made on another machine)")
     ap.add_argument("--export", choices=("marl-eval",),
                     help="also write the runs in marl-eval's JSON layout (marl_eval.json: "
                          "per run, per evaluation, per metric; best.pt's test windows as "
@@ -125,6 +128,13 @@ def main(argv: list[str] | None = None) -> int:
             ap.error(f"{flag} sets the search of --mpc H: give --mpc H too")
         if value is not None and value < 1:
             ap.error(f"{flag} must be >= 1, got {value}")
+    if args.cache_dir is not None:
+        if not args.baselines or args.curves:
+            ap.error("--cache-dir holds the test traces: --no-baselines and --curves "
+                     "read none")
+        if args.cache_dir.exists() and not args.cache_dir.is_dir():
+            ap.error(f"--cache-dir {args.cache_dir} is a file: give a folder (it is made "
+                     f"if missing)")
     cmd = "uabs-report " + " ".join(sys.argv[1:] if argv is None else argv)
     try:
         for root in args.roots:
@@ -138,7 +148,8 @@ def main(argv: list[str] | None = None) -> int:
             else:
                 res = build_report(args.roots, folder, args.baselines, cmd, args.planner,
                                    runs=runs, export=args.export, mpc=args.mpc,
-                                   mpc_beam=args.mpc_beam, mpc_rounds=args.mpc_rounds)
+                                   mpc_beam=args.mpc_beam, mpc_rounds=args.mpc_rounds,
+                                   cache_dir=args.cache_dir)
                 text = (folder / "summary.md").read_text()
     except (ReportError, ConfigError, CheckpointError, MetricsError) as e:
         print(f"error: {e}", file=sys.stderr)

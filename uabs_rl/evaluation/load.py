@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import sys
 import time
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -29,6 +29,7 @@ from uabs_rl.config import (
     RunConfig,
     check_config_dirs,
     check_moved_overrides,
+    keys_with_role,
     sections_with_role,
     to_container,
 )
@@ -226,11 +227,13 @@ def check_belongs(state: dict, ckpt: Path) -> None:
 def load_evaluation(path: Path, which: str = "best", windows: int | None = None,
                     split: str = "test", overrides: list[str] | None = None,
                     config_dirs: list[Path] | None = None,
-                    windows_name: str = "windows") -> Evaluation:
+                    windows_name: str = "windows", cache_dir: Path | None = None
+                    ) -> Evaluation:
     """The learned policy of a run directory or checkpoint on the fixed windows of
     ``split`` ("test" or "eval", the validation traces), under the run's own config
-    or that config with ``overrides`` (:func:`with_overrides`). A network with NaN or
-    infinite weights is refused."""
+    or that config with ``overrides`` (:func:`with_overrides`); the traces read from
+    (or built into) ``cache_dir`` where given, else the run's ``traces.cache_dir``. A
+    network with NaN or infinite weights is refused."""
     ckpt = find_checkpoint(path, which)
     state = load_checkpoint(ckpt)
     check_belongs(state, ckpt)
@@ -244,6 +247,8 @@ def load_evaluation(path: Path, which: str = "best", windows: int | None = None,
             device = resolve_device(cfg.device)
     else:
         validate_world(cfg)
+    if cache_dir is not None:  # where the traces are kept changes no result
+        cfg = replace(cfg, traces=replace(cfg.traces, cache_dir=str(cache_dir)))
     env = make_eval_env(cfg, windows=windows, split=split, device=device,
                         windows_name=windows_name)
     p = env.base_env.params
@@ -258,14 +263,18 @@ def load_evaluation(path: Path, which: str = "best", windows: int | None = None,
 
 
 def default_out_dir(path: Path, overrides: list[str] | None = None) -> Path:
-    """``<run>/evaluation``, or ``<run>/evaluation/<overrides>`` under overrides; beside
-    a checkpoint file that is not in a run's ``checkpoints/``."""
+    """``<run>/evaluation``, or ``<run>/evaluation/<overrides>`` under overrides that
+    change results (a runtime setting's, ``traces.cache_dir`` or ``device``, names no
+    folder, as in a run folder's name); beside a checkpoint file that is not in a run's
+    ``checkpoints/``."""
     if path.is_dir():
         run = path
     else:
         run = run_of_checkpoint(path) or path.parent
     out = RunFolder(run).evaluation
-    return out / ",".join(o.replace("/", "_") for o in overrides) if overrides else out
+    runtime = set(keys_with_role(Role.runtime))
+    named = [o for o in overrides or () if o.partition("=")[0].lstrip("+~") not in runtime]
+    return out / ",".join(o.replace("/", "_") for o in named) if named else out
 
 
 def evaluate_policies(ev: Evaluation, policies: tuple[str, ...], seed: int = 0,

@@ -16,18 +16,31 @@ from uabs_rl.runs.sweep import Grouping, Run
 def evaluate_on_test(runs: list[Run], planner_runs: frozenset[Path] = frozenset(),
                      horizon: int = 1, mpc: int | None = None,
                      mpc_runs: frozenset[Path] = frozenset(), mpc_beam: int | None = None,
-                     mpc_rounds: int | None = None) -> dict[Path, dict[str, dict]]:
+                     mpc_rounds: int | None = None, cache_dir: Path | None = None
+                     ) -> dict[Path, dict[str, dict]]:
     """Each run's ``best.pt`` (chosen on validation) and the random, greedy and oracle
-    baselines with the run's masks, on every window of the test traces; for the runs in
-    ``planner_runs`` also the receding-horizon planner of ``horizon``, for those in
-    ``mpc_runs`` the deployable mpc of horizon ``mpc`` (constant velocity; ``mpc_beam``
+    baselines with the run's masks, on every window of the test traces (read from, or
+    built into, ``cache_dir`` where given, else each run's ``traces.cache_dir``); for the
+    runs in ``planner_runs`` also the receding-horizon planner of ``horizon``, for those
+    in ``mpc_runs`` the deployable mpc of horizon ``mpc`` (constant velocity; ``mpc_beam``
     paths per first move, ``mpc_rounds`` passes over the fleet, default planner's; their
     cost per decision said on stderr)."""
     from uabs_rl.evaluation.load import POLICIES, evaluate_policies, load_evaluation
+    from uabs_rl.traces import CacheFolderError
 
     out = {}
     for run in runs:
-        ev = load_evaluation(run.path, "best", split="test")
+        try:
+            ev = load_evaluation(run.path, "best", split="test", cache_dir=cache_dir)
+        except CacheFolderError as e:
+            # the folder a run recorded may be another machine's (a cluster's scratch)
+            given = (f"--cache-dir {cache_dir}" if cache_dir is not None else
+                     f"the trace cache {e.folder} (run {run.path}'s traces.cache_dir)"
+                     if (run.config.get("traces") or {}).get("cache_dir") else
+                     f"the trace cache {e.folder} ($UABS_RL_CACHE/traces)")
+            raise CacheFolderError(f"{given} cannot hold the test traces here ({e.reason}): "
+                                   f"give --cache-dir <a folder you can write in>.",
+                                   e.folder, e.reason) from None
         policies = ((*POLICIES, *([PLANNER] if run.path in planner_runs else []),
                      *([MPC] if mpc is not None and run.path in mpc_runs else [])))
         out[run.path] = {k: rec for k, (rec, _) in

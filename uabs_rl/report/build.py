@@ -34,13 +34,15 @@ def build_report(roots: Path | list[Path], out: Path, with_baselines: bool = Tru
                  command: str = "", planner: int | None = None,
                  runs: list[Run] | None = None, export: str | None = None,
                  mpc: int | None = None, mpc_beam: int | None = None,
-                 mpc_rounds: int | None = None) -> dict[str, Any]:
+                 mpc_rounds: int | None = None, cache_dir: Path | None = None
+                 ) -> dict[str, Any]:
     """Every file of the report of the runs under ``roots`` (``runs``: those already
     found there), written to ``out`` (``planner``: the planner's horizon, to place the
     learned runs between greedy and it; ``mpc``: the deployable mpc's horizon, beside
     greedy and the oracle, ``mpc_beam`` and ``mpc_rounds`` its search's paths per first
     move and passes over the fleet (default planner.BEAM and planner.ROUNDS);
-    ``export="marl-eval"``: also ``marl_eval.json``)."""
+    ``export="marl-eval"``: also ``marl_eval.json``; ``cache_dir``: the trace cache of
+    the test traces, in place of each run's ``traces.cache_dir``)."""
     roots = [roots] if isinstance(roots, str | Path) else list(roots)
     grouping = group_runs(find_runs(*roots) if runs is None else runs)
     groups = grouping.groups
@@ -53,7 +55,8 @@ def build_report(roots: Path | list[Path], out: Path, with_baselines: bool = Tru
     tests = evaluate_on_test([r for runs in groups.values() for r in runs],
                              panel_runs(grouping) if planner is not None else frozenset(),
                              planner or 1, mpc, panel_runs(grouping) if mpc is not None
-                             else frozenset(), mpc_beam, mpc_rounds) if with_baselines else {}
+                             else frozenset(), mpc_beam, mpc_rounds, cache_dir
+                             ) if with_baselines else {}
     baselines = baselines_on_test(grouping, tests) if tests else {}
     if baselines:
         write_baselines(out / "baselines.csv", baselines)

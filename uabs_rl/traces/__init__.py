@@ -18,9 +18,9 @@ import importlib
 _HOMES = {
     "inputs": ("check_area_contains_network", "net_file", "netgenerate_path", "read_net",
                "scenario_inputs", "split_begin", "sumocfg_inputs"),
-    "cache": ("FORMAT_VERSION", "TraceCacheError", "TraceSet", "cache_dir", "cache_path",
-              "check_cache_dir", "load_cached", "load_traceset", "save_traceset",
-              "split_key"),
+    "cache": ("FORMAT_VERSION", "CacheFolderError", "TraceCacheError", "TraceSet",
+              "cache_dir", "cache_path", "check_cache_dir", "load_cached", "load_traceset",
+              "save_traceset", "split_key"),
     "build": ("SPLITS", "WORK_PREFIX", "TracesInterrupted", "build_split",
               "check_has_vehicles", "check_names", "get_traces", "remove_stale_work_folders",
               "stack_cities", "training_traces"),

@@ -41,6 +41,16 @@ log = logging.getLogger(__name__)
 FORMAT_VERSION = 2
 
 
+class CacheFolderError(ConfigError):
+    """The trace cache folder ``folder`` cannot hold the traces, for ``reason`` (a file,
+    not writable, full): the commands that take no ``traces.cache_dir`` (``uabs-report``)
+    say how to give another."""
+
+    def __init__(self, message: str, folder: Path, reason: str):
+        super().__init__(message)
+        self.folder, self.reason = folder, reason
+
+
 class TraceCacheError(RuntimeError):
     """A cache file is unreadable or inconsistent."""
 
@@ -145,7 +155,7 @@ def _checksum(positions: torch.Tensor, present: torch.Tensor) -> str:
 def save_traceset(ts: TraceSet, path: Path) -> None:
     """Write atomically: a crash, Ctrl-C or full disk never leaves a half-written cache
     file (nor its temporary file) behind, and never damages the previous file. A write
-    that fails is a ConfigError naming ``traces.cache_dir``."""
+    that fails is a :class:`CacheFolderError` naming ``traces.cache_dir``."""
     meta = dict(ts.meta, checksum=_checksum(ts.positions, ts.present))
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -155,9 +165,10 @@ def save_traceset(ts: TraceSet, path: Path) -> None:
     except OSError as e:
         why = ("no space left on the device" if e.errno == errno.ENOSPC
                else e.strerror or str(e))
-        raise ConfigError(f"traces.cache_dir: cannot write the trace cache file {path}: "
-                          f"{why}. Free space in {path.parent} or set traces.cache_dir="
-                          f"<a folder with room>.") from None
+        raise CacheFolderError(f"traces.cache_dir: cannot write the trace cache file "
+                               f"{path}: {why}. Free space in {path.parent} or set "
+                               f"traces.cache_dir=<a folder with room>.", path.parent,
+                               f"cannot write {path.name}: {why}") from None
 
 
 def load_traceset(path: Path) -> TraceSet:
@@ -216,15 +227,17 @@ def check_cache_dir(traces_cfg: TracesConfig) -> Path:
     key = "traces.cache_dir" if traces_cfg.cache_dir else \
         "traces.cache_dir (unset: $UABS_RL_CACHE/traces or ~/.cache/uabs_rl/traces)"
     if d.exists() and not d.is_dir():
-        raise ConfigError(f"{key}: {d} is a file, not a folder. Set traces.cache_dir to a "
-                          f"folder (it is made if missing).")
+        raise CacheFolderError(f"{key}: {d} is a file, not a folder. Set traces.cache_dir "
+                               f"to a folder (it is made if missing).", d,
+                               "a file, not a folder")
     try:
         d.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryFile(dir=d):
             pass
     except OSError as e:
-        raise ConfigError(f"{key}: cannot write in {d} ({e.strerror or e}). Set "
-                          f"traces.cache_dir to a folder you can write in.") from None
+        raise CacheFolderError(f"{key}: cannot write in {d} ({e.strerror or e}). Set "
+                               f"traces.cache_dir to a folder you can write in.", d,
+                               f"cannot write in it: {e.strerror or e}") from None
     return d
 
 
