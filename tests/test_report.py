@@ -604,6 +604,28 @@ def test_runs_of_two_learners_are_two_groups_with_their_algo_column(sweep, trace
     assert labels["dqn3"] != labels["qmix"] and "qmix" in labels["qmix"]
 
 
+def test_a_learners_own_setting_labels_its_runs_only(sweep, trace_cache, tmp_path):
+    """Runs of QMIX at two widths of its mixer beside 3DQN runs: the QMIX groups are named
+    by algo.mixing_embed_dim, the 3DQN group is not (the setting is not the 3DQN's), and
+    the settings common to every run do not hold it."""
+    import shutil
+
+    root = tmp_path / "mixed"
+    shutil.copytree(sweep / "masking=rank,seed=0", root / "dqn3")
+    for width in (8, 32):
+        run(smoke(trace_cache, "masking=rank", "seed=0", "algo=qmix",
+                  f"algo.mixing_embed_dim={width}", *QUIET, "train.episodes=3"),
+            root / f"qmix{width}")
+    grouping = group_runs(find_runs(root))
+    assert sorted(grouping.groups) == [
+        "rank, algo.name=dqn3, train.episodes=6",
+        "rank, algo.name=qmix, algo.mixing_embed_dim=32, train.episodes=3",
+        "rank, algo.name=qmix, algo.mixing_embed_dim=8, train.episodes=3"]
+    assert "algo.mixing_embed_dim" not in grouping.common
+    (dqn3,) = grouping.groups["rank, algo.name=dqn3, train.episodes=6"]
+    assert "algo.mixing_embed_dim" not in dqn3.settings and "mixing" not in dqn3.label
+
+
 # ----------------------------------------------------------------------------- marl-eval
 # marl-eval's README layout, written by hand: two runs of one algorithm on one task
 MARL_EVAL_EXAMPLE = {"env": {"task": {"algo": {

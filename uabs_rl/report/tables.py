@@ -218,8 +218,9 @@ def comparison(grouping: Grouping, tests: dict[Path, dict] | None) -> list[dict[
     rows = []
     for label, runs in grouping.groups.items():
         s = runs[0].settings
+        # None (an empty cell) for another learner's own setting
         row: dict[str, Any] = {"group": label, "mode": runs[0].mode,
-                               **{k: s[k] for k in grouping.others}, "seeds": len(runs),
+                               **{k: s.get(k) for k in grouping.others}, "seeds": len(runs),
                                "episodes": min(len(r.train) for r in runs),
                                "spread": spread_name(len(runs)) or "none (1 seed)",
                                "where": "test" if tests else "validation"}

@@ -7,13 +7,14 @@ from __future__ import annotations
 
 import os
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from functools import cached_property
 from pathlib import Path
 from typing import Any
 
 from uabs_rl.config import MaskingMode, default_settings, keys_with_role
 from uabs_rl.config.roles import BASELINE_ROLES, NEUTRAL_ROLES
+from uabs_rl.config.schema import algo_schema
 from uabs_rl.runs.layout import METRICS, RunFolder
 from uabs_rl.runs.metrics import read_metrics
 
@@ -78,9 +79,11 @@ class Run:
         except CheckpointError as e:
             ckpt = RunFolder(self.path).last
             raise CheckpointError(e if str(ckpt) in str(e) else f"{ckpt}: {e}") from None
-        # another learner's own settings (algo.mixing_embed_dim) as their defaults
+        # the learner's own settings (algo.mixing_embed_dim of qmix), their defaults where
+        # the run was written before they existed; another learner's are not the run's
+        own = {f.name for f in fields(algo_schema(full.get("algo.name")))}
         full = {k: full.get(k, v) for k, v in default_settings().items()
-                if k in full or k.startswith("algo.")}
+                if k in full or k.startswith("algo.") and k.split(".")[1] in own}
         return {k: v for k, v in full.items() if not _is(k, NEUTRAL)}
 
     @property
@@ -263,8 +266,12 @@ def group_runs(runs: list[Run]) -> Grouping:
         keyed.setdefault(repr(sorted(run.settings.items())), []).append(run)
     members = list(keyed.values())
     first = members[0][0].settings
-    keys = list(dict.fromkeys(k for m in members for k in m[0].settings))
-    varied = [k for k in keys if len({repr(m[0].settings.get(k)) for m in members}) > 1]
+    order = {k: i for i, k in enumerate(default_settings())}  # the schemas' order
+    keys = sorted({k for m in members for k in m[0].settings}, key=order.__getitem__)
+    # a learner's own setting varies where the runs of that learner differ in it (the
+    # others have none: algo.name tells them apart)
+    varied = [k for k in keys if len({repr(m[0].settings[k]) for m in members
+                                      if k in m[0].settings}) > 1]
     varied.sort(key=lambda k: k != "masking.mode")
     others = [k for k in varied if k != "masking.mode"]
     members.sort(key=lambda m: (MODES.index(m[0].mode),
@@ -272,9 +279,10 @@ def group_runs(runs: list[Run]) -> Grouping:
     groups = {}
     for m in members:
         s = m[0].settings
-        label = ", ".join([m[0].mode] + [f"{k}={fmt_value(s.get(k))}" for k in others])
+        label = ", ".join([m[0].mode] + [f"{k}={fmt_value(s[k])}" for k in others if k in s])
         groups[label] = _one_per_seed(sorted(m, key=lambda r: r.seed))
-    common = {k: v for k, v in first.items() if k not in varied}
+    common = {k: v for k, v in first.items()
+              if k not in varied and all(k in m[0].settings for m in members)}
     return Grouping(groups, varied, common)
 
 
