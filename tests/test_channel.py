@@ -169,6 +169,7 @@ def test_channel_name_dispatches_through_the_registry(monkeypatch, trace_cache):
         inside, _, served[name] = links.links(pos, veh, present, torch.Generator())
         assert inside[0, 0].all() and not inside[0, 1:].any()
     assert served["uma"].all() and not served["walled"].any()
+    # every registered model, a user's own among them (uma and walled here)
     with pytest.raises(ConfigError, match=r"channel.name='nope' is not a channel model: use "
-                                          r"one of uma, walled"):
+                                          r"one of " + ", ".join(sorted(ch.CHANNELS))):
         EnvParams.from_config(cfg.scenario, replace(cfg.channel, name="nope"))

@@ -16,7 +16,7 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 
 from tests.conftest import compose_cfg, run_command
 from uabs_rl.algorithms import Dims, make_algorithm
-from uabs_rl.config import ConfigError
+from uabs_rl.config import CONF_DIR, ConfigError, MaskingMode
 from uabs_rl.evaluation.load import load_evaluation
 from uabs_rl.runs.checkpoint import (
     CheckpointError,
@@ -300,9 +300,15 @@ def test_misspelt_keys_and_unknown_groups_fail_at_composition(trace_cache, overr
     assert key in str(e.value) + str(e.value.__cause__)
 
 
+# the options of conf/masking/ and of MaskingMode as the messages list them: the package's
+# own (flat, penalty, rank) and any a user added (docs/code.md, Extending)
+MASKS = ", ".join(sorted(p.stem for p in (CONF_DIR / "masking").glob("*.yaml")))
+MODES = ", ".join(m.value for m in MaskingMode)
+
+
 @pytest.mark.parametrize("args,said", [
-    (["masking=rnak"], "masking=rnak: masking has no option 'rnak'; choose from flat, "
-                       "penalty, rank (the files of conf/masking/)."),
+    (["masking=rnak"], f"masking=rnak: masking has no option 'rnak'; choose from {MASKS} "
+                       f"(the files of conf/masking/)."),
     (["algo.lrr=1"], "algo.lrr is not a setting (AlgoConfig has no 'lrr'): did you mean "
                      "algo.lr or algo.loss or algo.replay? fix its spelling; uabs-train "
                      "--cfg job prints every setting."),
@@ -311,12 +317,11 @@ def test_misspelt_keys_and_unknown_groups_fail_at_composition(trace_cache, overr
                                            "algo.mixing_embed_dim"),
     (["scenario.n_uabs=three"], "scenario.n_uabs=three: Value 'three' of type 'str' could "
                                 "not be converted to Integer."),
-    (["masking.mode=soft"], "masking.mode=soft: Invalid value 'soft', expected one of "
-                            "[penalty, flat, rank]."),
+    (["masking.mode=soft"], f"masking.mode=soft: Invalid value 'soft', expected one of "
+                            f"[{MODES}]."),
     (["-m", "masking=penalty,rnak", "seed=0,1"], "masking=rnak: masking has no option"),
-    (["masking=masking_schema"], "masking=masking_schema is the schema the options of "
-                                 "masking build on, not one of them: choose from flat, "
-                                 "penalty, rank."),
+    (["masking=masking_schema"], f"masking=masking_schema is the schema the options of "
+                                 f"masking build on, not one of them: choose from {MASKS}."),
     (["algo=qmix_schema"], "algo=qmix_schema is the schema the options of algo build on"),
     # a sweep without -m (Hydra: "Ambiguous value", 4 lines, exit 1), a launcher of 0 jobs
     # (a 35-line joblib traceback)

@@ -185,8 +185,9 @@ def parser() -> argparse.ArgumentParser:
                     help="group=option or key=value for scenario, channel, masking, traces "
                          "(and device), as on the uabs-train command line")
     ap.add_argument("--config-dir", type=Path, action="append", default=[],
-                    help="a folder of your own configs (scenario/<name>.yaml, ...), searched "
-                         "before the package's conf/; may be repeated")
+                    help="a folder of your own configs (scenario/<name>.yaml, ...), beside "
+                         "the package's conf/ (a file named as one of the package's is "
+                         "refused); may be repeated")
     ap.add_argument("--checkpoint", choices=("best", "last"), default=None,
                     help="which checkpoint of a run directory (default: best); a .pt "
                          "PATH is the checkpoint itself")

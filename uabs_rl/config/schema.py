@@ -287,7 +287,7 @@ class TrainConfig:
     logger: LoggerKind = setting(Role.runtime, LoggerKind.tensorboard)
     # held-out trajectory picture at each evaluation
     trajectory_images: bool = setting(Role.runtime, True)
-    progress: bool = setting(Role.runtime, True)  # progress bar
+    progress: bool = setting(Role.runtime, True)  # training's progress bar (SUMO's: a tty's)
     # torch.compile the env step (with the masking rule) and the decision (Q forward,
     # target mask, masked choice): ~2x faster training, ~20 s to compile (eager if
     # compilation fails)

@@ -160,7 +160,8 @@ def _run_all(requests: list[SimRequest], workers: int, desc: str) -> list[SimRes
     """Run the simulations, ``workers`` at a time (0 = one per core). Parallel runs are
     separate processes: libsumo holds one simulation per process."""
     n = min(len(requests), workers or os.cpu_count() or 1)
-    bar = tqdm(total=len(requests), desc=desc, unit="sim", leave=False)
+    # on a terminal only (disable=None): a log file or a pipe gets the "built" line alone
+    bar = tqdm(total=len(requests), desc=desc, unit="sim", leave=False, disable=None)
     try:
         if n <= 1:
             results = []
