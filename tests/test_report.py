@@ -624,6 +624,20 @@ def test_a_learners_own_setting_labels_its_runs_only(sweep, trace_cache, tmp_pat
     assert "algo.mixing_embed_dim" not in grouping.common
     (dqn3,) = grouping.groups["rank, algo.name=dqn3, train.episodes=6"]
     assert "algo.mixing_embed_dim" not in dqn3.settings and "mixing" not in dqn3.label
+    # the whole report of them: its claims per set of settings, its comparison table and
+    # the marl-eval export name each group by its own settings
+    out = tmp_path / "report"
+    assert report_main([str(root), "--no-baselines", "--export", "marl-eval", "--out",
+                        str(out)]) == 0
+    with open(out / "comparison.csv") as f:
+        cells = {r["group"]: r["algo.mixing_embed_dim"] for r in csv.DictReader(f)}
+    assert cells == {"rank, algo.name=dqn3, train.episodes=6": "",
+                     "rank, algo.name=qmix, algo.mixing_embed_dim=8, train.episodes=3": "8",
+                     "rank, algo.name=qmix, algo.mixing_embed_dim=32, train.episodes=3": "32"}
+    algos = json.loads((out / "marl_eval.json").read_text())["uabs_rl"]["rank"]
+    assert sorted(algos) == ["dqn3, train.episodes=6",
+                             "qmix, algo.mixing_embed_dim=32, train.episodes=3",
+                             "qmix, algo.mixing_embed_dim=8, train.episodes=3"]
 
 
 # ----------------------------------------------------------------------------- marl-eval
@@ -712,6 +726,12 @@ def test_runs_made_with_another_machines_trace_cache_are_reported_with_cache_dir
     assert capsys.readouterr().err.splitlines()[-1] == (
         f"error: --cache-dir {cluster} is a file: give a folder (it is made if missing) (see "
         f"uabs-report --help)")
+    with pytest.raises(SystemExit, match="2"):  # before: OSError's traceback
+        report_main([str(run_dir), "--cache-dir", str(tmp_path / ("a" * 300))])
+    assert "--cache-dir" in capsys.readouterr().err.splitlines()[-1]
     assert eval_main([str(run_dir), f"traces.cache_dir={laptop}"]) == 0
     assert (run_dir / "evaluation" / "eval.json").exists()
     assert [p.name for p in (run_dir / "evaluation").iterdir() if p.is_dir()] == []
+    # another device draws other random numbers: its evaluation keeps a folder of its own
+    assert eval_main([str(run_dir), f"traces.cache_dir={laptop}", "device=cpu"]) == 0
+    assert [p.name for p in (run_dir / "evaluation").iterdir() if p.is_dir()] == ["device=cpu"]

@@ -44,7 +44,8 @@ the scenario; with the paper's observation its size fixes ``scenario.n_uabs`` an
 ``channel.n_beams`` too (a run trained with ``obs=egocentric`` evaluates at any
 ``scenario.n_uabs``, in any area); ``algo`` and ``train`` define the network and its
 training and cannot change. Results then go to
-``<run dir>/evaluation/<overrides>/``.
+``<run dir>/evaluation/<overrides>/`` (``traces.cache_dir`` and ``traces.workers``, which
+change no result, name no folder).
 
 Evaluation needs only the held-out env, the Q-network and the masking rule
 (:mod:`uabs_rl.evaluation.evaluator`): no training traces, replay buffer or optimiser are built.
@@ -337,7 +338,8 @@ EVAL_FILES = ("eval.json", "trajectories_*.png", "trajectories_*.pdf", "episode_
 def output_folder(out: Path, given: bool) -> OutputFolder:
     """The evaluation's output folder, written whole or not at all
     (:class:`uabs_rl.paths.OutputFolder`); the folders of evaluations under overrides
-    inside it (``evaluation/<overrides>/``) are kept."""
+    inside it (``evaluation/<overrides>/``, :func:`~uabs_rl.evaluation.load.default_out_dir`)
+    are kept."""
     return OutputFolder(out, "uabs-eval", EVAL_FILES,
                         "--out" if given else "the output folder", keep_dirs=True)
 

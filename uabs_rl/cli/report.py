@@ -132,6 +132,10 @@ def main(argv: list[str] | None = None) -> int:
         if not args.baselines or args.curves:
             ap.error("--cache-dir holds the test traces: --no-baselines and --curves "
                      "read none")
+        try:
+            check_path(args.cache_dir, "--cache-dir")  # a name too long, before a stat
+        except ConfigError as e:
+            ap.error(str(e))
         if args.cache_dir.exists() and not args.cache_dir.is_dir():
             ap.error(f"--cache-dir {args.cache_dir} is a file: give a folder (it is made "
                      f"if missing)")

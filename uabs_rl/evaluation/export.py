@@ -43,7 +43,8 @@ def _per_window(record: dict) -> dict[str, list[float]]:
 def _algo_name(grouping: Grouping, label: str) -> str:
     s = grouping.groups[label][0].settings
     rest = [k for k in grouping.others if not _is(k, ENV_SETTINGS) and k != "algo.name"]
-    return ", ".join([str(s["algo.name"])] + [f"{k}={fmt_value(s[k])}" for k in rest])
+    return ", ".join([str(s["algo.name"])] + [f"{k}={fmt_value(s[k])}" for k in rest
+                                              if k in s])  # another learner's: not its own
 
 
 def _run_entry(run: Run, episodes: list[int], absolute: dict) -> dict[str, Any]:

@@ -264,15 +264,16 @@ def load_evaluation(path: Path, which: str = "best", windows: int | None = None,
 
 def default_out_dir(path: Path, overrides: list[str] | None = None) -> Path:
     """``<run>/evaluation``, or ``<run>/evaluation/<overrides>`` under overrides that
-    change results (a runtime setting's, ``traces.cache_dir`` or ``device``, names no
-    folder, as in a run folder's name); beside a checkpoint file that is not in a run's
+    may change results (``traces.cache_dir`` and ``traces.workers`` name no folder, as in
+    a run folder's name; ``device`` does: another device's random generator draws other
+    start positions and LoS states); beside a checkpoint file that is not in a run's
     ``checkpoints/``."""
     if path.is_dir():
         run = path
     else:
         run = run_of_checkpoint(path) or path.parent
     out = RunFolder(run).evaluation
-    runtime = set(keys_with_role(Role.runtime))
+    runtime = set(keys_with_role(Role.runtime)) - {"device"}
     named = [o for o in overrides or () if o.partition("=")[0].lstrip("+~") not in runtime]
     return out / ",".join(o.replace("/", "_") for o in named) if named else out
 

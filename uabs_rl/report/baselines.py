@@ -37,7 +37,8 @@ def evaluate_on_test(runs: list[Run], planner_runs: frozenset[Path] = frozenset(
             given = (f"--cache-dir {cache_dir}" if cache_dir is not None else
                      f"the trace cache {e.folder} (run {run.path}'s traces.cache_dir)"
                      if (run.config.get("traces") or {}).get("cache_dir") else
-                     f"the trace cache {e.folder} ($UABS_RL_CACHE/traces)")
+                     f"the trace cache {e.folder} ($UABS_RL_CACHE/traces, or "
+                     f"~/.cache/uabs_rl/traces when unset)")
             raise CacheFolderError(f"{given} cannot hold the test traces here ({e.reason}): "
                                    f"give --cache-dir <a folder you can write in>.",
                                    e.folder, e.reason) from None

@@ -223,9 +223,10 @@ class Grouping:
         return self.groups[label][0].mode
 
     def values(self, label: str, keys: list[str]) -> str:
-        """``k=v, ...`` of ``keys`` in the group ``label``."""
+        """``k=v, ...`` of ``keys`` in the group ``label`` (those its runs have: another
+        learner's own settings are not theirs)."""
         s = self.groups[label][0].settings
-        return ", ".join(f"{k}={fmt_value(s[k])}" for k in keys)
+        return ", ".join(f"{k}={fmt_value(s[k])}" for k in keys if k in s)
 
     @property
     def others(self) -> list[str]:
