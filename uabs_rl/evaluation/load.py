@@ -30,6 +30,7 @@ from uabs_rl.config import (
     check_config_dirs,
     check_moved_overrides,
     keys_with_role,
+    override_key,
     sections_with_role,
     to_container,
 )
@@ -274,7 +275,7 @@ def default_out_dir(path: Path, overrides: list[str] | None = None) -> Path:
         run = run_of_checkpoint(path) or path.parent
     out = RunFolder(run).evaluation
     runtime = set(keys_with_role(Role.runtime)) - {"device"}
-    named = [o for o in overrides or () if o.partition("=")[0].lstrip("+~") not in runtime]
+    named = [o for o in overrides or () if override_key(o) not in runtime]
     return out / ",".join(o.replace("/", "_") for o in named) if named else out
 
 

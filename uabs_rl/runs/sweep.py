@@ -7,14 +7,13 @@ from __future__ import annotations
 
 import os
 import sys
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
 from typing import Any
 
 from uabs_rl.config import MaskingMode, default_settings, keys_with_role
 from uabs_rl.config.roles import BASELINE_ROLES, NEUTRAL_ROLES
-from uabs_rl.config.schema import algo_schema
 from uabs_rl.runs.layout import METRICS, RunFolder
 from uabs_rl.runs.metrics import read_metrics
 
@@ -79,12 +78,10 @@ class Run:
         except CheckpointError as e:
             ckpt = RunFolder(self.path).last
             raise CheckpointError(e if str(ckpt) in str(e) else f"{ckpt}: {e}") from None
-        # the learner's own settings (algo.mixing_embed_dim of qmix), their defaults where
-        # the run was written before they existed; another learner's are not the run's
-        own = {f.name for f in fields(algo_schema(full.get("algo.name")))}
-        full = {k: full.get(k, v) for k, v in default_settings().items()
-                if k in full or k.startswith("algo.") and k.split(".")[1] in own}
-        return {k: v for k, v in full.items() if not _is(k, NEUTRAL)}
+        # in the schemas' order; config_from_checkpoint gives the run its learner's schema
+        # (its own settings, algo.mixing_embed_dim of qmix, with their defaults where the
+        # run was written before they existed; another learner's are not the run's)
+        return {k: full[k] for k in default_settings() if k in full and not _is(k, NEUTRAL)}
 
     @property
     def label(self) -> str:
