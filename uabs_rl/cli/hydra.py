@@ -338,13 +338,7 @@ def hydra_main(config_name: str, body: Callable[..., Any],
             if stop is not None:
                 parallel.job_signals(running=False)
                 os.environ.pop(STOP_ENV, None)
-                if parallel.orphaned():  # no one to return to: end the worker here
-                    for stream in (sys.stdout, sys.stderr):
-                        try:
-                            stream.flush()
-                        except (OSError, ValueError, AttributeError):
-                            pass
-                    os._exit(128 + signal.SIGTERM)
+                parallel.exit_if_orphaned()
 
     try:  # before Hydra, whose own message would not say what to type instead
         check_moved_overrides(sys.argv[1:])

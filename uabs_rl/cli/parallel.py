@@ -79,8 +79,8 @@ def _parent_gone(signum, frame) -> None:
     """The launching process ended (PR_SET_PDEATHSIG; the kernel may send it once per
     thread of that process): a running job is told through the stop file, which its
     training reads at the end of its round, and ends the worker when it returns
-    (:func:`orphaned`); an idle worker ends now. Left to loky, orphaned workers wait on
-    each other's ends of its pipes for ever."""
+    (:func:`exit_if_orphaned`); an idle worker ends now. Left to loky, orphaned workers
+    wait on each other's ends of its pipes for ever."""
     global _orphaned
     _orphaned = True
     stop = os.environ.get(STOP_ENV)
@@ -90,9 +90,17 @@ def _parent_gone(signum, frame) -> None:
         os._exit(0)
 
 
-def orphaned() -> bool:
-    """In a worker: whether the launching process has ended."""
-    return _orphaned
+def exit_if_orphaned() -> None:
+    """In a worker, after its job returned: when the launching process has ended there is
+    no one to return the job's result to, so the worker ends here (its output flushed)."""
+    if not _orphaned:
+        return
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError, AttributeError):
+            pass
+    os._exit(128 + signal.SIGTERM)
 
 
 def worker_start() -> None:
