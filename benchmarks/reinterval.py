@@ -17,10 +17,20 @@ Until issue #38 every interval over seeds was a percentile bootstrap of the seed
   are read from the run folders (``uabs-report`` on them recomputes everything).
 
     python benchmarks/reinterval.py            # rewrites the csv and learned_vs_baselines.md files
+
+``--sample-sd``: Table 2's "±" was the standard deviation over seeds with n in the
+denominator until ``uabs_rl/report/tables.py`` took n − 1 (the sample standard deviation:
+with 3 seeds the old figure was 0.82 of it). The means are unchanged and each old figure
+times sqrt(n / (n − 1)) is the new one, so every committed table2.csv is rewritten from
+its own columns and its table2.md's "±" figures and closing line from that (a file whose
+closing line already says "sample" is left as it is).
+
+    python benchmarks/reinterval.py --sample-sd   # rewrites every table2.csv and table2.md
 """
 
 from __future__ import annotations
 
+import argparse
 import csv
 import math
 import re
@@ -311,7 +321,50 @@ def summary_tables() -> None:
         summary.write_text(text[:start] + "\n".join(table) + "\n" + text[end:])
 
 
+OLD_TABLE2_NOTE = "Means over seeds (± standard deviation)"
+NEW_TABLE2_NOTE = ("Means over seeds (± their sample standard deviation, n − 1 in the "
+                   "denominator)")
+
+
+def table2_sample_sd() -> None:
+    """Every committed table2.csv / table2.md with the sample standard deviation."""
+    for md in sorted(RESULTS.rglob("table2.md")):
+        text, path = md.read_text(), md.with_suffix(".csv")
+        if OLD_TABLE2_NOTE not in text:
+            print(f"{md.relative_to(RESULTS)}: already the sample standard deviation")
+            continue
+        with open(path, newline="") as f:
+            reader = csv.DictReader(f)
+            fields, rows = reader.fieldnames, list(reader)
+        for r in rows:
+            n = int(r["seeds"])
+            scale = math.sqrt(n / (n - 1)) if n > 1 else 0.0
+            for k in fields:
+                if k.endswith("_std"):
+                    r[k] = repr(float(r[k]) * scale)
+        with open(path, "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=fields)
+            w.writeheader()
+            w.writerows(rows)
+        lines = text.split("\n")
+        for i, line in enumerate(lines):  # one cell per row of the csv, in its order
+            for label, key in (("| Collisions in training |", "train_collision_events"),
+                               ("| Collisions in evaluation |", "eval_collision_events")):
+                if line.startswith(label):
+                    cells = iter(f"± {float(r[key + '_std']):.1f} events" for r in rows)
+                    lines[i] = re.sub(r"± [0-9.]+ events", lambda _, c=cells: next(c), line)
+        md.write_text("\n".join(lines).replace(OLD_TABLE2_NOTE, NEW_TABLE2_NOTE))
+        print(f"{md.relative_to(RESULTS)}: {len(rows)} rows, seeds "
+              f"{sorted({int(r['seeds']) for r in rows})}")
+
+
 def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--sample-sd", action="store_true",
+                    help="only Table 2's standard deviations: n -> n - 1 (table2.csv, .md)")
+    if ap.parse_args().sample_sd:
+        table2_sample_sd()
+        return
     one, two = ratios(), ratios(two_groups=True, trials=1000)
     for name, r in (("Student-t / bootstrap, 5 seeds", one),
                     ("Welch / two-group bootstrap, 5 and 5 seeds", two)):

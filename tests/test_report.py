@@ -50,13 +50,18 @@ def test_table2_equals_the_runs_metrics(sweep, report):
         assert rows[mode]["train_collision_events"] == pytest.approx(events)
         assert rows[mode]["train_episodes_with_collision"] == pytest.approx(with_coll)
         assert rows[mode]["eval_collision_events"] == pytest.approx(eval_events)
+        # the ± of Table 2: the sample standard deviation over the seeds (n − 1)
+        per_seed = [sum(r["collisions"] for r in t) for t in train]
+        assert rows[mode]["train_collision_events_std"] == pytest.approx(
+            np.std(per_seed, ddof=1))
         assert rows[mode]["train_episodes"] == 6 and rows[mode]["eval_episodes"] == 4
     assert rows["rank"]["train_collision_events"] == 0
     with open(out / "table2.csv") as f:
         csv_rows = {r["mode"]: r for r in csv.DictReader(f)}
     assert float(csv_rows["penalty"]["train_collision_events"]) == pytest.approx(
         rows["penalty"]["train_collision_events"])
-    assert "Collisions in training" in (out / "table2.md").read_text()
+    md = (out / "table2.md").read_text()
+    assert "Collisions in training" in md and "sample standard deviation" in md
 
 
 def test_figures_exist_as_png_and_pdf(report):

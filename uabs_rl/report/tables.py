@@ -39,9 +39,9 @@ def collision_counts(run: Run) -> dict[str, float]:
 
 
 def table2(groups: dict[str, list[Run]]) -> list[dict[str, Any]]:
-    """One row per group: the means over its seeds (and standard deviations) of
-    :func:`collision_counts`. Rows are keyed ``mode`` when each group is a masking mode,
-    else ``group`` (the label) and ``mode``."""
+    """One row per group: the means over its seeds (and their sample standard deviations,
+    n − 1 in the denominator; 0 for one seed) of :func:`collision_counts`. Rows are keyed
+    ``mode`` when each group is a masking mode, else ``group`` (the label) and ``mode``."""
     by_mode = all(label == runs[0].mode for label, runs in groups.items())
     rows = []
     for label, runs in groups.items():
@@ -52,7 +52,7 @@ def table2(groups: dict[str, list[Run]]) -> list[dict[str, Any]]:
         for key in counts[0]:
             vals = np.array([c[key] for c in counts], dtype=float)
             row[key] = vals.mean()
-            row[key + "_std"] = vals.std()
+            row[key + "_std"] = vals.std(ddof=1) if vals.size > 1 else 0.0
         row["train_share"] = row["train_episodes_with_collision"] / max(row["train_episodes"], 1)
         row["eval_share"] = (row["eval_episodes_with_collision"]
                              / max(row["eval_episodes"], 1))
@@ -85,8 +85,9 @@ def table2_markdown(rows: list[dict[str, Any]]) -> str:
         for r in rows) + " |")
     lines.append("| Mask fallbacks (train / eval) | " + " | ".join(
         f"{r['train_fallbacks']:.0f} / {r['eval_fallbacks']:.0f}" for r in rows) + " |")
-    return "\n".join(lines) + "\n\nMeans over seeds (± standard deviation); an evaluation " \
-        "episode is one validation window.\n"
+    return "\n".join(lines) + (
+        "\n\nMeans over seeds (± their sample standard deviation, n − 1 in the "
+        "denominator); an evaluation episode is one validation window.\n")
 
 
 LVB_COLUMNS = ["mode", "algo", "n_uabs", "config", "metric", "baseline", "learned", "diff",
