@@ -82,10 +82,14 @@ def rank_run(trace_cache, tmp_path_factory):
 
 @pytest.mark.parametrize("override,message", [
     ("train.episodes=7", r"train\.episodes must be a multiple of train\.n_envs"),
+    # smoke's 6 episodes in rounds of 2 would evaluate at 6 only, not every 3
+    ("train.eval_every=3", r"train\.eval_every must be a multiple of train\.n_envs, such as "
+     r"2 or 4 \(training evaluates after whole rounds of 2 episodes: 3 would evaluate "
+     r"every 6 episodes\), got \(3, 2\)\."),
     ("scenario.episode_steps=400", r"traces hold \d+ steps but an episode needs"),
 ])
 def test_more_config_values_fail_naming_the_key(trace_cache, tmp_path, override, message):
-    cfg = smoke(trace_cache, override, "train.n_envs=2") if "episodes" in override else \
+    cfg = smoke(trace_cache, override, "train.n_envs=2") if "train." in override else \
         smoke(trace_cache, override)
     with pytest.raises(ConfigError, match=message):
         validate_run(cfg)
