@@ -19,7 +19,7 @@ pytest.importorskip("pettingzoo", reason='needs the interop extra: pip install -
 from pettingzoo.test import parallel_api_test, parallel_seed_test  # noqa: E402
 
 from tests.conftest import load_benchmark  # noqa: E402
-from uabs_rl.config import ChannelConfig, MaskingConfig  # noqa: E402
+from uabs_rl.config import ChannelConfig, ConfigError, MaskingConfig  # noqa: E402
 from uabs_rl.env.geometry import UNIT_MOVES, path_distance  # noqa: E402
 from uabs_rl.env.uabs_env import MASK  # noqa: E402
 from uabs_rl.interop.pettingzoo import make_parallel_env, parallel_rank_mask  # noqa: E402
@@ -199,3 +199,23 @@ def test_interop_page_links_and_commands_resolve():
     for args in re.findall(r"python benchmarks/pettingzoo_dqn\.py([^`\n]*)", text):
         for flag in re.findall(r"(?<!\S)(--[a-z-]+)", args):
             assert f'"{flag}"' in source, flag
+
+
+def test_a_split_the_door_does_not_know_or_traces_of_another_split_are_refused(
+        small_traces_cfg, train, held_out):
+    """split names the traces' own split: a misspelt one, or test traces walked as
+    training traces (training on held-out data by a slip), is refused with the fix."""
+    sc, mk = scenario(small_traces_cfg), MaskingConfig(mode="rank")
+    with pytest.raises(ConfigError, match=r"split must be one of train, eval, test "
+                                          r"\(eval: the validation traces\), got 'valid'\."):
+        make_parallel_env(sc, ChannelConfig(), mk, train, split="valid")
+    with pytest.raises(ConfigError, match=r"split='train' but the traces given are the "
+                                          r"eval split: pass get_traces\(scenario, "
+                                          r"traces_cfg, 'train'\) for them, or split='eval'"):
+        make_parallel_env(sc, ChannelConfig(), mk, held_out, split="train")
+    with pytest.raises(ConfigError, match=r"split='test' but the traces given are the "
+                                          r"train split"):
+        make_parallel_env(sc, ChannelConfig(), mk, train, split="test")
+    env = make_parallel_env(sc, ChannelConfig(), mk, held_out, split="eval")
+    obs, _ = env.reset(seed=0)
+    assert set(obs) == set(env.possible_agents)

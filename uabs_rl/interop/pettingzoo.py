@@ -56,7 +56,14 @@ except ImportError as err:  # pragma: no cover - the message is the point
 
 from torchrl.envs import TransformedEnv
 
-from uabs_rl.config import ChannelConfig, MaskingConfig, MaskingMode, ObsConfig, ScenarioConfig
+from uabs_rl.config import (
+    ChannelConfig,
+    ConfigError,
+    MaskingConfig,
+    MaskingMode,
+    ObsConfig,
+    ScenarioConfig,
+)
 from uabs_rl.env.geometry import path_distance
 from uabs_rl.env.uabs_env import (
     ACTION,
@@ -72,6 +79,7 @@ from uabs_rl.env.uabs_env import (
 from uabs_rl.safety.make import make_env
 from uabs_rl.safety.modules import DirectEnv
 from uabs_rl.safety.rules import COLLIDERS, RANK_ORDER, SAFETY_TOLERANCE, MaskingRule
+from uabs_rl.traces.build import SPLITS
 from uabs_rl.traces.cache import TraceSet
 
 N_ACTIONS = 4
@@ -248,7 +256,20 @@ def make_parallel_env(scenario: ScenarioConfig, channel: ChannelConfig,
                       seed: int | None = None, obs: ObsConfig | None = None,
                       n_eval_windows: int | None = None) -> UABSParallelEnv:
     """A :class:`UABSParallelEnv` over the env :func:`~uabs_rl.safety.make.make_env`
-    builds from the same settings (one env, no TorchRL ``ActionMask``)."""
+    builds from the same settings (one env, no TorchRL ``ActionMask``). ``split`` is
+    "train" (random windows) or "eval" / "test" (the fixed held-out windows), and must
+    name the split ``traces`` were built for (:func:`~uabs_rl.traces.get_traces`), so
+    that a learner does not train on held-out traces by a slip."""
+    if split not in SPLITS:
+        raise ConfigError(f"split must be one of {', '.join(SPLITS)} (eval: the validation "
+                          f"traces), got {split!r}.")
+    built = traces.meta.get("split")
+    if built in SPLITS and built != split:
+        raise ConfigError(
+            f"split={split!r} but the traces given are the {built} split: pass "
+            f"get_traces(scenario, traces_cfg, {split!r}) for them, or split={built!r} to "
+            f"walk these ({'random' if built == 'train' else 'the fixed held-out'} "
+            f"windows).")
     env = make_env(scenario, channel, masking, traces, split=split, n_envs=1, seed=seed,
                    spec_mask=False, obs=obs, n_eval_windows=n_eval_windows)
     return UABSParallelEnv(env)
