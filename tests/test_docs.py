@@ -120,6 +120,24 @@ def test_help_lists_every_group_option_and_shows_the_command_lines_values():
     assert all(setting_exists(k) for k in listed), [k for k in listed if not setting_exists(k)]
 
 
+def test_uabs_traces_help_says_what_it_does_and_lists_its_options():
+    out = run_command("traces", "scenario=bologna", "split=test", "--help", cwd=PROJECT_ROOT)
+    assert out.returncode == 0, out.stderr[-2000:]
+    text = out.stdout
+    assert text.startswith("uabs-traces: run SUMO once and cache") and "${" not in text
+    assert "powered by Hydra" not in text  # not Hydra's generic page
+    groups = text.split("== Config groups", 1)[1].split("== Settings", 1)[0]
+    for group in ("scenario", "traces", "experiment"):
+        for option in sorted((CONF_DIR / group).glob("*.yaml")):
+            assert re.search(rf"\b{option.stem}\b", groups), f"{group}={option.stem}"
+    assert "[bologna]" in groups and "train | eval | test | all [test]" in text
+    listed = re.findall(r"^  ([a-z_]+(?:\.[a-z_]+)*)  ",
+                        text.split("== Settings", 1)[1].split("== Examples", 1)[0],
+                        flags=re.M)
+    assert len(listed) >= 8
+    assert all(k == "split" or setting_exists(k) for k in listed), listed
+
+
 def test_every_test_that_bad_inputs_md_names_exists():
     text = (PROJECT_ROOT / "docs" / "bad_inputs.md").read_text()
     named = set(re.findall(r"(test_\w+\.py)::(test_\w+)", text))
