@@ -235,6 +235,23 @@ def test_an_input_sumo_refuses_is_one_line_naming_the_key(trace_cache, bad_input
     assert not cache_path(cfg.scenario, cfg.traces, "train").exists()
 
 
+def test_a_fixed_demand_recorded_past_its_vehicles_names_begin_s(trace_cache, bad_inputs):
+    """Routes recorded from a begin_s on that none of their vehicles reaches: the advice
+    is the time range (begin_s), not a fleet the scenario does not use."""
+    cfg = tiny(trace_cache, "scenario.sumo.fleet_size=0", "traces.train.begin_s=10",
+               f"scenario.sumo.route_files=[{bad_inputs['empty.rou.xml']}]")
+    with pytest.raises(ConfigError) as e:
+        get_traces(cfg.scenario, cfg.traces, "train")
+    assert str(e.value) == (
+        f"the train traces hold no vehicle: scenario.sumo.route_files "
+        f"({bad_inputs['empty.rou.xml']}) put none on the roads in the 5.0 s recorded from "
+        f"0.0 + 10.0 s on: its vehicles depart at the times its files give, and none drives "
+        f"in that range (past the end of its demand?). Move traces.train.begin_s earlier, or "
+        f"leave the begin_s settings null (the splits then follow one another from the "
+        f"start).")
+    assert not cache_path(cfg.scenario, cfg.traces, "train").exists()
+
+
 def test_uabs_traces_prints_a_refused_argument_as_one_line(trace_cache):
     proc = subprocess.run(
         [sys.executable, "-m", "uabs_rl.cli.traces", "split=train",
@@ -246,6 +263,19 @@ def test_uabs_traces_prints_a_refused_argument_as_one_line(trace_cache):
     assert proc.returncode == 2
     [line] = proc.stderr.splitlines()  # a pipe gets no progress bar (a terminal only)
     assert line.startswith("error: scenario.sumo.extra_args: SUMO refused ['--no-such-option']")
+
+
+def test_uabs_traces_warns_of_traces_shorter_than_an_episode(tmp_path):
+    """Traces too short for one episode are cached (a demo, a check of the SUMO files)
+    with a warning that training and evaluation will refuse them, and why."""
+    proc = subprocess.run(
+        [sys.executable, "-m", "uabs_rl.cli.traces", "experiment=smoke", "split=eval",
+         f"traces.cache_dir={tmp_path}", "traces.eval.duration_s=15", "traces.workers=1"],
+        capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert ("  warning: these eval traces hold 15 steps, fewer than an episode's "
+            "scenario.episode_steps + 1 = 21: uabs-train and uabs-eval refuse them (raise "
+            "traces.eval.duration_s, or lower scenario.episode_steps)") in proc.stdout
 
 
 def test_routes_without_a_vehicle_are_refused(trace_cache, bad_inputs):

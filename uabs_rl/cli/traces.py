@@ -36,6 +36,11 @@ def build(cfg: TracesAppConfig, _output_dir: Path | None = None) -> None:
         how = "built with SUMO" if ts.source == "built" else "loaded from cache"
         print(f"{scenario.name} {how} in {time.perf_counter() - t0:.2f} s: {ts.summary()}\n"
               f"  {cache_path(scenario, cfg.traces, split, setting)}")
+        if ts.steps < scenario.episode_steps + 1:  # as the env refuses them
+            print(f"  warning: these {split} traces hold {ts.steps} steps, fewer than an "
+                  f"episode's scenario.episode_steps + 1 = {scenario.episode_steps + 1}: "
+                  f"uabs-train and uabs-eval refuse them (raise traces.{split}.duration_s, "
+                  f"or lower scenario.episode_steps)")
 
 
 def main() -> None:

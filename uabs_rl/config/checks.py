@@ -289,15 +289,38 @@ def _check_disjoint_times(scenario: ScenarioConfig, traces: TracesConfig) -> Non
                             or getattr(traces, a).begin_s is None else (a, b))
             (m0, m1), (o0, o1) = ranges[moved], ranges[other]
             begin = split_begin(scenario, traces, moved)
+            clear = _first_clear_begin(scenario, traces, moved)
+            past = (f"Move traces.{moved}.begin_s past the {other} range (begin_s >= "
+                    f"{max(0.0, o1 - getattr(traces, moved).warmup_s):g})")
+            if clear is not None and clear != max(0.0, o1 - getattr(traces, moved).warmup_s):
+                past = (f"Move traces.{moved}.begin_s to {clear:g}, the first start past the "
+                        f"{other} range that overlaps no other split")
             raise ConfigError(
                 f"traces.{moved}.begin_s={begin:g} makes the {moved} time range "
                 f"{m0:g}..{m1:g} s (warm-up {getattr(traces, moved).warmup_s:g} s "
                 f"included) overlap the {other} range {o0:g}..{o1:g} s: the vehicles of "
                 f"{source} depart at the same times under every SUMO seed, so training, "
                 f"validation (eval) and test traces must come from disjoint time ranges. "
-                f"Move traces.{moved}.begin_s past the {other} range (begin_s >= "
-                f"{max(0.0, o1 - getattr(traces, moved).warmup_s):g}), or leave the begin_s "
-                f"settings null (the splits then follow one another).")
+                f"{past}, or leave the begin_s settings null (the splits then follow one "
+                f"another).")
+
+
+def _first_clear_begin(scenario: ScenarioConfig, traces: TracesConfig,
+                       moved: str) -> float | None:
+    """The smallest ``traces.<moved>.begin_s`` at or after its own whose time range
+    overlaps no other split's (the splits that follow it with a null begin_s move with
+    it); None where none is found within a few steps."""
+    split = getattr(traces, moved)
+    begin = split_begin(scenario, traces, moved)
+    for _ in range(2 * len(TRACE_SPLITS)):
+        trial = replace(traces, **{moved: replace(split, begin_s=begin)})
+        ranges = {n: split_time_range(scenario, trial, n) for n in TRACE_SPLITS}
+        m0, m1 = ranges[moved]
+        clash = [o1 for n, (o0, o1) in ranges.items() if n != moved and m0 < o1 and o0 < m1]
+        if not clash:
+            return begin
+        begin = max(begin, max(clash) - split.warmup_s)
+    return None
 
 
 def family_scenarios(cfg: RunConfig) -> list[ScenarioConfig]:

@@ -294,6 +294,13 @@ def check_has_vehicles(ts: TraceSet, scenario: ScenarioConfig, split: str) -> No
             else f"{ts.meta.get('duration_s')} s recorded from {ts.meta.get('warmup_s')} + "
                  f"{begin} s on")
     within = "warmup_s + duration_s" if not begin else "warmup_s + begin_s + duration_s"
+    if begin and (sumo.sumocfg or sumo.route_files):  # a fixed demand, recorded late
+        raise ConfigError(
+            f"the {split} traces hold no vehicle: {source} put none on the roads in the "
+            f"{when}: its vehicles depart at the times its files give, and none drives "
+            f"in that range (past the end of its demand?). Move traces.{split}.begin_s "
+            f"earlier, or leave the begin_s settings null (the splits then follow one "
+            f"another from the start).")
     raise ConfigError(
         f"the {split} traces hold no vehicle: scenario.sumo.fleet_size is "
         f"{sumo.fleet_size} and {source} put none on the roads in the {when}. Set "
