@@ -64,6 +64,14 @@ def test_table2_equals_the_runs_metrics(sweep, report):
     assert "Collisions in training" in md and "sample standard deviation" in md
 
 
+def test_table2_of_one_seed_says_seed_and_its_sd_is_zero(sweep):
+    from uabs_rl.report.tables import table2, table2_markdown
+
+    rows = table2({"rank": find_runs(sweep / "masking=rank,seed=0")})
+    assert rows[0]["seeds"] == 1 and rows[0]["train_collision_events_std"] == 0.0
+    assert table2_markdown(rows).splitlines()[0] == "| | rank (1 seed) |"
+
+
 def test_figures_exist_as_png_and_pdf(report):
     out, _ = report
     for name in ("fig3_eval_return", "fig4_pg"):
@@ -424,6 +432,14 @@ def test_report_errors_are_one_line_and_status_2(sweep, tmp_path, capsys):
     assert capsys.readouterr().err.splitlines() == [
         f"error: {tmp_path / 'nowhere'} is not a folder: pass a run folder or a folder of "
         f"runs (such as outputs/multirun/<date_time>)."]
+    # a setting typed as if uabs-report evaluated (it reports what was evaluated)
+    assert report_main([str(sweep), "scenario=bologna"]) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        "error: scenario=bologna is not a folder: pass a run folder or a folder of runs (such "
+        "as outputs/multirun/<date_time>). uabs-report takes no settings: to evaluate runs "
+        "under scenario=bologna, use uabs-eval <run> scenario=bologna (one run) or python "
+        "benchmarks/generalization.py <runs> --at <scenario>:<M> (several runs, cities and "
+        "fleets)."]
     (tmp_path / "empty").mkdir()
     assert report_main([str(tmp_path / "empty")]) == 2
     assert capsys.readouterr().err.startswith(f"error: no run under {tmp_path / 'empty'}: ")

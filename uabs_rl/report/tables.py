@@ -70,7 +70,8 @@ def table2_markdown(rows: list[dict[str, Any]]) -> str:
                 f"{r[share_num]:.1f} of {r[share_den]:.0f} episodes "
                 f"({100 * r[share_num] / max(r[share_den], 1):.1f} %)")
 
-    head = "| | " + " | ".join(f"{_name(r)} ({r['seeds']} seeds)" for r in rows) + " |"
+    head = "| | " + " | ".join(
+        f"{_name(r)} ({r['seeds']} seed{'s' if r['seeds'] != 1 else ''})" for r in rows) + " |"
     lines = [head, "|---" * (len(rows) + 1) + "|"]
     lines.append("| Collisions in training | " + " | ".join(
         cell(r, "train_collision_events", "train_episodes_with_collision", "train_episodes")

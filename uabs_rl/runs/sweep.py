@@ -178,8 +178,15 @@ def find_runs(*roots: Path) -> list[Run]:
     runs, skipped, seen = [], [], set()
     for root in map(Path, roots):
         if not root.is_dir():
-            raise ReportError(f"{root} is not a folder: pass a run folder or a folder of "
-                              f"runs (such as outputs/multirun/<date_time>).")
+            setting = ("=" in root.name and not root.exists()
+                       and root.name.split("=", 1)[0].replace(".", "").isidentifier())
+            raise ReportError(
+                f"{root} is not a folder: pass a run folder or a folder of runs (such as "
+                f"outputs/multirun/<date_time>)" + (
+                    f". uabs-report takes no settings: to evaluate runs under {root}, "
+                    f"use uabs-eval <run> {root} (one run) or python "
+                    f"benchmarks/generalization.py <runs> --at <scenario>:<M> (several runs, "
+                    f"cities and fleets)" if setting else "") + ".")
         for metrics in _metrics_files(root):
             real = os.path.realpath(metrics.parent)
             if real not in seen:
