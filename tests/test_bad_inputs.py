@@ -4,6 +4,7 @@ lists them with the test behind each)."""
 from __future__ import annotations
 
 import pickle
+from pathlib import Path
 
 import pytest
 import torch
@@ -13,10 +14,11 @@ from tests.conftest import SMALL_TRACES, compose_cfg, run_command
 from tests.test_train import records, smoke
 from uabs_rl.cli.evaluate import main as eval_main
 from uabs_rl.config import ConfigError
+from uabs_rl.config.checks import validate_learning
 from uabs_rl.runs.checkpoint import CheckpointError, load_checkpoint
 from uabs_rl.runs.metrics import MetricsError, read_metrics
 from uabs_rl.safety.make import resolve_device
-from uabs_rl.training.resume import run
+from uabs_rl.training.resume import prepare, run
 from uabs_rl.training.startup import validate_run
 
 
@@ -94,6 +96,27 @@ def test_more_config_values_fail_naming_the_key(trace_cache, tmp_path, override,
     with pytest.raises(ConfigError, match=message):
         validate_run(cfg)
         run(cfg, tmp_path / "run")
+
+
+def test_a_run_from_before_eval_every_had_to_divide_n_envs_still_resumes(
+        trace_cache, tmp_path, monkeypatch):
+    """The check refuses new runs only: a run started before it (made here with the check
+    taken out) is continued by its command with resume= appended (resume cannot change
+    train.eval_every), evaluating after whole rounds as it did: every lcm(3, 2) = 6."""
+    import uabs_rl.config.checks as checks
+
+    old = ["train.n_envs=2", "train.eval_every=3", "train.trajectory_images=false"]
+    with pytest.raises(ConfigError, match=r"train\.eval_every must be a multiple"):
+        validate_learning(smoke(trace_cache, *old))
+    real = checks._train_checks
+    monkeypatch.setattr(checks, "_train_checks", lambda cfg: [
+        c for c in real(cfg) if c[1] != "train.eval_every"])
+    run_dir = tmp_path / "run"
+    run(smoke(trace_cache, *old, "train.episodes=4"), run_dir)
+    monkeypatch.undo()
+    args = [*old, "train.episodes=8", f"resume={run_dir}"]
+    prepare(smoke(trace_cache, *args), Path("unused"), overrides=args).fit()
+    assert [r["episode"] for r in records(run_dir) if r["kind"] == "eval"] == [4, 6, 8]
 
 
 def test_unknown_masking_mode_is_rejected_at_composition(trace_cache):

@@ -462,7 +462,9 @@ def _train_checks(cfg: RunConfig) -> list[tuple[bool, str, str, Any]]:
         (t.population >= 1, "train.population", "must be >= 1", t.population),
         (t.episodes % max(t.n_envs, 1) == 0, "train.episodes",
          "must be a multiple of train.n_envs", (t.episodes, t.n_envs)),
-        (t.eval_every % max(t.n_envs, 1) == 0, "train.eval_every",
+        # a run started before this was refused continues as it ran (resume cannot
+        # change train.eval_every): evaluating every lcm(eval_every, n_envs) episodes
+        (bool(cfg.resume) or t.eval_every % max(t.n_envs, 1) == 0, "train.eval_every",
          _eval_every_rule(t.eval_every, t.n_envs), (t.eval_every, t.n_envs)),
         (t.threads is None or t.threads >= 1, "train.threads",
          "must be null (chosen for the machine) or >= 1", t.threads),
