@@ -219,3 +219,6 @@ def test_a_split_the_door_does_not_know_or_traces_of_another_split_are_refused(
     env = make_parallel_env(sc, ChannelConfig(), mk, held_out, split="eval")
     obs, _ = env.reset(seed=0)
     assert set(obs) == set(env.possible_agents)
+    # the traces config: the split named is the one loaded
+    env = make_parallel_env(sc, ChannelConfig(), mk, small_traces_cfg.traces, split="eval")
+    assert env.reset(seed=0)[0].keys() == obs.keys()

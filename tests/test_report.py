@@ -440,6 +440,9 @@ def test_report_errors_are_one_line_and_status_2(sweep, tmp_path, capsys):
         "under scenario=bologna, use uabs-eval <run> scenario=bologna (one run) or python "
         "benchmarks/generalization.py <runs> --at <scenario>:<M> (several runs, cities and "
         "fleets)."]
+    # a mistyped job folder of a sweep is a path, not a setting
+    assert report_main([str(tmp_path / "masking=flat,seed=9")]) == 2
+    assert "takes no settings" not in capsys.readouterr().err
     (tmp_path / "empty").mkdir()
     assert report_main([str(tmp_path / "empty")]) == 2
     assert capsys.readouterr().err.startswith(f"error: no run under {tmp_path / 'empty'}: ")

@@ -250,6 +250,18 @@ def test_a_fixed_demand_recorded_past_its_vehicles_names_begin_s(trace_cache, ba
         f"leave the begin_s settings null (the splits then follow one another from the "
         f"start).")
     assert not cache_path(cfg.scenario, cfg.traces, "train").exists()
+    # begin_s null: the split follows the earlier ones, which is what to change
+    cfg = tiny(trace_cache, "scenario.sumo.fleet_size=0", "traces.eval.n_sims=1",
+               "traces.eval.duration_s=5", "traces.eval.warmup_s=0",
+               f"scenario.sumo.route_files=[{bad_inputs['empty.rou.xml']}]")
+    with pytest.raises(ConfigError) as e:
+        get_traces(cfg.scenario, cfg.traces, "eval")
+    assert str(e.value).endswith(
+        "recorded from 0.0 + 5.0 s on: its vehicles depart at the times its files give, and "
+        "none drives in that range (past the end of its demand?). traces.eval.begin_s is "
+        "null, so the eval range follows the earlier splits': shorten their duration_s, or "
+        "set traces.eval.begin_s to a time its vehicles drive in (the splits' ranges must "
+        "stay disjoint).")
 
 
 def test_uabs_traces_prints_a_refused_argument_as_one_line(trace_cache):

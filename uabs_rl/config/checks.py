@@ -293,8 +293,8 @@ def _check_disjoint_times(scenario: ScenarioConfig, traces: TracesConfig) -> Non
             past = (f"Move traces.{moved}.begin_s past the {other} range (begin_s >= "
                     f"{max(0.0, o1 - getattr(traces, moved).warmup_s):g})")
             if clear is not None and clear != max(0.0, o1 - getattr(traces, moved).warmup_s):
-                past = (f"Move traces.{moved}.begin_s to {clear:g}, the first start past the "
-                        f"{other} range that overlaps no other split")
+                past = (f"Move traces.{moved}.begin_s to {clear:g} (the first start from "
+                        f"which the {moved} range overlaps no other split's)")
             raise ConfigError(
                 f"traces.{moved}.begin_s={begin:g} makes the {moved} time range "
                 f"{m0:g}..{m1:g} s (warm-up {getattr(traces, moved).warmup_s:g} s "

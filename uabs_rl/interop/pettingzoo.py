@@ -63,6 +63,7 @@ from uabs_rl.config import (
     MaskingMode,
     ObsConfig,
     ScenarioConfig,
+    TracesConfig,
 )
 from uabs_rl.env.geometry import path_distance
 from uabs_rl.env.uabs_env import (
@@ -252,18 +253,21 @@ class _Entries(dict):
 
 
 def make_parallel_env(scenario: ScenarioConfig, channel: ChannelConfig,
-                      masking: MaskingConfig, traces: TraceSet, split: str = "train",
+                      masking: MaskingConfig, traces: TraceSet | TracesConfig,
+                      split: str = "train",
                       seed: int | None = None, obs: ObsConfig | None = None,
                       n_eval_windows: int | None = None) -> UABSParallelEnv:
     """A :class:`UABSParallelEnv` over the env :func:`~uabs_rl.safety.make.make_env`
-    builds from the same settings (one env, no TorchRL ``ActionMask``). ``split`` is
+    builds from the same settings (one env, no TorchRL ``ActionMask``); ``traces`` a
+    :class:`TraceSet` or the ``traces`` config (then loaded or built). ``split`` is
     "train" (random windows) or "eval" / "test" (the fixed held-out windows), and must
     name the split ``traces`` were built for (:func:`~uabs_rl.traces.get_traces`), so
     that a learner does not train on held-out traces by a slip."""
     if split not in SPLITS:
         raise ConfigError(f"split must be one of {', '.join(SPLITS)} (eval: the validation "
                           f"traces), got {split!r}.")
-    built = traces.meta.get("split")
+    # traces config: make_env loads that split's traces
+    built = traces.meta.get("split") if isinstance(traces, TraceSet) else None
     if built in SPLITS and built != split:
         raise ConfigError(
             f"split={split!r} but the traces given are the {built} split: pass "

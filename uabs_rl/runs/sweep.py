@@ -178,7 +178,7 @@ def find_runs(*roots: Path) -> list[Run]:
     runs, skipped, seen = [], [], set()
     for root in map(Path, roots):
         if not root.is_dir():
-            setting = ("=" in root.name and not root.exists()
+            setting = ("=" in str(root) and root.parent == Path(".") and not root.exists()
                        and root.name.split("=", 1)[0].replace(".", "").isidentifier())
             raise ReportError(
                 f"{root} is not a folder: pass a run folder or a folder of runs (such as "

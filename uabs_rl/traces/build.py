@@ -207,8 +207,10 @@ def _stack(results: list[SimResult]) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def build_split(scenario: ScenarioConfig, split_cfg: SplitConfig, split: str,
-                workers: int = 0) -> TraceSet:
-    """Run SUMO for every seed of the split and stack the traces (no caching)."""
+                workers: int = 0, begin_given: bool = True) -> TraceSet:
+    """Run SUMO for every seed of the split and stack the traces (no caching).
+    ``begin_given``: ``traces.<split>.begin_s`` was set (else it follows the earlier
+    splits), for the advice on traces without a vehicle."""
     files = scenario_inputs(scenario)
     check_area_contains_network(scenario, files["net_file"])
     key, desc = split_key(scenario, split_cfg, split)
@@ -224,7 +226,7 @@ def build_split(scenario: ScenarioConfig, split_cfg: SplitConfig, split: str,
                 teleport_vehicle_steps=sum(r.teleports for r in results),
                 build_seconds=round(time.perf_counter() - t0, 3))
     ts = TraceSet(pos, pres, meta)
-    check_has_vehicles(ts, scenario, split)
+    check_has_vehicles(ts, scenario, split, begin_given)
     return ts
 
 
@@ -274,8 +276,11 @@ def _key_at_fault(e: SumoRunError, said: str, extra_args: list[str],
     return "scenario.sumo.net_file", str(files["net_file"])
 
 
-def check_has_vehicles(ts: TraceSet, scenario: ScenarioConfig, split: str) -> None:
-    """Traces without a vehicle inside the area would train on a reward of 0: refused."""
+def check_has_vehicles(ts: TraceSet, scenario: ScenarioConfig, split: str,
+                       begin_given: bool = True) -> None:
+    """Traces without a vehicle inside the area would train on a reward of 0: refused.
+    ``begin_given``: ``traces.<split>.begin_s`` was set, not resolved after the earlier
+    splits (:func:`~uabs_rl.config.split_begin`)."""
     a = scenario.area
     x, y = ts.positions[..., 0], ts.positions[..., 1]
     inside = ts.present & (x >= 0) & (y >= 0) & (x <= a.width) & (y <= a.height)
@@ -295,12 +300,15 @@ def check_has_vehicles(ts: TraceSet, scenario: ScenarioConfig, split: str) -> No
                  f"{begin} s on")
     within = "warmup_s + duration_s" if not begin else "warmup_s + begin_s + duration_s"
     if begin and (sumo.sumocfg or sumo.route_files):  # a fixed demand, recorded late
+        fix = (f"Move traces.{split}.begin_s earlier, or leave the begin_s settings null "
+               f"(the splits then follow one another from the start)" if begin_given else
+               f"traces.{split}.begin_s is null, so the {split} range follows the earlier "
+               f"splits': shorten their duration_s, or set traces.{split}.begin_s to a "
+               f"time its vehicles drive in (the splits' ranges must stay disjoint)")
         raise ConfigError(
             f"the {split} traces hold no vehicle: {source} put none on the roads in the "
             f"{when}: its vehicles depart at the times its files give, and none drives "
-            f"in that range (past the end of its demand?). Move traces.{split}.begin_s "
-            f"earlier, or leave the begin_s settings null (the splits then follow one "
-            f"another from the start).")
+            f"in that range (past the end of its demand?). {fix}.")
     raise ConfigError(
         f"the {split} traces hold no vehicle: scenario.sumo.fleet_size is "
         f"{sumo.fleet_size} and {source} put none on the roads in the {when}. Set "
@@ -345,15 +353,16 @@ def get_traces(scenario: ScenarioConfig, traces_cfg: TracesConfig, split: str,
     d = cache_dir(traces_cfg)
     path = inside(d / f"{key}.pt", d, name_setting)
     ts = load_cached(path, key, desc)
+    begin_given = getattr(traces_cfg, split).begin_s is not None
     if ts is not None:
-        check_has_vehicles(ts, scenario, split)  # a file cached before this check
+        check_has_vehicles(ts, scenario, split, begin_given)  # cached before this check
         if verbose:
             log.info("traces %s: cache hit %s", split, path)
         return ts
     check_cache_dir(traces_cfg)
     try:
         with _sigterm_interrupts():
-            ts = build_split(scenario, split_cfg, split, traces_cfg.workers)
+            ts = build_split(scenario, split_cfg, split, traces_cfg.workers, begin_given)
             save_traceset(ts, path)
     except TracesInterrupted:
         raise
