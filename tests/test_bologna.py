@@ -28,8 +28,8 @@ from uabs_rl.config import (
 )
 from uabs_rl.env.uabs_env import OBS
 from uabs_rl.safety.make import make_env, make_selector
-from uabs_rl.traces.build import get_traces
-from uabs_rl.traces.cache import cache_path, split_key
+from uabs_rl.traces.build import get_traces, thinning
+from uabs_rl.traces.cache import TraceSet, cache_path, split_key
 
 FOLDER = PROJECT_ROOT / "sumo" / "bologna_acosta"
 SPLITS = ("train", "eval", "test")
@@ -86,6 +86,27 @@ def test_overlapping_time_ranges_of_a_fixed_demand_are_refused(overrides, named)
     fixed = [o for o in overrides if not o.startswith(f"traces.{named}.begin_s=")]
     cfg = bologna(*fixed, f"traces.{named}.begin_s={advised}")
     validate_scenario_traces(cfg.scenario, cfg.traces)
+
+
+def test_a_fixed_demand_recorded_while_it_drains_is_named():
+    """Traces whose vehicles thin out to under half within the range (a begin_s past the
+    demand's hour) get a warning naming begin_s; a steady count and a fleet get none."""
+    def traces(counts):
+        present = torch.zeros(2, len(counts), 700, dtype=torch.bool)
+        for t, c in enumerate(counts):
+            present[:, t, :c] = True
+        return TraceSet(torch.zeros(2, len(counts), 700, 2), present, {"split": "test"})
+
+    fixed = bologna().scenario
+    fleet = compose_cfg("build_traces", []).scenario
+    draining = traces([600] * 50 + [130] * 50)
+    assert thinning(draining, fixed, "test") == (
+        "the test traces' vehicles thin out within the recorded range, from 600 present per "
+        "step in its first tenth to 130 in its last: the demand of scenario.sumo.sumocfg "
+        "ends or drains there. Move traces.test.begin_s earlier (or leave it null) to "
+        "record while it lasts.")
+    assert thinning(traces([600] * 50 + [310] * 50), fixed, "test") is None  # over half
+    assert thinning(draining, fleet, "test") is None
 
 
 def test_fleet_scenarios_take_any_time_range():

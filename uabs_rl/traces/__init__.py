@@ -23,7 +23,7 @@ _HOMES = {
               "save_traceset", "split_key"),
     "build": ("SPLITS", "WORK_PREFIX", "TracesInterrupted", "build_split",
               "check_has_vehicles", "check_names", "get_traces", "remove_stale_work_folders",
-              "stack_cities", "training_traces"),
+              "stack_cities", "thinning", "training_traces"),
 }
 _MODULE_OF = {name: module for module, names in _HOMES.items() for name in names}
 __all__ = sorted(_MODULE_OF)

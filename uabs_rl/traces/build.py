@@ -316,6 +316,25 @@ def check_has_vehicles(ts: TraceSet, scenario: ScenarioConfig, split: str,
         f"traces.{split}.{within}.")
 
 
+def thinning(ts: TraceSet, scenario: ScenarioConfig, split: str) -> str | None:
+    """Words for a fixed demand's traces whose vehicles thin out within the recorded range
+    (the last tenth of the steps holds under half the vehicles of the first: a range past
+    the end of the demand, or in its draining), else None. A fleet keeps its size."""
+    sumo = scenario.sumo
+    if not (sumo.sumocfg or sumo.route_files) or ts.steps < 10:
+        return None
+    tenth = ts.steps // 10
+    per_step = ts.present.float().sum(-1).mean(0)  # [steps], mean over the simulations
+    first, last = float(per_step[:tenth].mean()), float(per_step[-tenth:].mean())
+    if first <= 0 or last >= first / 2:
+        return None
+    source = "scenario.sumo.sumocfg" if sumo.sumocfg else "scenario.sumo.route_files"
+    return (f"the {split} traces' vehicles thin out within the recorded range, from "
+            f"{first:.0f} present per step in its first tenth to {last:.0f} in its last: "
+            f"the demand of {source} ends or drains there. Move traces.{split}.begin_s "
+            f"earlier (or leave it null) to record while it lasts.")
+
+
 @contextmanager
 def _sigterm_interrupts() -> Iterator[None]:
     """SIGTERM stops a build as Ctrl-C does (in the main thread; elsewhere nothing)."""
@@ -356,6 +375,7 @@ def get_traces(scenario: ScenarioConfig, traces_cfg: TracesConfig, split: str,
     begin_given = getattr(traces_cfg, split).begin_s is not None
     if ts is not None:
         check_has_vehicles(ts, scenario, split, begin_given)  # cached before this check
+        _warn_thinning(ts, scenario, split)
         if verbose:
             log.info("traces %s: cache hit %s", split, path)
         return ts
@@ -374,7 +394,16 @@ def get_traces(scenario: ScenarioConfig, traces_cfg: TracesConfig, split: str,
     if verbose:
         log.info("traces %s built in %.2f s -> %s\n  %s", split, ts.meta["build_seconds"], path,
                  ts.summary())
+    _warn_thinning(ts, scenario, split)
     return ts
+
+
+def _warn_thinning(ts: TraceSet, scenario: ScenarioConfig, split: str) -> None:
+    """A warning line for traces whose fixed demand thins out (:func:`thinning`): at
+    every load, so a run's log says it too."""
+    words = thinning(ts, scenario, split)
+    if words:
+        log.warning(words)
 
 
 def stack_cities(sets: list[TraceSet], areas: list[tuple[float, float]],
