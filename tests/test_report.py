@@ -72,6 +72,25 @@ def test_table2_of_one_seed_says_seed_and_its_sd_is_zero(sweep):
     assert table2_markdown(rows).splitlines()[0] == "| | rank (1 seed) |"
 
 
+def test_runs_of_two_scenarios_are_labelled_by_scenario_not_by_its_settings(trace_cache,
+                                                                            tmp_path):
+    """A report over runs of two scenarios names each group scenario=<name> and only the
+    settings the group has otherwise (here the smoke preset's fleet, which grid6's own
+    file overrides), not the score of settings the scenario's file sets (area, network,
+    fleet); the summary's lines read the same."""
+    quiet = ["train.trajectory_images=false", "train.logger=none"]
+    run(smoke(trace_cache, *quiet), tmp_path / "runs" / "a")
+    run(smoke(trace_cache, *quiet, "scenario=grid6"), tmp_path / "runs" / "b")
+    labels = list(group_runs(find_runs(tmp_path / "runs")).groups)
+    assert sorted(labels) == ["rank, scenario=grid6",
+                              "rank, scenario=manhattan, scenario.sumo.fleet_size=20"]
+    build_report(tmp_path / "runs", tmp_path / "report", with_baselines=False)
+    summary = (tmp_path / "report" / "summary.md").read_text()
+    [runs_line] = [ln for ln in summary.splitlines() if ln.startswith("Runs: ")]
+    assert runs_line == ("Runs: rank, scenario=grid6: 1 seed; rank, scenario=manhattan, "
+                         "scenario.sumo.fleet_size=20: 1 seed")
+
+
 def test_figures_exist_as_png_and_pdf(report):
     out, _ = report
     for name in ("fig3_eval_return", "fig4_pg"):
@@ -259,7 +278,7 @@ def test_runs_of_other_settings_are_grouped_not_refused(sweep, tmp_path):
     grouping = group_runs(find_runs(root))
     assert grouping.varied == ["scenario.name"]
     assert {k: [r.seed for r in v] for k, v in grouping.groups.items()} == {
-        "rank, scenario.name=elsewhere": [1], "rank, scenario.name=manhattan": [0]}
+        "rank, scenario=elsewhere": [1], "rank, scenario=manhattan": [0]}
     assert len(find_runs(sweep / "masking=rank,seed=0")) == 1  # a single run folder works
 
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 import os
 import sys
 from dataclasses import dataclass
-from functools import cached_property
+from functools import cache, cached_property
 from pathlib import Path
 from typing import Any
 
@@ -229,8 +229,7 @@ class Grouping:
     def values(self, label: str, keys: list[str]) -> str:
         """``k=v, ...`` of ``keys`` in the group ``label`` (those its runs have: another
         learner's own settings are not theirs)."""
-        s = self.groups[label][0].settings
-        return ", ".join(f"{k}={fmt_value(s[k])}" for k in keys if k in s)
+        return ", ".join(_named(keys, self.groups[label][0].settings))
 
     @property
     def others(self) -> list[str]:
@@ -284,11 +283,41 @@ def group_runs(runs: list[Run]) -> Grouping:
     groups = {}
     for m in members:
         s = m[0].settings
-        label = ", ".join([m[0].mode] + [f"{k}={fmt_value(s[k])}" for k in others if k in s])
+        label = ", ".join([m[0].mode, *_named(others, s)])
         groups[label] = _one_per_seed(sorted(m, key=lambda r: r.seed))
     common = {k: v for k, v in first.items()
               if k not in varied and all(k in m[0].settings for m in members)}
     return Grouping(groups, varied, common)
+
+
+def _named(varied: list[str], settings: dict[str, Any]) -> list[str]:
+    """``k=v`` of the varied settings a group's label names (those its runs have).
+    Where runs of several scenarios are grouped, the label says ``scenario=<name>`` and
+    leaves out what that scenario's file sets as the group has it (area, SUMO inputs,
+    fleet, traces: a score of settings otherwise); a setting the group has otherwise
+    stays named."""
+    keys = [k for k in varied if k in settings]
+    if "scenario.name" in keys:
+        own = _scenario_defaults(settings["scenario.name"])
+        if own is not None:
+            keys = [k for k in keys if k == "scenario.name" or k not in own
+                    or repr(own[k]) != repr(settings[k])]
+    return [f"scenario={settings[k]}" if k == "scenario.name" else f"{k}={fmt_value(settings[k])}"
+            for k in keys]
+
+
+@cache
+def _scenario_defaults(name: str) -> dict[str, Any] | None:
+    """Every setting, flat, as ``uabs-train scenario=<name>`` alone gives it; None for a
+    scenario the package's conf/ does not hold (one of a --config-dir) or where a config
+    cannot be composed here (a Hydra app already running)."""
+    from uabs_rl.config import compose
+    from uabs_rl.runs.checkpoint import config_dict, flatten
+
+    try:
+        return flatten(config_dict(compose("config", [f"scenario={name}"])))
+    except Exception:  # noqa: BLE001 - labels then name every setting, as before
+        return None
 
 
 def _one_per_seed(runs: list[Run]) -> list[Run]:
