@@ -5,6 +5,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import math
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -330,6 +331,13 @@ MODES = ", ".join(m.value for m in MaskingMode)
     (["-m", "masking=flat,rank", "hydra/launcher=local_parallel", "hydra.launcher.n_jobs=0"],
      "hydra.launcher.n_jobs=0: the jobs a sweep runs at once must be a whole number >= 1 "
      "(or -1: one per core)."),
+    # the SLURM launcher off a SLURM node (before: submitit's traceback, after the sweep's
+    # folder was made)
+    pytest.param(["-m", "masking=flat,rank", "hydra/launcher=slurm"],
+                 "hydra/launcher=slurm submits each job to SLURM, but this machine has no "
+                 "srun on its PATH (not a SLURM node): start the sweep on your cluster's "
+                 "login node, or run it here with hydra/launcher=local_parallel.",
+                 marks=pytest.mark.skipif(bool(shutil.which("srun")), reason="a SLURM node")),
     # a value one job of a sweep would refuse: before, the jobs before it ran first (the
     # serial launcher), and the sweep stopped there
     (["-m", "algo.lr=0.001,-1", "seed=0,1"], "the job algo.lr=-1 seed=0 of this sweep: "

@@ -8,6 +8,7 @@ import logging
 import math
 import os
 import re
+import shutil
 import signal
 import sys
 from collections.abc import Callable
@@ -35,6 +36,9 @@ from uabs_rl.paths import safe_component
 from uabs_rl.runs.checkpoint import CheckpointError, Interrupted
 from uabs_rl.runs.folder import Before
 from uabs_rl.runs.layout import HYDRA, IDENTITY, LOCK, STOP_ENV
+
+# the launchers that submit to SLURM (conf/hydra/launcher/slurm.yaml, and submitit's own)
+SLURM_LAUNCHERS = ("slurm", "submitit_slurm")
 
 
 def start_folders(argv: list[str]) -> list[Path]:
@@ -171,6 +175,12 @@ def check_composition(config_name: str, argv: list[str],
         if key == "hydra.launcher.n_jobs" and value.strip("'\"") in ("0", "-0"):
             raise ConfigError(f"hydra.launcher.n_jobs={value}: the jobs a sweep runs at "
                               f"once must be a whole number >= 1 (or -1: one per core).")
+        if (multirun and key == "hydra/launcher" and value in SLURM_LAUNCHERS
+                and shutil.which("srun") is None):  # submitit's traceback, after a folder
+            raise ConfigError(
+                f"hydra/launcher={value} submits each job to SLURM, but this machine has no "
+                f"srun on its PATH (not a SLURM node): start the sweep on your cluster's "
+                f"login node, or run it here with hydra/launcher=local_parallel.")
     try:
         parsed = OverridesParser.create().parse_overrides(overrides=words)
         sweeps = [o.input_line for o in parsed if o.is_sweep_override()
