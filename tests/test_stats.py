@@ -194,3 +194,17 @@ def test_iqm_stratified_bootstrap_covers_at_10_seeds():
     """At 10 seeds over 9 tasks the stratified bootstrap of the IQM covers within
     [93, 97] %."""
     assert NOMINAL[0] <= iqm_coverage(10, TRIALS) <= NOMINAL[1]
+
+
+def test_differences_never_print_minus_zero():
+    """A bound that rounds to zero prints +0.0 in uabs-eval and uabs-report alike (the
+    report printed -0.0 where uabs-eval printed +0.0 for the same interval)."""
+    from uabs_rl.cli.evaluate import points
+    from uabs_rl.evaluation.stats import signed
+    from uabs_rl.report.tables import fmt_diff
+
+    assert [signed(-0.04), signed(0.04), signed(-0.06), signed(-0.4, 0)] == [
+        "+0.0", "+0.0", "-0.1", "+0"]
+    d = {"diff": 0.012, "ci_low": -0.0004, "ci_high": 0.032}
+    assert fmt_diff("served_fraction", d["diff"], d["ci_low"], d["ci_high"]) == points(d) \
+        == "+1.2 pt [+0.0, +3.2]"

@@ -81,6 +81,7 @@ from uabs_rl.evaluation.load import (
 )
 from uabs_rl.evaluation.planner import BEAM, ROUNDS
 from uabs_rl.evaluation.predict import PREDICTORS, parse_sees
+from uabs_rl.evaluation.stats import signed
 from uabs_rl.paths import OutputFolder, OutputInterrupted, check_path
 from uabs_rl.runs.checkpoint import CheckpointError
 from uabs_rl.training.threads import ThreadGovernor
@@ -96,8 +97,8 @@ def percent(x: float) -> str:
 def points(d: dict[str, float]) -> str:
     """A paired difference of fractions in percentage points with its CI:
     ``+1.2 pt [-0.3, +2.7]``."""
-    lo, mid, hi = (round(100 * d[k], 1) + 0.0 for k in ("ci_low", "diff", "ci_high"))
-    return f"{mid:+.1f} pt [{lo:+.1f}, {hi:+.1f}]"
+    lo, mid, hi = (signed(100 * d[k]) for k in ("ci_low", "diff", "ci_high"))
+    return f"{mid} pt [{lo}, {hi}]"
 
 
 def whole(x: float, sign: bool = False) -> str:

@@ -117,6 +117,12 @@ def t_interval(x: np.ndarray | Sequence[float], level: float = LEVEL
 
 
 # ----------------------------------------------------------------------------- intervals
+def signed(x: float, digits: int = 1) -> str:
+    """``x`` with its sign and ``digits`` decimals, a value that rounds to zero as
+    ``+0.0`` (never ``-0.0``): how every difference and interval bound is printed."""
+    return f"{round(x, digits) + 0.0:+.{digits}f}"
+
+
 def across_seeds_name(n: int, unit: str = "seeds") -> str:
     """The words for the interval of :func:`t_interval` over ``n`` ``unit`` ("" for 1)."""
     return f"95 % CI, Student-t over {n} {unit}" if n > 1 else ""

@@ -10,7 +10,12 @@ from typing import Any
 import numpy as np
 
 from uabs_rl.evaluation.baselines import MPC, PLANNER
-from uabs_rl.evaluation.stats import paired_over_seeds, spread_name, spread_over_seeds
+from uabs_rl.evaluation.stats import (
+    paired_over_seeds,
+    signed,
+    spread_name,
+    spread_over_seeds,
+)
 from uabs_rl.report.baselines import baselines_by_panel, learned_record
 from uabs_rl.runs.sweep import Grouping, Run
 
@@ -164,8 +169,8 @@ def fmt_diff(metric: str, d: float, lo: float, hi: float) -> str:
     """A difference with its interval: ``+1.2 pt [-0.3, +2.7]`` (percentage points) for a
     fraction, ``+123 [-45, +290]`` for a return."""
     if metric == "return":
-        return f"{d:+.0f} [{lo:+.0f}, {hi:+.0f}]"
-    return f"{100 * d:+.1f} pt [{100 * lo:+.1f}, {100 * hi:+.1f}]"
+        return f"{signed(d, 0)} [{signed(lo, 0)}, {signed(hi, 0)}]"
+    return f"{signed(100 * d)} pt [{signed(100 * lo)}, {signed(100 * hi)}]"
 
 
 def learned_vs_baselines_markdown(rows: list[dict[str, Any]], common: str = "",
