@@ -63,9 +63,7 @@ def training_rate(n_envs: int, device: str, rounds: int) -> tuple[float, float]:
     """(env steps/s, updates/s) of the trainer with n_envs parallel episodes."""
     from uabs_rl.training.experiment import Experiment
 
-    # eval_every: a multiple of n_envs, as uabs-train asks (no evaluation runs here)
     cfg = compose("config", [f"train.n_envs={n_envs}", f"train.episodes={n_envs * 100}",
-                             f"train.eval_every={n_envs * 100}",
                              "train.progress=false", "train.logger=none",
                              f"device={device}", "train.compile=false"])
     tr = Experiment(cfg, tempfile.mkdtemp(prefix="uabs_scaling_"))

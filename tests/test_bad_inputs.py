@@ -14,7 +14,6 @@ from tests.conftest import SMALL_TRACES, compose_cfg, run_command
 from tests.test_train import records, smoke
 from uabs_rl.cli.evaluate import main as eval_main
 from uabs_rl.config import ConfigError
-from uabs_rl.config.checks import validate_learning
 from uabs_rl.runs.checkpoint import CheckpointError, load_checkpoint
 from uabs_rl.runs.metrics import MetricsError, read_metrics
 from uabs_rl.safety.make import resolve_device
@@ -84,39 +83,31 @@ def rank_run(trace_cache, tmp_path_factory):
 
 @pytest.mark.parametrize("override,message", [
     ("train.episodes=7", r"train\.episodes must be a multiple of train\.n_envs"),
-    # smoke's 6 episodes in rounds of 2 would evaluate at 6 only, not every 3
-    ("train.eval_every=3", r"train\.eval_every must be a multiple of train\.n_envs, such as "
-     r"2 or 4 \(training evaluates after whole rounds of 2 episodes: 3 would evaluate "
-     r"every 6 episodes\), got \(3, 2\)\."),
     ("scenario.episode_steps=400", r"traces hold \d+ steps but an episode needs"),
 ])
 def test_more_config_values_fail_naming_the_key(trace_cache, tmp_path, override, message):
-    cfg = smoke(trace_cache, override, "train.n_envs=2") if "train." in override else \
+    cfg = smoke(trace_cache, override, "train.n_envs=2") if "episodes" in override else \
         smoke(trace_cache, override)
     with pytest.raises(ConfigError, match=message):
         validate_run(cfg)
         run(cfg, tmp_path / "run")
 
 
-def test_a_run_from_before_eval_every_had_to_divide_n_envs_still_resumes(
-        trace_cache, tmp_path, monkeypatch):
-    """The check refuses new runs only: a run started before it (made here with the check
-    taken out) is continued by its command with resume= appended (resume cannot change
-    train.eval_every), evaluating after whole rounds as it did: every lcm(3, 2) = 6."""
-    import uabs_rl.config.checks as checks
-
-    old = ["train.n_envs=2", "train.eval_every=3", "train.trajectory_images=false"]
-    with pytest.raises(ConfigError, match=r"train\.eval_every must be a multiple"):
-        validate_learning(smoke(trace_cache, *old))
-    real = checks._train_checks
-    monkeypatch.setattr(checks, "_train_checks", lambda cfg: [
-        c for c in real(cfg) if c[1] != "train.eval_every"])
-    run_dir = tmp_path / "run"
-    run(smoke(trace_cache, *old, "train.episodes=4"), run_dir)
-    monkeypatch.undo()
-    args = [*old, "train.episodes=8", f"resume={run_dir}"]
-    prepare(smoke(trace_cache, *args), Path("unused"), overrides=args).fit()
-    assert [r["episode"] for r in records(run_dir) if r["kind"] == "eval"] == [4, 6, 8]
+def test_eval_every_that_n_envs_does_not_divide_evaluates_after_each_multiple(
+        trace_cache, tmp_path):
+    """Rounds of n_envs = 2 episodes, train.eval_every = 3: an evaluation after the round
+    that reaches each multiple of 3 (episodes 4 and 6) and at the end (before: only at
+    common multiples, every 6, half those asked for); a run stopped at 4 and continued by
+    its command with resume= appended evaluates as the run that did not stop."""
+    args = ["train.n_envs=2", "train.eval_every=3", "train.trajectory_images=false",
+            "train.logger=none"]
+    whole, part = tmp_path / "whole", tmp_path / "part"
+    run(smoke(trace_cache, *args, "train.episodes=8"), whole)
+    run(smoke(trace_cache, *args, "train.episodes=4"), part)
+    more = [*args, "train.episodes=8", f"resume={part}"]
+    prepare(smoke(trace_cache, *more), Path("unused"), overrides=more).fit()
+    for d in (whole, part):
+        assert [r["episode"] for r in records(d) if r["kind"] == "eval"] == [4, 6, 8]
 
 
 def test_unknown_masking_mode_is_rejected_at_composition(trace_cache):

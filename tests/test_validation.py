@@ -221,8 +221,7 @@ def one_mib(monkeypatch):
     (["train.population=4"], "algo.buffer_size: the replay buffer (2000 transitions of 165 "
      "bytes x train.population=4) would need at least 1.259 MiB, but this machine has "
      "1 MiB available: lower algo.buffer_size or train.population."),
-    (["train.n_envs=1000", "train.episodes=1000", "train.eval_every=1000",
-      "algo.buffer_size=3000"],
+    (["train.n_envs=1000", "train.episodes=1000", "algo.buffer_size=3000"],
      "train.n_envs: 1000 x train.population=1 training envs (1.879 KiB each) would need at "
      "least 1.835 MiB, but this machine has 1 MiB available: lower train.n_envs or "
      "train.population."),

@@ -439,18 +439,6 @@ def _algo_checks(cfg: RunConfig) -> list[tuple[bool, str, str, Any]]:
     ]
 
 
-def _eval_every_rule(every: int, n_envs: int) -> str:
-    """Why ``train.eval_every`` must be a multiple of ``train.n_envs``, with the values
-    that are."""
-    if every < 1 or n_envs < 1:
-        return "must be a multiple of train.n_envs"
-    below, above = n_envs * (every // n_envs), n_envs * -(-every // n_envs)
-    near = " or ".join(str(v) for v in (below, above) if v >= 1)
-    return (f"must be a multiple of train.n_envs, such as {near} (training evaluates after "
-            f"whole rounds of {n_envs} episodes: {every} would evaluate every "
-            f"{math.lcm(every, n_envs)} episodes)")
-
-
 def _train_checks(cfg: RunConfig) -> list[tuple[bool, str, str, Any]]:
     t = cfg.train
     seeds = "in [-2^63, 2^64) (the seeds torch.Generator.manual_seed accepts)"
@@ -462,10 +450,6 @@ def _train_checks(cfg: RunConfig) -> list[tuple[bool, str, str, Any]]:
         (t.population >= 1, "train.population", "must be >= 1", t.population),
         (t.episodes % max(t.n_envs, 1) == 0, "train.episodes",
          "must be a multiple of train.n_envs", (t.episodes, t.n_envs)),
-        # a run started before this was refused continues as it ran (resume cannot
-        # change train.eval_every): evaluating every lcm(eval_every, n_envs) episodes
-        (bool(cfg.resume) or t.eval_every % max(t.n_envs, 1) == 0, "train.eval_every",
-         _eval_every_rule(t.eval_every, t.n_envs), (t.eval_every, t.n_envs)),
         (t.threads is None or t.threads >= 1, "train.threads",
          "must be null (chosen for the machine) or >= 1", t.threads),
         (0 <= t.eval_seed < SEED_END, "train.eval_seed", "must be in [0, 2^64) (TorchRL's "

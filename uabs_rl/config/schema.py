@@ -267,14 +267,15 @@ class TrainConfig:
     """Training protocol (docs/model.md §7, §8)."""
 
     episodes: int = setting(Role.protocol, 1000)  # N_t
-    # N_e: greedy evaluation on held-out traces every N_e episodes (a multiple of n_envs)
+    # N_e: greedy evaluation on held-out traces every N_e episodes (after the round of
+    # n_envs episodes that reaches each multiple of N_e)
     eval_every: int = setting(Role.protocol, 20)
     # held-out windows per evaluation (the paper evaluates 1)
     eval_windows: int = setting(Role.protocol, 10)
     # start positions of every evaluation (the same each time)
     eval_seed: int = setting(Role.evaluation, 12345)
     # episodes in parallel; updates per collector step = n_envs / algo.update_every;
-    # episodes and eval_every must be multiples of it
+    # train.episodes must be a multiple of it
     n_envs: int = setting(Role.policy, 1)
     # seeds trained together in one process: seed, seed + 1, ..., seed + population - 1,
     # their episodes side by side in one env and their networks stacked (batched

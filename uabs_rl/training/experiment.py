@@ -401,7 +401,10 @@ class Experiment:
                     "return": sum(r["return"] for r in recs) / self.n,
                     "epsilon": recs[0]["epsilon"],
                     "collisions": sum(r["collisions"] for r in recs)})
-            if self.episode % tr.eval_every == 0 or self.episode >= tr.episodes:
+            # after the round that reaches a multiple of eval_every (rounds of n_envs
+            # episodes: with n_envs not dividing it, up to n_envs - 1 episodes past it)
+            reached = self.episode // tr.eval_every > (self.episode - tr.n_envs) // tr.eval_every
+            if reached or self.episode >= tr.episodes:
                 returns = self.evaluate()
                 self.progress.last_eval = sum(returns) / self.n
                 if self.on_eval is not None and self.on_eval(self.episode, returns):
