@@ -105,6 +105,9 @@ def test_a_fixed_demand_recorded_while_it_drains_is_named():
         "step in its first tenth to 130 in its last: the demand of scenario.sumo.sumocfg "
         "ends or drains there. Move traces.test.begin_s earlier (or leave it null) to "
         "record while it lasts.")
+    assert thinning(draining, fixed, "test", begin_given=False).endswith(
+        "traces.test.begin_s is null, so the test range follows the earlier splits': "
+        "shorten their duration_s to record it while the demand lasts.")
     assert thinning(traces([600] * 50 + [310] * 50), fixed, "test") is None  # over half
     assert thinning(draining, fleet, "test") is None
 

@@ -481,3 +481,19 @@ def test_sumo_failures_are_attributed_to_the_input_at_fault(tmp_path):
     e = traces_mod._sumo_refused(crash, cfg.scenario, files, "eval")
     assert type(e) is SumoRunError and str(e) == (
         "building the eval traces failed: the SUMO worker for seed 3 exited with code -9: ")
+
+
+def test_uabs_traces_says_a_warning_is_one():
+    """uabs-traces logs bare lines on stdout (conf/hydra/job_logging/uabs_traces.yaml);
+    a warning's line begins with "warning: ", an info line does not."""
+    import yaml
+
+    from uabs_rl.cli.traces import Said
+
+    conf = Path(__file__).resolve().parents[1] / "conf"
+    said = yaml.safe_load((conf / "hydra" / "job_logging" / "uabs_traces.yaml").read_text())
+    assert said["formatters"]["said"]["()"] == "uabs_rl.cli.traces.Said"
+    assert "override hydra/job_logging: uabs_traces" in (conf / "build_traces.yaml").read_text()
+    rec = lambda level: logging.LogRecord("x", level, __file__, 1, "thin", None, None)  # noqa: E731
+    assert Said().format(rec(logging.WARNING)) == "warning: thin"
+    assert Said().format(rec(logging.INFO)) == "thin"

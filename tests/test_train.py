@@ -338,6 +338,13 @@ MODES = ", ".join(m.value for m in MaskingMode)
                  "srun on its PATH (not a SLURM node): start the sweep on your cluster's "
                  "login node, or run it here with hydra/launcher=local_parallel.",
                  marks=pytest.mark.skipif(bool(shutil.which("srun")), reason="a SLURM node")),
+    pytest.param(["-m", "masking=flat,rank", "hydra/launcher='slurm'"],
+                 "hydra/launcher=slurm submits each job to SLURM, but this machine has no",
+                 marks=pytest.mark.skipif(bool(shutil.which("srun")), reason="a SLURM node")),
+    # ... and without -m (before: trained here, one run, without a word)
+    (["hydra/launcher=slurm"], "hydra/launcher=slurm submits a sweep's jobs to SLURM, but "
+                               "without -m this command trains here, one run: add -m "
+                               "(uabs-train -m ...) to submit, or leave the launcher out."),
     # a value one job of a sweep would refuse: before, the jobs before it ran first (the
     # serial launcher), and the sweep stopped there
     (["-m", "algo.lr=0.001,-1", "seed=0,1"], "the job algo.lr=-1 seed=0 of this sweep: "

@@ -41,6 +41,25 @@ from uabs_rl.runs.layout import HYDRA, IDENTITY, LOCK, STOP_ENV
 SLURM_LAUNCHERS = ("slurm", "submitit_slurm")
 
 
+def _submits_to_slurm(value: str, dirs: list[Path]) -> bool:
+    """Whether the launcher option ``value`` submits to SLURM: the package's
+    (``slurm``) or submitit's, or a file of a --config-dir's ``hydra/launcher/`` that
+    builds on submitit's."""
+    value = value.strip("'\"")
+    if value in SLURM_LAUNCHERS:
+        return True
+    for d in dirs:
+        path = Path(d) / "hydra" / "launcher" / f"{value}.yaml"
+        if path.is_file():
+            try:
+                data = yaml.safe_load(path.read_text()) or {}
+            except (OSError, yaml.YAMLError):
+                return False
+            defaults = data.get("defaults", []) if isinstance(data, dict) else []
+            return any("submitit_slurm" in str(x) for x in defaults)
+    return False
+
+
 def start_folders(argv: list[str]) -> list[Path]:
     """The folders a command line may write a run in or under: those it names
     (``hydra.run.dir``, ``hydra.sweep.dir``, ``resume``) and the default run and sweep
@@ -175,12 +194,18 @@ def check_composition(config_name: str, argv: list[str],
         if key == "hydra.launcher.n_jobs" and value.strip("'\"") in ("0", "-0"):
             raise ConfigError(f"hydra.launcher.n_jobs={value}: the jobs a sweep runs at "
                               f"once must be a whole number >= 1 (or -1: one per core).")
-        if (multirun and key == "hydra/launcher" and value in SLURM_LAUNCHERS
-                and shutil.which("srun") is None):  # submitit's traceback, after a folder
-            raise ConfigError(
-                f"hydra/launcher={value} submits each job to SLURM, but this machine has no "
-                f"srun on its PATH (not a SLURM node): start the sweep on your cluster's "
-                f"login node, or run it here with hydra/launcher=local_parallel.")
+        if key == "hydra/launcher" and _submits_to_slurm(value, dirs):
+            value = value.strip("'\"")
+            if not multirun:  # Hydra would train here, one run, without a word
+                raise ConfigError(
+                    f"hydra/launcher={value} submits a sweep's jobs to SLURM, but without -m "
+                    f"this command trains here, one run: add -m (uabs-train -m ...) to "
+                    f"submit, or leave the launcher out.")
+            if shutil.which("srun") is None:  # submitit's traceback, after a folder
+                raise ConfigError(
+                    f"hydra/launcher={value} submits each job to SLURM, but this machine has "
+                    f"no srun on its PATH (not a SLURM node): start the sweep on your "
+                    f"cluster's login node, or run it here with hydra/launcher=local_parallel.")
     try:
         parsed = OverridesParser.create().parse_overrides(overrides=words)
         sweeps = [o.input_line for o in parsed if o.is_sweep_override()

@@ -14,11 +14,13 @@ from uabs_rl.traces.build import SPLITS, TracesInterrupted, check_names, get_tra
 from uabs_rl.traces.cache import cache_path
 
 
-def _said_as_warning(record: logging.LogRecord) -> bool:
-    """This command logs bare messages (Hydra's stdout logging): a warning says so."""
-    if record.levelno >= logging.WARNING and not str(record.msg).startswith("warning: "):
-        record.msg = f"warning: {record.msg}"
-    return True
+class Said(logging.Formatter):
+    """This command's log lines (conf/hydra/job_logging/uabs_traces.yaml): the bare
+    message, ``warning: `` before a warning's."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        text = super().format(record)
+        return f"warning: {text}" if record.levelno >= logging.WARNING else text
 
 
 def build(cfg: TracesAppConfig, _output_dir: Path | None = None) -> None:
@@ -29,9 +31,6 @@ def build(cfg: TracesAppConfig, _output_dir: Path | None = None) -> None:
         raise ConfigError(f"split must be one of {', '.join(SPLITS)} or all, got "
                           f"{cfg.split!r}.")
     splits = SPLITS if cfg.split == "all" else (cfg.split,)
-    for handler in logging.getLogger().handlers:
-        if _said_as_warning not in handler.filters:
-            handler.addFilter(_said_as_warning)
     check_names(cfg)  # before any SUMO run: every name becomes a cache file's
     jobs = [(cfg.scenario, split, "scenario.name") for split in splits]
     if "train" in splits:

@@ -178,15 +178,16 @@ def find_runs(*roots: Path) -> list[Run]:
     runs, skipped, seen = [], [], set()
     for root in map(Path, roots):
         if not root.is_dir():
-            setting = ("=" in str(root) and root.parent == Path(".") and not root.exists()
-                       and root.name.split("=", 1)[0].replace(".", "").isidentifier())
+            key = str(root).split("=", 1)[0] if "=" in str(root) else ""
+            setting = bool(key) and "/" not in key and key.replace(".", "").isidentifier()
+            advice = (" (give the trace cache with --cache-dir)" if key == "traces.cache_dir"
+                      else f": to evaluate runs under {root}, use uabs-eval <run> {root} (one "
+                           f"run) or python benchmarks/generalization.py <runs> --at "
+                           f"<scenario>:<M> (several runs, cities and fleets)")
             raise ReportError(
                 f"{root} is not a folder: pass a run folder or a folder of runs (such as "
-                f"outputs/multirun/<date_time>)" + (
-                    f". uabs-report takes no settings: to evaluate runs under {root}, "
-                    f"use uabs-eval <run> {root} (one run) or python "
-                    f"benchmarks/generalization.py <runs> --at <scenario>:<M> (several runs, "
-                    f"cities and fleets)" if setting else "") + ".")
+                f"outputs/multirun/<date_time>)"
+                + (f". uabs-report takes no settings{advice}" if setting else "") + ".")
         for metrics in _metrics_files(root):
             real = os.path.realpath(metrics.parent)
             if real not in seen:
@@ -293,9 +294,10 @@ def group_runs(runs: list[Run]) -> Grouping:
 def _named(varied: list[str], settings: dict[str, Any]) -> list[str]:
     """``k=v`` of the varied settings a group's label names (those its runs have).
     Where runs of several scenarios are grouped, the label says ``scenario=<name>`` and
-    leaves out what that scenario's file sets as the group has it (area, SUMO inputs,
-    fleet, traces: a score of settings otherwise); a setting the group has otherwise
-    stays named."""
+    leaves out the settings the group has as ``uabs-train scenario=<name>`` alone sets
+    them (the scenario file's area, SUMO inputs, fleet, traces: a score of settings
+    otherwise; a default the group kept, too); a setting the group has otherwise stays
+    named."""
     keys = [k for k in varied if k in settings]
     if "scenario.name" in keys:
         own = _scenario_defaults(settings["scenario.name"])

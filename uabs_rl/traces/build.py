@@ -316,7 +316,8 @@ def check_has_vehicles(ts: TraceSet, scenario: ScenarioConfig, split: str,
         f"traces.{split}.{within}.")
 
 
-def thinning(ts: TraceSet, scenario: ScenarioConfig, split: str) -> str | None:
+def thinning(ts: TraceSet, scenario: ScenarioConfig, split: str,
+             begin_given: bool = True) -> str | None:
     """Words for a fixed demand's traces whose vehicles thin out within the recorded range
     (the last tenth of the steps holds under half the vehicles of the first: a range past
     the end of the demand, or in its draining), else None. A fleet keeps its size."""
@@ -329,10 +330,13 @@ def thinning(ts: TraceSet, scenario: ScenarioConfig, split: str) -> str | None:
     if first <= 0 or last >= first / 2:
         return None
     source = "scenario.sumo.sumocfg" if sumo.sumocfg else "scenario.sumo.route_files"
+    fix = (f"Move traces.{split}.begin_s earlier (or leave it null) to record while it "
+           f"lasts." if begin_given else
+           f"traces.{split}.begin_s is null, so the {split} range follows the earlier "
+           f"splits': shorten their duration_s to record it while the demand lasts.")
     return (f"the {split} traces' vehicles thin out within the recorded range, from "
             f"{first:.0f} present per step in its first tenth to {last:.0f} in its last: "
-            f"the demand of {source} ends or drains there. Move traces.{split}.begin_s "
-            f"earlier (or leave it null) to record while it lasts.")
+            f"the demand of {source} ends or drains there. {fix}")
 
 
 @contextmanager
@@ -375,7 +379,7 @@ def get_traces(scenario: ScenarioConfig, traces_cfg: TracesConfig, split: str,
     begin_given = getattr(traces_cfg, split).begin_s is not None
     if ts is not None:
         check_has_vehicles(ts, scenario, split, begin_given)  # cached before this check
-        _warn_thinning(ts, scenario, split)
+        _warn_thinning(ts, scenario, split, begin_given)
         if verbose:
             log.info("traces %s: cache hit %s", split, path)
         return ts
@@ -394,14 +398,15 @@ def get_traces(scenario: ScenarioConfig, traces_cfg: TracesConfig, split: str,
     if verbose:
         log.info("traces %s built in %.2f s -> %s\n  %s", split, ts.meta["build_seconds"], path,
                  ts.summary())
-    _warn_thinning(ts, scenario, split)
+    _warn_thinning(ts, scenario, split, begin_given)
     return ts
 
 
-def _warn_thinning(ts: TraceSet, scenario: ScenarioConfig, split: str) -> None:
+def _warn_thinning(ts: TraceSet, scenario: ScenarioConfig, split: str,
+                   begin_given: bool) -> None:
     """A warning line for traces whose fixed demand thins out (:func:`thinning`): at
     every load, so a run's log says it too."""
-    words = thinning(ts, scenario, split)
+    words = thinning(ts, scenario, split, begin_given)
     if words:
         log.warning(words)
 
