@@ -138,9 +138,10 @@ def _print_planner(results: dict[str, tuple[dict, Any]], shares: dict[str, dict]
           f"positions: the clairvoyant ceiling, not a deployable policy")
     for m, d in shares.items():
         name = DIFF_FORMATS[m][0]
-        print(f"learned share of the greedy-to-planner gap, {name}: {100 * d['share']:.0f} % "
-              f"[{100 * d['ci_low']:.0f}, {100 * d['ci_high']:.0f}] (95 % CI, percentile "
-              f"bootstrap over the {d['n']} windows)")
+        print(f"learned share of the greedy-to-planner gap, {name}: "
+              f"{signed(100 * d['share'], 0)} % [{signed(100 * d['ci_low'], 0)}, "
+              f"{signed(100 * d['ci_high'], 0)}] (95 % CI, percentile bootstrap over the "
+              f"{d['n']} windows)")
 
 
 def _print_mpc(results: dict[str, tuple[dict, Any]]) -> None:
