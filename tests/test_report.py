@@ -91,6 +91,18 @@ def test_runs_of_two_scenarios_are_labelled_by_scenario_not_by_its_settings(trac
                          "scenario.sumo.fleet_size=20: 1 seed")
 
 
+def test_a_learners_own_default_is_left_out_of_a_scenario_label():
+    """The scenario's defaults are composed with the group's learner: QMIX's own
+    algo.mixing_embed_dim at its default is not named, another value of it is."""
+    from uabs_rl.runs.sweep import _named, _scenario_defaults
+
+    s = dict(_scenario_defaults("grid6", "qmix"))
+    varied = ["scenario.name", "scenario.area.width", "algo.mixing_embed_dim"]
+    assert _named(varied, s) == ["scenario=grid6"]
+    assert _named(varied, s | {"algo.mixing_embed_dim": 8}) == [
+        "scenario=grid6", "algo.mixing_embed_dim=8"]
+
+
 def test_figures_exist_as_png_and_pdf(report):
     out, _ = report
     for name in ("fig3_eval_return", "fig4_pg"):

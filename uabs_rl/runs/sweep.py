@@ -300,7 +300,7 @@ def _named(varied: list[str], settings: dict[str, Any]) -> list[str]:
     named."""
     keys = [k for k in varied if k in settings]
     if "scenario.name" in keys:
-        own = _scenario_defaults(settings["scenario.name"])
+        own = _scenario_defaults(settings["scenario.name"], settings.get("algo.name", "dqn3"))
         if own is not None:
             keys = [k for k in keys if k == "scenario.name" or k not in own
                     or repr(own[k]) != repr(settings[k])]
@@ -309,15 +309,16 @@ def _named(varied: list[str], settings: dict[str, Any]) -> list[str]:
 
 
 @cache
-def _scenario_defaults(name: str) -> dict[str, Any] | None:
-    """Every setting, flat, as ``uabs-train scenario=<name>`` alone gives it; None for a
-    scenario the package's conf/ does not hold (one of a --config-dir) or where a config
-    cannot be composed here (a Hydra app already running)."""
+def _scenario_defaults(name: str, algo: str) -> dict[str, Any] | None:
+    """Every setting, flat, as ``uabs-train scenario=<name> algo=<algo>`` alone gives it
+    (the learner's own settings among them); None for a scenario or learner the
+    package's conf/ does not hold (one of a --config-dir) or where a config cannot be
+    composed here (a Hydra app already running)."""
     from uabs_rl.config import compose
     from uabs_rl.runs.checkpoint import config_dict, flatten
 
     try:
-        return flatten(config_dict(compose("config", [f"scenario={name}"])))
+        return flatten(config_dict(compose("config", [f"scenario={name}", f"algo={algo}"])))
     except Exception:  # noqa: BLE001 - labels then name every setting, as before
         return None
 
