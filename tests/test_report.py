@@ -89,6 +89,8 @@ def test_runs_of_two_scenarios_are_labelled_by_scenario_not_by_its_settings(trac
     [runs_line] = [ln for ln in summary.splitlines() if ln.startswith("Runs: ")]
     assert runs_line == ("Runs: rank, scenario=grid6: 1 seed; rank, scenario=manhattan, "
                          "scenario.sumo.fleet_size=20: 1 seed")
+    assert ("; compared: scenario.name, scenario.sumo.fleet_size (and 3 settings each "
+            "scenario's file sets).") in summary  # area width and height, network
 
 
 def test_a_learners_own_default_is_left_out_of_a_scenario_label():

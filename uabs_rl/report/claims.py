@@ -113,7 +113,7 @@ def summary(grouping: Grouping, baselines: dict[str, dict], command: str,
                                  for m, v in groups.items()), ""]
     common = describe(grouping.common, skip=("masking.mode",), words=False) or "none"
     lines += [f"Settings common to all runs (where they differ from the defaults): {common}"
-              + (f"; compared: {', '.join(grouping.varied)}" if len(groups) > 1 else "") + ".",
+              + (f"; compared: {grouping.compared}" if len(groups) > 1 else "") + ".",
               ""]
     warning = short_run_warning(groups)
     if warning:

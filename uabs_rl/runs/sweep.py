@@ -227,6 +227,19 @@ class Grouping:
     def mode(self, label: str) -> str:
         return self.groups[label][0].mode
 
+    @property
+    def compared(self) -> str:
+        """The varied settings in words: each by its key, except those a scenario's own
+        file sets wherever they vary with the scenario (:func:`_named` leaves them out
+        of every label), said once as "what each scenario sets"."""
+        named = {part.split("=", 1)[0] for runs in self.groups.values()
+                 for part in _named(self.varied, runs[0].settings)}
+        named = {"scenario.name" if k == "scenario" else k for k in named}
+        shown = [k for k in self.varied if k in named]
+        left = len(self.varied) - len(shown)
+        return ", ".join(shown) + (f" (and {left} settings each scenario's file sets)"
+                                   if left else "")
+
     def values(self, label: str, keys: list[str]) -> str:
         """``k=v, ...`` of ``keys`` in the group ``label`` (those its runs have: another
         learner's own settings are not theirs)."""
