@@ -235,28 +235,32 @@ def test_an_input_sumo_refuses_is_one_line_naming_the_key(trace_cache, bad_input
     assert not cache_path(cfg.scenario, cfg.traces, "train").exists()
 
 
+def empty_routes_refusal(trace_cache, bad_inputs, split: str, *extra: str) -> str:
+    """The refusal of the ``split`` traces of routes without a vehicle (no fleet), after
+    checking that nothing was cached."""
+    cfg = tiny(trace_cache, "scenario.sumo.fleet_size=0", *extra,
+               f"scenario.sumo.route_files=[{bad_inputs['empty.rou.xml']}]")
+    with pytest.raises(ConfigError) as e:
+        get_traces(cfg.scenario, cfg.traces, split)
+    assert not cache_path(cfg.scenario, cfg.traces, split).exists()
+    return str(e.value)
+
+
 def test_a_fixed_demand_recorded_past_its_vehicles_names_begin_s(trace_cache, bad_inputs):
     """Routes recorded from a begin_s on that none of their vehicles reaches: the advice
     is the time range (begin_s), not a fleet the scenario does not use."""
-    cfg = tiny(trace_cache, "scenario.sumo.fleet_size=0", "traces.train.begin_s=10",
-               f"scenario.sumo.route_files=[{bad_inputs['empty.rou.xml']}]")
-    with pytest.raises(ConfigError) as e:
-        get_traces(cfg.scenario, cfg.traces, "train")
-    assert str(e.value) == (
+    said = empty_routes_refusal(trace_cache, bad_inputs, "train", "traces.train.begin_s=10")
+    assert said == (
         f"the train traces hold no vehicle: scenario.sumo.route_files "
         f"({bad_inputs['empty.rou.xml']}) put none on the roads in the 5.0 s recorded from "
         f"0.0 + 10.0 s on: its vehicles depart at the times its files give, and none drives "
         f"in that range (past the end of its demand?). Move traces.train.begin_s earlier, or "
         f"leave the begin_s settings null (the splits then follow one another from the "
         f"start).")
-    assert not cache_path(cfg.scenario, cfg.traces, "train").exists()
     # begin_s null: the split follows the earlier ones, which is what to change
-    cfg = tiny(trace_cache, "scenario.sumo.fleet_size=0", "traces.eval.n_sims=1",
-               "traces.eval.duration_s=5", "traces.eval.warmup_s=0",
-               f"scenario.sumo.route_files=[{bad_inputs['empty.rou.xml']}]")
-    with pytest.raises(ConfigError) as e:
-        get_traces(cfg.scenario, cfg.traces, "eval")
-    assert str(e.value).endswith(
+    said = empty_routes_refusal(trace_cache, bad_inputs, "eval", "traces.eval.n_sims=1",
+                                "traces.eval.duration_s=5", "traces.eval.warmup_s=0")
+    assert said.endswith(
         "recorded from 0.0 + 5.0 s on: its vehicles depart at the times its files give, and "
         "none drives in that range (past the end of its demand?). traces.eval.begin_s is "
         "null, so the eval range follows the earlier splits': shorten their duration_s, or "
@@ -291,16 +295,11 @@ def test_uabs_traces_warns_of_traces_shorter_than_an_episode(tmp_path):
 
 
 def test_routes_without_a_vehicle_are_refused(trace_cache, bad_inputs):
-    cfg = tiny(trace_cache, "scenario.sumo.fleet_size=0",
-               f"scenario.sumo.route_files=[{bad_inputs['empty.rou.xml']}]")
-    with pytest.raises(ConfigError) as e:
-        get_traces(cfg.scenario, cfg.traces, "train")
-    assert str(e.value) == (
+    assert empty_routes_refusal(trace_cache, bad_inputs, "train") == (
         f"the train traces hold no vehicle: scenario.sumo.fleet_size is 0 and "
         f"scenario.sumo.route_files ({bad_inputs['empty.rou.xml']}) put none on the roads in "
         f"the 0.0 + 5.0 s simulated. Set scenario.sumo.fleet_size >= 1 or give routes whose "
         f"vehicles depart within traces.train.warmup_s + duration_s.")
-    assert not cache_path(cfg.scenario, cfg.traces, "train").exists()
 
 
 def test_vehicles_outside_the_area_are_refused(trace_cache, bad_inputs):

@@ -45,7 +45,6 @@ def _submits_to_slurm(value: str, dirs: list[Path]) -> bool:
     """Whether the launcher option ``value`` submits to SLURM: the package's
     (``slurm``) or submitit's, or a file of a --config-dir's ``hydra/launcher/`` that
     builds on submitit's."""
-    value = value.strip("'\"")
     if value in SLURM_LAUNCHERS:
         return True
     for d in dirs:
@@ -194,16 +193,16 @@ def check_composition(config_name: str, argv: list[str],
         if key == "hydra.launcher.n_jobs" and value.strip("'\"") in ("0", "-0"):
             raise ConfigError(f"hydra.launcher.n_jobs={value}: the jobs a sweep runs at "
                               f"once must be a whole number >= 1 (or -1: one per core).")
-        if key == "hydra/launcher" and _submits_to_slurm(value, dirs):
-            value = value.strip("'\"")
+        launcher = value.strip("'\"") if key == "hydra/launcher" else ""
+        if launcher and _submits_to_slurm(launcher, dirs):
             if not multirun:  # Hydra would train here, one run, without a word
                 raise ConfigError(
-                    f"hydra/launcher={value} submits a sweep's jobs to SLURM, but without -m "
+                    f"hydra/launcher={launcher} submits a sweep's jobs to SLURM, but without -m "
                     f"this command trains here, one run: add -m (uabs-train -m ...) to "
                     f"submit, or leave the launcher out.")
             if shutil.which("srun") is None:  # submitit's traceback, after a folder
                 raise ConfigError(
-                    f"hydra/launcher={value} submits each job to SLURM, but this machine has "
+                    f"hydra/launcher={launcher} submits each job to SLURM, but this machine has "
                     f"no srun on its PATH (not a SLURM node): start the sweep on your "
                     f"cluster's login node, or run it here with hydra/launcher=local_parallel.")
     try:

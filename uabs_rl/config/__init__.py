@@ -42,6 +42,7 @@ from uabs_rl.config.base import (
 from uabs_rl.config.checks import (
     MAX_LATTICE_POINTS,
     check_algo_schema,
+    demand_setting,
     family_scenarios,
     fixed_demand,
     lattice_points,
@@ -156,6 +157,7 @@ __all__ = [
     "command_line_overrides",
     "compose",
     "default_settings",
+    "demand_setting",
     "enum_value",
     "family_scenarios",
     "fixed_demand",

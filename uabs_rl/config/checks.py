@@ -243,6 +243,11 @@ def fixed_demand(scenario: ScenarioConfig) -> bool:
     return bool(scenario.sumo.route_files or scenario.sumo.sumocfg)
 
 
+def demand_setting(scenario: ScenarioConfig) -> str:
+    """The setting that holds a fixed demand (:func:`fixed_demand`), for messages."""
+    return "scenario.sumo.sumocfg" if scenario.sumo.sumocfg else "scenario.sumo.route_files"
+
+
 def split_begin(scenario: ScenarioConfig, traces: TracesConfig, name: str) -> float:
     """``traces.<name>.begin_s``, or where null: 0 for a fleet scenario, and for a
     fixed-demand one the end of the previous split's recorded range (train, eval, test
@@ -278,8 +283,7 @@ def _check_disjoint_times(scenario: ScenarioConfig, traces: TracesConfig) -> Non
     if not fixed_demand(scenario):
         return
     ranges = {n: split_time_range(scenario, traces, n) for n in TRACE_SPLITS}
-    source = ("scenario.sumo.sumocfg" if scenario.sumo.sumocfg
-              else "scenario.sumo.route_files")
+    source = demand_setting(scenario)
     for i, a in enumerate(TRACE_SPLITS):
         for b in TRACE_SPLITS[i + 1:]:
             (a0, a1), (b0, b1) = ranges[a], ranges[b]
@@ -289,10 +293,11 @@ def _check_disjoint_times(scenario: ScenarioConfig, traces: TracesConfig) -> Non
                             or getattr(traces, a).begin_s is None else (a, b))
             (m0, m1), (o0, o1) = ranges[moved], ranges[other]
             begin = split_begin(scenario, traces, moved)
+            after = max(0.0, o1 - getattr(traces, moved).warmup_s)  # past the other's
             clear = _first_clear_begin(scenario, traces, moved)
             past = (f"Move traces.{moved}.begin_s past the {other} range (begin_s >= "
-                    f"{max(0.0, o1 - getattr(traces, moved).warmup_s):g})")
-            if clear is not None and clear != max(0.0, o1 - getattr(traces, moved).warmup_s):
+                    f"{after:g})")
+            if clear is not None and clear != after:
                 past = (f"Move traces.{moved}.begin_s to {clear:g} (the first start from "
                         f"which the {moved} range overlaps no other split's)")
             raise ConfigError(

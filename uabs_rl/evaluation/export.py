@@ -24,7 +24,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from uabs_rl.runs.sweep import ENV_SETTINGS, Grouping, Run, _is, fmt_value
+from uabs_rl.runs.sweep import ENV_SETTINGS, Grouping, Run, _is
 
 ENV_NAME = "uabs_rl"
 # metric name in the export: (per-window key of an evaluation record, its mean's key)
@@ -43,8 +43,7 @@ def _per_window(record: dict) -> dict[str, list[float]]:
 def _algo_name(grouping: Grouping, label: str) -> str:
     s = grouping.groups[label][0].settings
     rest = [k for k in grouping.others if not _is(k, ENV_SETTINGS) and k != "algo.name"]
-    return ", ".join([str(s["algo.name"])] + [f"{k}={fmt_value(s[k])}" for k in rest
-                                              if k in s])  # another learner's: not its own
+    return ", ".join(filter(None, [str(s["algo.name"]), grouping.values(label, rest)]))
 
 
 def _run_entry(run: Run, episodes: list[int], absolute: dict) -> dict[str, Any]:

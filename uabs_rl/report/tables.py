@@ -212,8 +212,8 @@ def fmt_share(row: dict[str, Any]) -> str:
     """``+30 % [+26, +34]``, or why there is none."""
     if np.isnan(row["gap_share"]):
         return "none (the planner does not beat greedy here)"
-    lo, mid, hi = (round(100 * row[k]) + 0 for k in ("gap_ci_low", "gap_share", "gap_ci_high"))
-    return f"{mid:+d} % [{lo:+d}, {hi:+d}]"
+    lo, mid, hi = (signed(100 * row[k], 0) for k in ("gap_ci_low", "gap_share", "gap_ci_high"))
+    return f"{mid} % [{lo}, {hi}]"
 
 
 def comparison(grouping: Grouping, tests: dict[Path, dict] | None) -> list[dict[str, Any]]:

@@ -230,11 +230,10 @@ class Grouping:
     @property
     def compared(self) -> str:
         """The varied settings in words: each by its key, except those a scenario's own
-        file sets wherever they vary with the scenario (:func:`_named` leaves them out
-        of every label), said once as "what each scenario sets"."""
-        named = {part.split("=", 1)[0] for runs in self.groups.values()
-                 for part in _named(self.varied, runs[0].settings)}
-        named = {"scenario.name" if k == "scenario" else k for k in named}
+        file sets wherever they vary with the scenario (:func:`_label_keys` leaves them
+        out of every label), said once as "what each scenario sets"."""
+        named = {k for runs in self.groups.values()
+                 for k in _label_keys(self.varied, runs[0].settings)}
         shown = [k for k in self.varied if k in named]
         left = len(self.varied) - len(shown)
         return ", ".join(shown) + (f" (and {left} settings each scenario's file sets)"
@@ -304,21 +303,25 @@ def group_runs(runs: list[Run]) -> Grouping:
     return Grouping(groups, varied, common)
 
 
-def _named(varied: list[str], settings: dict[str, Any]) -> list[str]:
-    """``k=v`` of the varied settings a group's label names (those its runs have).
-    Where runs of several scenarios are grouped, the label says ``scenario=<name>`` and
-    leaves out the settings the group has as ``uabs-train scenario=<name>`` alone sets
-    them (the scenario file's area, SUMO inputs, fleet, traces: a score of settings
-    otherwise; a default the group kept, too); a setting the group has otherwise stays
-    named."""
+def _label_keys(varied: list[str], settings: dict[str, Any]) -> list[str]:
+    """The varied settings a group's label names (those its runs have). Where runs of
+    several scenarios are grouped, the label leaves out the settings the group has as
+    ``uabs-train scenario=<name>`` alone sets them (the scenario file's area, SUMO
+    inputs, fleet, traces: a score of settings otherwise; a default the group kept,
+    too); a setting the group has otherwise stays named."""
     keys = [k for k in varied if k in settings]
     if "scenario.name" in keys:
         own = _scenario_defaults(settings["scenario.name"], settings.get("algo.name", "dqn3"))
         if own is not None:
             keys = [k for k in keys if k == "scenario.name" or k not in own
                     or repr(own[k]) != repr(settings[k])]
+    return keys
+
+
+def _named(varied: list[str], settings: dict[str, Any]) -> list[str]:
+    """``k=v`` of :func:`_label_keys`, the scenario as ``scenario=<name>``."""
     return [f"scenario={settings[k]}" if k == "scenario.name" else f"{k}={fmt_value(settings[k])}"
-            for k in keys]
+            for k in _label_keys(varied, settings)]
 
 
 @cache

@@ -41,7 +41,9 @@ from uabs_rl.config import (
     ScenarioConfig,
     SplitConfig,
     TracesConfig,
+    demand_setting,
     family_scenarios,
+    fixed_demand,
     resolved_split,
     validate_scenario_traces,
 )
@@ -299,7 +301,7 @@ def check_has_vehicles(ts: TraceSet, scenario: ScenarioConfig, split: str,
             else f"{ts.meta.get('duration_s')} s recorded from {ts.meta.get('warmup_s')} + "
                  f"{begin} s on")
     within = "warmup_s + duration_s" if not begin else "warmup_s + begin_s + duration_s"
-    if begin and (sumo.sumocfg or sumo.route_files):  # a fixed demand, recorded late
+    if begin and fixed_demand(scenario):  # recorded late
         fix = (f"Move traces.{split}.begin_s earlier, or leave the begin_s settings null "
                f"(the splits then follow one another from the start)" if begin_given else
                f"traces.{split}.begin_s is null, so the {split} range follows the earlier "
@@ -321,22 +323,20 @@ def thinning(ts: TraceSet, scenario: ScenarioConfig, split: str,
     """Words for a fixed demand's traces whose vehicles thin out within the recorded range
     (the last tenth of the steps holds under half the vehicles of the first: a range past
     the end of the demand, or in its draining), else None. A fleet keeps its size."""
-    sumo = scenario.sumo
-    if not (sumo.sumocfg or sumo.route_files) or ts.steps < 10:
+    if not fixed_demand(scenario) or ts.steps < 10:
         return None
     tenth = ts.steps // 10
     per_step = ts.present.float().sum(-1).mean(0)  # [steps], mean over the simulations
     first, last = float(per_step[:tenth].mean()), float(per_step[-tenth:].mean())
     if first <= 0 or last >= first / 2:
         return None
-    source = "scenario.sumo.sumocfg" if sumo.sumocfg else "scenario.sumo.route_files"
     fix = (f"Move traces.{split}.begin_s earlier (or leave it null) to record while it "
            f"lasts." if begin_given else
            f"traces.{split}.begin_s is null, so the {split} range follows the earlier "
            f"splits': shorten their duration_s to record it while the demand lasts.")
     return (f"the {split} traces' vehicles thin out within the recorded range, from "
             f"{first:.0f} present per step in its first tenth to {last:.0f} in its last: "
-            f"the demand of {source} ends or drains there. {fix}")
+            f"the demand of {demand_setting(scenario)} ends or drains there. {fix}")
 
 
 @contextmanager
