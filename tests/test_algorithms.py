@@ -394,7 +394,7 @@ def test_qmix_loss_equals_an_independent_computation():
 
 
 @settings(max_examples=25, deadline=None)
-@given(name=st.sampled_from(["dqn3", "vdn", "qmix"]), seed=st.integers(0, 2**31 - 1),
+@given(name=st.sampled_from(sorted(ALGORITHMS)), seed=st.integers(0, 2**31 - 1),
        members=st.sampled_from([1, 2]), legal=st.floats(0.05, 0.95))
 def test_the_target_never_maximises_over_a_masked_action(name, seed, members, legal):
     """Every algorithm's target at s' takes Q_target at the best action *of the stored

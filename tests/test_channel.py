@@ -173,3 +173,34 @@ def test_channel_name_dispatches_through_the_registry(monkeypatch, trace_cache):
     with pytest.raises(ConfigError, match=r"channel.name='nope' is not a channel model: use "
                                           r"one of " + ", ".join(sorted(ch.CHANNELS))):
         EnvParams.from_config(cfg.scenario, replace(cfg.channel, name="nope"))
+
+
+@pytest.mark.parametrize("name", sorted(ch.CHANNELS))  # a model of yours among them
+def test_every_registered_channel_model_is_a_channel(name, trace_cache):
+    """What links.py relies on, for each model of ``CHANNELS``: a LoS probability in
+    [0, 1] that does not grow with distance, finite path losses that do not fall with
+    distance, NLoS no lower than LoS; and the links of a smoke env built with it (its
+    own ``conf/channel/<name>.yaml`` composes and validates: test_validation)."""
+    from tests.test_train import smoke
+    from uabs_rl.env.links import LinkModel
+    from uabs_rl.env.params import EnvParams
+
+    cfg = smoke(trace_cache, f"channel.name={name}")
+    p = EnvParams.from_config(cfg.scenario, cfg.channel)
+    links = LinkModel(p, torch.device("cpu"))
+    model = links.model
+    assert type(model) is ch.CHANNELS[name]
+    d2d = torch.linspace(0.0, 2000.0, 401)
+    d3d = torch.hypot(d2d, torch.tensor(p.altitude - p.h_ut))
+    rho = model.los_probability(d2d)
+    los, nlos = model.pathloss_los(d2d, d3d), model.pathloss_nlos(d2d, d3d)
+    assert ((rho >= 0) & (rho <= 1)).all() and (rho.diff() <= 1e-6).all()
+    assert torch.isfinite(los).all() and torch.isfinite(nlos).all()
+    assert (los.diff() >= -1e-4).all() and (nlos.diff() >= -1e-4).all()
+    assert (nlos >= los - 1e-4).all()
+    # a vehicle right below UABS 0, the others far: only UABS 0's footprint holds it
+    pos, veh = T([[[100.0, 100.0], [300.0, 20.0], [30.0, 150.0]]]), T([[[100.0], [100.0]]])
+    inside, _, served = links.links(pos, veh, torch.ones(1, 1, dtype=torch.bool),
+                                    torch.Generator())
+    assert inside[0, 0].all() and not inside[0, 1:].any()
+    assert served.dtype == torch.bool and not served[0, 1:].any()

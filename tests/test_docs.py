@@ -110,7 +110,12 @@ def test_help_lists_every_group_option_and_shows_the_command_lines_values():
         assert re.search(rf"^  {re.escape(group)} ", groups, flags=re.M), group
         for option in sorted((CONF_DIR / group).glob("*.yaml")):
             assert re.search(rf"\b{option.stem}\b", groups), f"{group}={option.stem}"
-    assert "the anti-collision mechanism [flat]" in text
+    # each group's lines (from its name to the next group's) end in its option chosen
+    # on this command line, wherever the description wraps
+    lines = dict(re.findall(r"^  ([a-z/]+) +(.*?)(?=^  [a-z/]+ |\Z)", groups,
+                            flags=re.M | re.S))
+    assert "[flat]" in lines["masking"] and "[uma]" in lines["channel"]
+    assert "[paper]" in lines["obs"] and "[dqn3]" in lines["algo"]
     assert "M, the agents [4]" in text
     assert "training episodes [7]" in text
     listed = re.findall(r"^  ([a-z_]+(?:\.[a-z_]+)*)  ",

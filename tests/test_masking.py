@@ -13,6 +13,7 @@ from tensordict import TensorDict
 
 from tests.conftest import another_thread_count
 from tests.test_algorithms import learner_config
+from uabs_rl.algorithms import ALGORITHMS
 from uabs_rl.config import ChannelConfig, ConfigError, MaskingConfig, MaskingMode, ScenarioConfig
 from uabs_rl.env.params import EnvParams
 from uabs_rl.env.uabs_env import (
@@ -44,6 +45,10 @@ from uabs_rl.safety.rules import (
 )
 
 E = 64  # random states per hypothesis example
+# every registered masking mode (a rule of yours among them, docs/code.md "Extending"),
+# and those that mask collisions: the safety tests below run each
+MODES = sorted(m.value for m in RULES)
+COLLISION_MODES = sorted(m.value for m, rule in RULES.items() if rule.masks_collisions)
 
 
 def step_math(width: float, height: float, m: int) -> StepMath:
@@ -205,7 +210,7 @@ def assert_never_below_d_th(td, p):
 
 
 @settings(max_examples=16, deadline=None)
-@given(mode=st.sampled_from(["flat", "rank"]), area=AREAS, lattice=st.booleans(),
+@given(mode=st.sampled_from(COLLISION_MODES), area=AREAS, lattice=st.booleans(),
        eps=st.floats(0.0, 1.0), seed=st.integers(0, 2**31 - 1), crowd=st.integers(0, 3))
 def test_recoverable_masks_keep_every_pair_apart(small_traces_cfg, train, mode, area,
                                                  lattice, eps, seed, crowd):
@@ -223,7 +228,7 @@ def test_recoverable_masks_keep_every_pair_apart(small_traces_cfg, train, mode, 
     assert_never_below_d_th(td, p)
 
 
-@pytest.mark.parametrize("mode", ["flat", "rank"])
+@pytest.mark.parametrize("mode", COLLISION_MODES)
 def test_random_legal_policy_never_comes_closer_than_d_th(small_traces_cfg, train, mode):
     td, p = random_rollout(small_traces_cfg, train, mode)  # 32 envs x 160 steps, M = 3
     assert_never_below_d_th(td, p)
@@ -231,7 +236,7 @@ def test_random_legal_policy_never_comes_closer_than_d_th(small_traces_cfg, trai
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("mode", ["flat", "rank"])
+@pytest.mark.parametrize("mode", COLLISION_MODES)
 @pytest.mark.parametrize("lattice", [True, False])
 def test_a_million_random_agent_steps_never_come_closer_than_d_th(small_traces_cfg, train,
                                                                   mode, lattice):
@@ -279,6 +284,23 @@ def test_transform_specs_and_unknown_mode(small_traces_cfg, train):
     with pytest.raises(ConfigError, match="masking.rank_next_mask"):
         make_rule(MaskingConfig(rank_next_mask="soft"), p)
     assert set(RULES) == set(MaskingMode)  # every mode has exactly one rule class
+
+
+def test_a_mode_without_a_registered_rule_is_refused_in_one_line(small_traces_cfg, train,
+                                                                  trace_cache, monkeypatch):
+    """A MaskingMode member whose rule class lacks @register (a user's new mode) is a
+    ConfigError naming the mode and the decorator, at start-up and wherever a rule is
+    made, not a KeyError traceback."""
+    from tests.test_train import smoke
+    from uabs_rl.training.startup import validate_settings
+
+    monkeypatch.delitem(RULES, MaskingMode.flat)
+    msg = r"masking.mode=flat has no rule: .*MaskingMode.flat, decorated with @register"
+    with pytest.raises(ConfigError, match=msg):
+        make_env(scenario(small_traces_cfg), ChannelConfig(), MaskingConfig(mode="flat"),
+                 train)
+    with pytest.raises(ConfigError, match=msg):
+        validate_settings(smoke(trace_cache, "masking=flat"))
 
 
 def test_flat_mask_keeps_random_warmup_actions_legal(small_traces_cfg, train):
@@ -439,9 +461,8 @@ def assert_same_entries(td, out):
         assert td[k].shape == out[k].shape and torch.equal(td[k], out[k]), k
 
 
-@pytest.mark.parametrize("mode,recoverable", [("penalty", True), ("flat", True),
-                                              ("flat", False), ("rank", True),
-                                              ("rank", False)])
+@pytest.mark.parametrize("mode,recoverable", [*((m, True) for m in MODES),
+                                              ("flat", False), ("rank", False)])
 def test_direct_env_equals_the_torchrl_env_entry_for_entry(small_traces_cfg, train, mode,
                                                            recoverable):
     """The training loop steps through DirectEnv: every reset and step gives what
@@ -474,8 +495,8 @@ def fixed_q_policy(sel, q):
 
 
 @settings(max_examples=12, deadline=None)
-@given(name=st.sampled_from(["dqn3", "vdn", "qmix"]),
-       mode=st.sampled_from(["penalty", "flat", "rank"]), eps=st.floats(0.0, 0.5),
+@given(name=st.sampled_from(sorted(ALGORITHMS)), mode=st.sampled_from(MODES),
+       eps=st.floats(0.0, 0.5),
        seed=st.integers(0, 2**31 - 1))
 def test_every_learners_policy_acts_only_within_the_mask(small_traces_cfg, train, name, mode,
                                                          eps, seed):

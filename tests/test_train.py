@@ -16,7 +16,7 @@ from hydra.errors import ConfigCompositionException
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from tests.conftest import compose_cfg, run_command
-from uabs_rl.algorithms import Dims, make_algorithm
+from uabs_rl.algorithms import ALGORITHMS, Dims, make_algorithm
 from uabs_rl.config import CONF_DIR, ConfigError, MaskingMode
 from uabs_rl.evaluation.load import load_evaluation
 from uabs_rl.runs.checkpoint import (
@@ -231,11 +231,15 @@ def test_ctrl_c_finishes_the_round_saves_last_and_stops(trace_cache, tmp_path, m
     assert [r["episode"] for r in records(tmp_path) if r["kind"] == "train"] == [1, 2]
 
 
-@pytest.mark.parametrize("extra", [["algo=vdn"], ["algo=vdn", "train.population=2"],
-                                   ["algo=qmix", "algo.replay=prioritized",
-                                    "train.population=2"],
-                                   ["algo.replay=prioritized"],
-                                   ["algo=dqfd", "algo.teacher_horizon=3"]])
+RESUMED = [["algo=vdn"], ["algo=vdn", "train.population=2"],
+           ["algo=qmix", "algo.replay=prioritized", "train.population=2"],
+           ["algo.replay=prioritized"], ["algo=dqfd", "algo.teacher_horizon=3"]]
+# and every other registered learner (one of yours: docs/code.md "Extending")
+RESUMED += [[f"algo={name}"] for name in sorted(ALGORITHMS) if name != "dqn3"
+            and not any(f"algo={name}" in extra for extra in RESUMED)]
+
+
+@pytest.mark.parametrize("extra", RESUMED)
 def test_a_run_of_each_learner_stopped_and_resumed_equals_the_uninterrupted_run(
         trace_cache, tmp_path, monkeypatch, extra):
     """VDN, QMIX, the teacher-guided 3DQN and prioritized replay stopped by Ctrl-C after

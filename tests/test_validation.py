@@ -152,7 +152,9 @@ def test_uabs_traces_and_uabs_eval_checks_refuse_non_finite_numbers(check, args,
 
 def test_every_default_and_preset_validates():
     """Every experiment x scenario x masking preset (and the defaults) passes validate_run;
-    every experiment x scenario pair passes the uabs-traces checks."""
+    every experiment x scenario pair passes the uabs-traces checks; every option of the
+    other groups (a learner, channel model or observation of yours in conf/ among them)
+    passes validate_run; and every option's file names itself (its name or mode)."""
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
 
@@ -175,6 +177,50 @@ def test_every_default_and_preset_validates():
             if masking == "rank":
                 t = config.to_container(hydra_compose("build_traces", overrides))
                 validate_scenario_traces(t.scenario, t.traces)
+        for group in config.SELF_NAMES:
+            for option in names(group):
+                c = hydra_compose("config", [f"{group}={option}"], return_hydra_config=True)
+                config.check_group_choices(c.hydra.runtime.choices, c)
+                if group not in ("scenario", "masking"):  # those: above
+                    validate_run(config.to_container(hydra_compose("config", [
+                        f"{group}={option}"])))
+
+
+def test_a_group_option_whose_file_does_not_name_itself_is_refused(tmp_path, trace_cache):
+    """A masking (channel, scenario, ...) option of --config-dir's whose file leaves the
+    mode (name) at the schema's would run rank masks in a folder and under labels that
+    say its own name: uabs-train refuses it before any folder (a sweep: before any job),
+    uabs-eval likewise; the same key typed on the command line is the user's choice."""
+    mine = tmp_path / "myconf"
+    (mine / "masking").mkdir(parents=True)
+    (mine / "masking" / "careful.yaml").write_text("recoverable: true\n")
+    (mine / "scenario").mkdir()
+    (mine / "scenario" / "mygrid2.yaml").write_text("name: mygrid\n")
+    out = tmp_path / "runs"
+    base = ["--config-dir", str(mine), "experiment=smoke", f"traces.cache_dir={trace_cache}",
+            "train.progress=false"]
+    said = ("masking=careful composes masking.mode=rank, not careful: its file "
+            "(masking/careful.yaml, in conf/ or your --config-dir) must name its option, "
+            "else it runs rank under careful's name. Add the line 'mode: careful' to it")
+    for extra in (["masking=careful", f"hydra.run.dir={out / 'one'}"],
+                  ["-m", "masking=rank,careful", f"hydra.sweep.dir={out / 'sweep'}"]):
+        r = run_command("train", *base, *extra)
+        assert r.returncode == 2 and said in r.stderr, r.stderr
+        assert not out.exists()  # no folder: nothing written
+    r = run_command("train", *base, "scenario=mygrid2",
+                    f"hydra.run.dir={out / 'one'}")
+    assert r.returncode == 2 and ("scenario=mygrid2 composes scenario.name=mygrid, not "
+                                  "mygrid2") in r.stderr, r.stderr
+    # uabs-eval's group options compose the same files
+    from uabs_rl.evaluation.load import with_overrides
+
+    cfg = smoke(trace_cache)
+    with pytest.raises(config.ConfigError, match=re.escape(said)):
+        with_overrides(cfg, ["masking=careful"], [mine])
+    # the mode typed beside the option: the user's own choice
+    assert with_overrides(cfg, ["masking=careful", "masking.mode=flat"],
+                          [mine]).masking.mode == "flat"
+    config.check_group_choices({"masking": "rank"}, cfg, ["masking.mode=flat"])
 
 
 # ----------------------------------------------------------------------------- memory

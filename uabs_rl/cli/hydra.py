@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import yaml
-from omegaconf import OmegaConf
+from omegaconf import OmegaConf, open_dict
 
 from uabs_rl.cli import parallel
 from uabs_rl.config import (
@@ -24,6 +24,7 @@ from uabs_rl.config import (
     ConfigError,
     check_config_dirs,
     check_duplicate_overrides,
+    check_group_choices,
     check_moved_overrides,
     chooses_study,
     command_line_overrides,
@@ -232,7 +233,8 @@ def check_composition(config_name: str, argv: list[str],
         for overrides in tries:
             mine = [o for o in overrides if not o.lstrip("+~").startswith("hydra")]
             try:
-                composed = compose(config_name=config_name, overrides=search + mine)
+                composed = compose(config_name=config_name, overrides=search + mine,
+                                   return_hydra_config=True)
             except (yaml.YAMLError, UnicodeDecodeError) as e:  # a file of --config-dir's
                 # that is not YAML (or not text)
                 where = getattr(e, "problem_mark", None)
@@ -253,6 +255,15 @@ def check_composition(config_name: str, argv: list[str],
                     COMMANDS.get(config_name, "uabs-train"))) from None
             except Exception:  # anything else (scenario=null, ...): Hydra's own answer
                 return
+            choices = composed.hydra.runtime.choices
+            with open_dict(composed):
+                del composed["hydra"]
+            try:
+                check_group_choices(choices, composed, mine)
+            except ConfigError as e:
+                which = " ".join(j for j in mine if j not in fixed)
+                raise ConfigError(f"the job {which} of this sweep: {e} No job was started."
+                                  if which else str(e)) from None
             if not jobs:  # one run checks itself as it starts
                 continue
             try:
@@ -336,6 +347,9 @@ def hydra_main(config_name: str, body: Callable[..., Any],
             if stop is not None and stop.exists():  # the sweep stopped before this job
                 before.undo_start(out, ours)
                 return None
+            # a group option whose file does not name itself (where the pre-check
+            # above did not compose: another search path)
+            check_group_choices(hc.runtime.choices, dcfg, hc.overrides.task)
             return body(to_container(dcfg), out, *extra)
         except (ConfigError, CheckpointError, OSError) as e:
             # only what this invocation made: never a folder or file that was there

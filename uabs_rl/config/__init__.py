@@ -60,7 +60,9 @@ from uabs_rl.config.checks import (
 from uabs_rl.config.memory import available_memory, check_fits, size_text, trace_bytes
 from uabs_rl.config.overrides import (
     APPENDED_KEYS,
+    SELF_NAMES,
     check_duplicate_overrides,
+    check_group_choices,
     check_moved_overrides,
     chooses_study,
     command_line_overrides,
@@ -109,6 +111,7 @@ from uabs_rl.config.store import (
 
 __all__ = [
     "APPENDED_KEYS",
+    "SELF_NAMES",
     "AlgoConfig",
     "AreaConfig",
     "CONF_DIR",
@@ -149,6 +152,7 @@ __all__ = [
     "available_memory",
     "check_algo_schema",
     "check_duplicate_overrides",
+    "check_group_choices",
     "check_finite",
     "check_fits",
     "check_moved_overrides",

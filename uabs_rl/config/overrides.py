@@ -3,6 +3,9 @@ the refusals that need no config (a setting given twice, a setting that moved)."
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Mapping
+from typing import Any
+
 from uabs_rl.config.base import ConfigError
 from uabs_rl.config.schema import MOVED
 
@@ -80,3 +83,37 @@ def check_duplicate_overrides(argv: list[str]) -> None:
             raise ConfigError(f"{key} is given {'twice' if n == 2 else f'{n} times'} on the "
                               f"command line ({', '.join(words[:n])}): give it once (a "
                               f"sweep over several values: -m {key}={values}).")
+
+
+# the setting by which each config group's option files name themselves: the file of
+# masking=flat sets ``mode: flat``, which selects the masks the env builds, and the
+# labels of runs, reports and evaluations read it
+SELF_NAMES = {"algo": "name", "channel": "name", "masking": "mode", "obs": "name",
+              "scenario": "name"}
+
+
+def check_group_choices(choices: Mapping[str, Any], cfg: Any,
+                        overrides: Iterable[str] = ()) -> None:
+    """Refuse a group option whose file does not name itself: a ``conf/masking/
+    cautious.yaml`` without ``mode: cautious`` leaves the schema's ``rank``, and
+    ``masking=cautious`` would train rank masks in a folder, under labels, that say
+    cautious. ``choices``: each group's option (Hydra's ``runtime.choices``); ``cfg``:
+    the composed config; ``overrides``: the command line's, where ``masking.mode=flat``
+    typed beside the default ``masking=rank`` is the user's own choice."""
+    typed = {override_key(o) for o in overrides}
+    for group, key in SELF_NAMES.items():
+        option = choices.get(group)
+        section = getattr(cfg, group, None) if not isinstance(cfg, Mapping) else cfg.get(group)
+        if option is None or section is None or f"{group}.{key}" in typed:
+            continue
+        value = (section.get(key) if isinstance(section, Mapping)
+                 else getattr(section, key, None))
+        value = getattr(value, "value", value)  # an enum member (masking.mode)
+        option = str(option).rsplit("/", 1)[-1]
+        if value is not None and str(value) != option:
+            raise ConfigError(
+                f"{group}={option} composes {group}.{key}={value}, not {option}: its file "
+                f"({group}/{option}.yaml, in conf/ or your --config-dir) must name its "
+                f"option, else it runs {value} under {option}'s name. Add the line "
+                f"'{key}: {option}' to it (under '{group}:' in a file of "
+                f"'# @package _global_').")

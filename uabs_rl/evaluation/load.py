@@ -28,6 +28,7 @@ from uabs_rl.config import (
     Role,
     RunConfig,
     check_config_dirs,
+    check_group_choices,
     check_moved_overrides,
     keys_with_role,
     override_key,
@@ -150,6 +151,11 @@ def with_overrides(cfg: RunConfig, overrides: list[str],
     except OmegaConfBaseException as e:
         raise ConfigError(f"override: {str(e).splitlines()[0]} (check the key's spelling "
                           f"and type in uabs_rl/config/schema.py)") from None
+    # an option file that does not name itself would evaluate under another's name
+    check_group_choices({o.partition("=")[0].lstrip("+"): o.partition("=")[2]
+                         for o in overrides if "." not in o.partition("=")[0]
+                         and o.partition("=")[0].lstrip("+") in EVAL_GROUPS},
+                        conf, overrides)
     new = to_container(conf)
     validate_world(new)
     return new

@@ -80,7 +80,14 @@ from torch import nn
 from torchrl.data import Binary, Categorical, TensorSpec
 
 from uabs_rl import rng
-from uabs_rl.config import MaskingConfig, MaskingMode, RankNextMask, enum_value, validate_masking
+from uabs_rl.config import (
+    ConfigError,
+    MaskingConfig,
+    MaskingMode,
+    RankNextMask,
+    enum_value,
+    validate_masking,
+)
 from uabs_rl.env.geometry import UNIT_MOVES, path_distance
 from uabs_rl.env.params import EnvParams
 from uabs_rl.env.uabs_env import BACKUP, BEAM_PRIORITY, FALLBACK, MASK, POSITION, Outputs
@@ -296,9 +303,21 @@ RULES: dict[MaskingMode, type[MaskingRule]] = {}
 PAPER_ORDER = (MaskingMode.penalty, MaskingMode.flat, MaskingMode.rank)
 
 
+def rule_class(mode: str) -> type[MaskingRule]:
+    """The registered rule of masking mode ``mode``; a mode with a ``MaskingMode`` member
+    but no rule (a subclass without ``@register``) is a :class:`ConfigError` naming it."""
+    mode = enum_value(MaskingMode, mode, "masking.mode (select it with masking=...)")
+    if mode not in RULES:
+        raise ConfigError(
+            f"masking.mode={mode.value} has no rule: a MaskingRule subclass with mode = "
+            f"MaskingMode.{mode.name}, decorated with @register, in uabs_rl/safety/rules.py "
+            f"(registered: {', '.join(m.value for m in RULES)}).")
+    return RULES[mode]
+
+
 def masks_collisions(mode: str) -> bool:
     """Whether masking mode ``mode`` masks colliding moves (False: penalties only)."""
-    return RULES[MaskingMode(mode)].masks_collisions
+    return rule_class(mode).masks_collisions
 
 
 def mode_phrase(mode: str) -> str:
@@ -408,5 +427,5 @@ class RankRule(MaskingRule):
 def make_rule(masking: MaskingConfig, params: EnvParams) -> MaskingRule:
     """The rule of ``masking.mode`` for an env with ``params``."""
     validate_masking(masking)
-    cls = RULES[MaskingMode(masking.mode)]
+    cls = rule_class(masking.mode)
     return cls(masking, params.d_th, params.step_m, UNIT_MOVES * params.step_m)

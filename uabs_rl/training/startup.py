@@ -1,9 +1,9 @@
 """``uabs-train``'s start-up checks: every setting checked, each refusal naming the key,
 before anything is built or written. The per-section checks are the config layer's
 (:mod:`uabs_rl.config.checks`); here are those that ask the env, the learner or the
-evaluator: a channel model's name, the learner's own refusals, the validation windows,
-and whether the replay, the envs, the networks and the traces fit in memory, each size
-given by its owner."""
+evaluator: a channel model's name, a masking mode's rule, the learner's own refusals,
+the validation windows, and whether the replay, the envs, the networks and the traces
+fit in memory, each size given by its owner."""
 
 from __future__ import annotations
 
@@ -28,6 +28,7 @@ from uabs_rl.env.params import EnvParams, validate_world
 from uabs_rl.env.state import state_bytes
 from uabs_rl.env.uabs_env import N_ACTIONS
 from uabs_rl.evaluation.evaluator import eval_window_count
+from uabs_rl.safety.rules import rule_class
 
 
 def validate_run(cfg: RunConfig) -> None:
@@ -45,6 +46,7 @@ def validate_settings(cfg: RunConfig) -> None:
     check_finite(cfg)
     validate_world(cfg)
     validate_family(cfg, CHANNELS)
+    rule_class(cfg.masking.mode)  # a masking mode without a registered rule
     validate_algo_name(cfg.algo)
     validate_learning(cfg)
     check_eval_windows(cfg)
