@@ -313,7 +313,8 @@ MODES = ", ".join(m.value for m in MaskingMode)
 
 @pytest.mark.parametrize("args,said", [
     (["masking=rnak"], f"masking=rnak: masking has no option 'rnak'; choose from {MASKS} "
-                       f"(the files of conf/masking/)."),
+                       f"(the files of conf/masking/; an option of yours is its file, "
+                       f"masking/rnak.yaml: docs/code.md, Extending)."),
     (["algo.lrr=1"], "algo.lrr is not a setting (AlgoConfig has no 'lrr'): did you mean "
                      "algo.lr or algo.loss or algo.replay? fix its spelling; uabs-train "
                      "--cfg job prints every setting."),
@@ -403,6 +404,13 @@ def test_config_dir_options_are_composed_with_it_and_its_mistakes_are_one_line(t
     with pytest.raises(ConfigError, match=r"scenario/grid6.yaml has the name of the "
                                           r"package's conf/scenario/grid6.yaml"):
         check_composition("config", ["--config-dir", str(mine), "scenario=grid6"])
+    # a misspelt key in a file of its (before: Hydra's "In 'scenario/typo': ConfigKeyError
+    # raised while composing config: Key 'fleetsize' not in 'SumoConfig'", no hint)
+    (mine / "scenario" / "typo.yaml").write_text("name: typo\nsumo: {fleetsize: 3}\n")
+    with pytest.raises(ConfigError, match=r"^scenario/typo.yaml sets 'fleetsize', which "
+                                          r"SumoConfig does not have: did you mean "
+                                          r"fleet_size\? fix the file"):
+        check_composition("config", ["--config-dir", str(mine), "scenario=typo"])
 
 
 def test_cli_entry_point(trace_cache, tmp_path):

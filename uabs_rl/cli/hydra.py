@@ -244,12 +244,15 @@ def check_composition(config_name: str, argv: list[str],
                                   f"or choose another option.") from None
             except HydraException as e:
                 cause = f"\n{e.__cause__}" if e.__cause__ is not None else ""
-                try:  # the settings there are, with the groups and presets chosen
-                    chosen = compose(config_name=config_name, overrides=search + [
-                        o for o in mine if "." not in o.split("=", 1)[0]])
-                    known = list(flatten(OmegaConf.to_container(chosen, resolve=False)))
-                except HydraException:
-                    known = []
+                known = []  # the settings there are, with the groups and presets
+                for chosen in ([o for o in mine if "." not in o.split("=", 1)[0]], []):
+                    try:  # chosen (else the defaults': an option's file may be at fault)
+                        known = list(flatten(OmegaConf.to_container(compose(
+                            config_name=config_name, overrides=search + chosen),
+                            resolve=False)))
+                        break
+                    except HydraException:
+                        continue
                 raise ConfigError(composition_error(
                     f"{e}{cause}", known, bool(dirs),
                     COMMANDS.get(config_name, "uabs-train"))) from None
@@ -293,7 +296,18 @@ def composition_error(message: str, known: list[str] = (), yours: bool = False,
         options = [o for o in options if not o.endswith("_schema")]
         where = f"conf/{group}/" + (f" and your --config-dir's {group}/" if yours else "")
         return (f"{group}={option}: {group} has no option {option!r}; choose from "
-                f"{', '.join(options)} (the files of {where}).")
+                f"{', '.join(options)} (the files of {where}; an option of yours is its "
+                f"file, {group}/{option}.yaml: docs/code.md, Extending).")
+    in_file = re.search(r"In '([^']+)': ConfigKeyError.*Key '([^']+)' not in '([^']+)'",
+                        text)
+    if in_file:  # a key in an option's file that its section does not have
+        option, missing, schema = in_file.groups()
+        section = option.split("/", 1)[0]
+        leaves = sorted({k.rsplit(".", 1)[1] for k in known if k.startswith(f"{section}.")})
+        close = difflib.get_close_matches(missing, leaves, n=3, cutoff=0.6)
+        hint = f"did you mean {' or '.join(close)}? " if close else ""
+        return (f"{option}.yaml sets {missing!r}, which {schema} does not have: {hint}fix "
+                f"the file ({command} --cfg job prints every setting).")
     unknown = re.search(r"Could not override '([^']+)'.*Key '([^']+)' not in '([^']+)'", text)
     if unknown:
         key, missing, schema = unknown.groups()

@@ -8,6 +8,7 @@ link tensors. Distances in metres, frequencies in GHz, powers in dB/dBm.
 from __future__ import annotations
 
 import math
+from typing import Protocol
 
 import torch
 
@@ -50,6 +51,20 @@ def pathloss_nlos(d2d: torch.Tensor, d3d: torch.Tensor, h_bs: float, h_ut: float
     return torch.maximum(pathloss_los(d2d, d3d, h_bs, h_ut, fc_ghz), pl_nlos)
 
 
+class ChannelModel(Protocol):
+    """What :mod:`uabs_rl.env.links` asks of a channel model (``UMa`` below is one):
+    built from the UABS altitude, the UE height and the carrier (GHz), the LoS
+    probability and the LoS and NLoS path losses (dB) at 2D / 3D distances (m)."""
+
+    def __init__(self, altitude: float, h_ut: float, fc_ghz: float) -> None: ...
+
+    def los_probability(self, d2d: torch.Tensor) -> torch.Tensor: ...
+
+    def pathloss_los(self, d2d: torch.Tensor, d3d: torch.Tensor) -> torch.Tensor: ...
+
+    def pathloss_nlos(self, d2d: torch.Tensor, d3d: torch.Tensor) -> torch.Tensor: ...
+
+
 class UMa:
     """TR 38.901 UMa between a ground UE at ``h_ut`` and a UABS at ``altitude`` on carrier
     ``fc_ghz``: the channel model ``channel.name=uma`` (docs/model.md §3).
@@ -72,10 +87,10 @@ class UMa:
 
 
 # channel.name -> channel model (docs/code.md: how to add a channel model)
-CHANNELS: dict[str, type[UMa]] = {"uma": UMa}
+CHANNELS: dict[str, type[ChannelModel]] = {"uma": UMa}
 
 
-def make_channel(name: str, altitude: float, h_ut: float, fc_ghz: float) -> UMa:
+def make_channel(name: str, altitude: float, h_ut: float, fc_ghz: float) -> ChannelModel:
     """The channel model registered as ``name`` (checked at start-up by
     ``config.validate_env``)."""
     return CHANNELS[name](altitude, h_ut, fc_ghz)

@@ -8,7 +8,7 @@ import math
 import torch
 
 from uabs_rl import rng
-from uabs_rl.env.channel import UMa, beam_cells, beam_grid_side, make_channel, snr_db
+from uabs_rl.env.channel import ChannelModel, beam_cells, beam_grid_side, make_channel, snr_db
 from uabs_rl.env.params import EnvParams
 
 
@@ -17,7 +17,7 @@ class ServiceRadii:
     gain: ``r_los`` if LoS, ``r_nlos`` if NLoS, ``r_exp`` with the expected path loss.
     Valid without shadowing (the path loss then grows with distance)."""
 
-    def __init__(self, p: EnvParams, model: UMa, gain_db: float, reach: float):
+    def __init__(self, p: EnvParams, model: ChannelModel, gain_db: float, reach: float):
         self.p, self.model = p, model
         f = lambda pl: snr_db(pl, p.tx_dbm, p.tx_gain_db, gain_db, p.noise_dbm)  # noqa: E731
 

@@ -79,7 +79,13 @@ from uabs_rl.env.uabs_env import (
 )
 from uabs_rl.safety.make import make_env
 from uabs_rl.safety.modules import DirectEnv
-from uabs_rl.safety.rules import COLLIDERS, RANK_ORDER, SAFETY_TOLERANCE, MaskingRule
+from uabs_rl.safety.rules import (
+    COLLIDERS,
+    RANK_ORDER,
+    SAFETY_TOLERANCE,
+    MaskingRule,
+    RankRule,
+)
 from uabs_rl.traces.build import SPLITS
 from uabs_rl.traces.cache import TraceSet
 
@@ -141,7 +147,8 @@ class UABSParallelEnv(ParallelEnv):
         self.rule: MaskingRule = self._env.rule
         self.params = base.params
         self.mode = MaskingMode(self.rule.cfg.mode)
-        self.parallel_rank = self.mode == MaskingMode.rank and self.rule.recoverable
+        # the rank rule's (a rule of yours built on it too: the same d_th and moves)
+        self.parallel_rank = isinstance(self.rule, RankRule) and self.rule.recoverable
         m, obs_dim = self.params.n_uabs, self.params.obs_dim
         self.possible_agents = [f"uabs_{i}" for i in range(m)]
         self.agents: list[str] = []
