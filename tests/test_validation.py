@@ -179,48 +179,71 @@ def test_every_default_and_preset_validates():
                 validate_scenario_traces(t.scenario, t.traces)
         for group in config.SELF_NAMES:
             for option in names(group):
-                c = hydra_compose("config", [f"{group}={option}"], return_hydra_config=True)
-                config.check_group_choices(c.hydra.runtime.choices, c)
+                assert config.names_itself([CONF_DIR], group, option,
+                                           config.SELF_NAMES[group]), f"{group}={option}"
                 if group not in ("scenario", "masking"):  # those: above
                     validate_run(config.to_container(hydra_compose("config", [
                         f"{group}={option}"])))
 
 
 def test_a_group_option_whose_file_does_not_name_itself_is_refused(tmp_path, trace_cache):
-    """A masking (channel, scenario, ...) option of --config-dir's whose file leaves the
-    mode (name) at the schema's would run rank masks in a folder and under labels that
-    say its own name: uabs-train refuses it before any folder (a sweep: before any job),
-    uabs-eval likewise; the same key typed on the command line is the user's choice."""
+    """A masking (channel, scenario, ...) option of --config-dir's whose file sets no
+    mode (name), nor does an option it builds on, would run rank masks in a folder and
+    under labels that say its own name: uabs-train refuses it before any folder (a
+    sweep: before any job), uabs-eval likewise. A file that sets the key is a variant the
+    user chose (rank's mode with another setting), as is the key typed on the command
+    line, a preset's value over the option's, and a resumed run's own settings."""
     mine = tmp_path / "myconf"
-    (mine / "masking").mkdir(parents=True)
+    for group in ("masking", "scenario", "experiment"):
+        (mine / group).mkdir(parents=True)
     (mine / "masking" / "careful.yaml").write_text("recoverable: true\n")
-    (mine / "scenario").mkdir()
-    (mine / "scenario" / "mygrid2.yaml").write_text("name: mygrid\n")
+    (mine / "masking" / "rank_boundary.yaml").write_text("mode: rank\n"
+                                                         "rank_next_mask: boundary\n")
+    (mine / "masking" / "careful_rank.yaml").write_text("defaults: [rank]\n")
+    (mine / "scenario" / "mygrid.yaml").write_text("name: mygrid\n")
+    (mine / "scenario" / "dense.yaml").write_text("defaults: [mygrid]\n"
+                                                  "sumo: {fleet_size: 120}\n")
+    (mine / "experiment" / "wide.yaml").write_text(
+        "# @package _global_\ndefaults: [smoke]\nobs: {name: wide, frame: egocentric}\n")
     out = tmp_path / "runs"
-    base = ["--config-dir", str(mine), "experiment=smoke", f"traces.cache_dir={trace_cache}",
+    base = ["--config-dir", str(mine), f"traces.cache_dir={trace_cache}",
             "train.progress=false"]
-    said = ("masking=careful composes masking.mode=rank, not careful: its file "
-            "(masking/careful.yaml, in conf/ or your --config-dir) must name its option, "
-            "else it runs rank under careful's name. Add the line 'mode: careful' to it")
-    for extra in (["masking=careful", f"hydra.run.dir={out / 'one'}"],
-                  ["-m", "masking=rank,careful", f"hydra.sweep.dir={out / 'sweep'}"]):
-        r = run_command("train", *base, *extra)
+    said = (f"masking=careful: its file ({mine / 'masking' / 'careful.yaml'}) sets no mode, "
+            f"nor does an option it builds on, so it would run rank under careful's name. "
+            f"Add the line 'mode: careful' to it")
+    for extra in (["experiment=smoke", "masking=careful", f"hydra.run.dir={out / 'one'}"],
+                  ["experiment=smoke", "masking=careful", "seed=0,1",
+                   f"hydra.sweep.dir={out / 'sweep'}"],
+                  ["experiment=smoke", "masking=rank,careful", f"hydra.sweep.dir={out / 's'}"]):
+        sweep = ["-m"] if any("," in e for e in extra) else []
+        r = run_command("train", *sweep, *base, *extra)
         assert r.returncode == 2 and said in r.stderr, r.stderr
         assert not out.exists()  # no folder: nothing written
-    r = run_command("train", *base, "scenario=mygrid2",
-                    f"hydra.run.dir={out / 'one'}")
-    assert r.returncode == 2 and ("scenario=mygrid2 composes scenario.name=mygrid, not "
-                                  "mygrid2") in r.stderr, r.stderr
-    # uabs-eval's group options compose the same files
+        # the job named where a sweep's value is at fault, not where a fixed one is
+        assert ("the job masking=careful of this sweep" in r.stderr) == ("masking=rank,careful"
+                                                                          in extra)
+    # variants (a file that sets the key, itself or through the option it builds on), a
+    # preset's value over the chosen option's, the key typed, a resumed run: composed
+    from uabs_rl.cli.hydra import check_composition
+
+    for extra in (["masking=rank_boundary"], ["masking=careful_rank"], ["scenario=dense"],
+                  ["experiment=wide"], ["masking=careful", "masking.mode=flat"],
+                  ["masking=careful", f"resume={tmp_path / 'old_run'}"]):
+        check_composition("config", ["--config-dir", str(mine), *extra])
+    assert config.names_itself([CONF_DIR, mine], "scenario", "dense", "name")
+    assert config.names_itself([CONF_DIR, mine], "masking", "careful", "mode") is False
+    # uabs-eval's group options compose the same files (the options they build on too)
     from uabs_rl.evaluation.load import with_overrides
 
     cfg = smoke(trace_cache)
     with pytest.raises(config.ConfigError, match=re.escape(said)):
         with_overrides(cfg, ["masking=careful"], [mine])
-    # the mode typed beside the option: the user's own choice
     assert with_overrides(cfg, ["masking=careful", "masking.mode=flat"],
                           [mine]).masking.mode == "flat"
-    config.check_group_choices({"masking": "rank"}, cfg, ["masking.mode=flat"])
+    dense = with_overrides(cfg, ["scenario=dense"], [mine]).scenario
+    assert (dense.name, dense.sumo.fleet_size) == ("mygrid", 120)
+    assert with_overrides(cfg, ["masking=rank_boundary"],
+                          [mine]).masking.rank_next_mask == "boundary"
 
 
 # ----------------------------------------------------------------------------- memory

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import difflib
 import itertools
 import logging
@@ -262,11 +263,12 @@ def check_composition(config_name: str, argv: list[str],
             with open_dict(composed):
                 del composed["hydra"]
             try:
-                check_group_choices(choices, composed, mine)
-            except ConfigError as e:
-                which = " ".join(j for j in mine if j not in fixed)
-                raise ConfigError(f"the job {which} of this sweep: {e} No job was started."
-                                  if which else str(e)) from None
+                check_group_choices(choices, composed, [CONF_DIR, *dirs], mine)
+            except ConfigError as e:  # a sweep's value names its job; a fixed one not
+                swept = [j for j in mine if j not in fixed
+                         and j.partition("=")[0].lstrip("+") == getattr(e, "key", None)]
+                raise ConfigError(f"the job {swept[0]} of this sweep: {e} No job was "
+                                  f"started." if swept else str(e)) from None
             if not jobs:  # one run checks itself as it starts
                 continue
             try:
@@ -302,9 +304,12 @@ def composition_error(message: str, known: list[str] = (), yours: bool = False,
                         text)
     if in_file:  # a key in an option's file that its section does not have
         option, missing, schema = in_file.groups()
-        section = option.split("/", 1)[0]
-        leaves = sorted({k.rsplit(".", 1)[1] for k in known if k.startswith(f"{section}.")})
-        close = difflib.get_close_matches(missing, leaves, n=3, cutoff=0.6)
+        from uabs_rl.config import schema as schemas  # the keys of the class named
+
+        cls = getattr(schemas, schema, None)
+        keys = [f.name for f in dataclasses.fields(cls)] if dataclasses.is_dataclass(
+            cls) else []
+        close = difflib.get_close_matches(missing, keys, n=3, cutoff=0.6)
         hint = f"did you mean {' or '.join(close)}? " if close else ""
         return (f"{option}.yaml sets {missing!r}, which {schema} does not have: {hint}fix "
                 f"the file ({command} --cfg job prints every setting).")
@@ -363,7 +368,9 @@ def hydra_main(config_name: str, body: Callable[..., Any],
                 return None
             # a group option whose file does not name itself (where the pre-check
             # above did not compose: another search path)
-            check_group_choices(hc.runtime.choices, dcfg, hc.overrides.task)
+            check_group_choices(hc.runtime.choices, dcfg,
+                                [Path(c.path) for c in hc.runtime.config_sources
+                                 if c.schema == "file"], hc.overrides.task)
             return body(to_container(dcfg), out, *extra)
         except (ConfigError, CheckpointError, OSError) as e:
             # only what this invocation made: never a folder or file that was there

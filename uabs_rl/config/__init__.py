@@ -66,6 +66,10 @@ from uabs_rl.config.overrides import (
     check_moved_overrides,
     chooses_study,
     command_line_overrides,
+    global_package,
+    names_itself,
+    option_bases,
+    option_file,
     override_key,
 )
 from uabs_rl.config.roles import (
@@ -153,6 +157,10 @@ __all__ = [
     "check_algo_schema",
     "check_duplicate_overrides",
     "check_group_choices",
+    "global_package",
+    "names_itself",
+    "option_bases",
+    "option_file",
     "check_finite",
     "check_fits",
     "check_moved_overrides",

@@ -3,8 +3,12 @@ the refusals that need no config (a setting given twice, a setting that moved)."
 
 from __future__ import annotations
 
+import re
 from collections.abc import Iterable, Mapping
+from pathlib import Path
 from typing import Any
+
+import yaml
 
 from uabs_rl.config.base import ConfigError
 from uabs_rl.config.schema import MOVED
@@ -92,28 +96,92 @@ SELF_NAMES = {"algo": "name", "channel": "name", "masking": "mode", "obs": "name
               "scenario": "name"}
 
 
-def check_group_choices(choices: Mapping[str, Any], cfg: Any,
+def option_file(dirs: Iterable[Path], group: str, option: str) -> Path | None:
+    """The file of ``group=option`` in the first of the config folders ``dirs`` that
+    holds it (None: none does)."""
+    return next((f for d in dirs if (f := Path(d) / group / f"{option}.yaml").is_file()),
+                None)
+
+
+def option_bases(data: Mapping[str, Any], group: str) -> list[str]:
+    """The options of ``group`` that an option file's ``defaults`` builds on
+    (``defaults: [mygrid]`` in ``scenario/dense.yaml``: ``mygrid``), in order; not its
+    ``_self_``, a schema (``qmix_schema``) or another group's entries."""
+    out = []
+    for entry in data.get("defaults") or []:
+        name = entry.strip() if isinstance(entry, str) else ""
+        if name.startswith("/"):
+            other, _, name = name[1:].partition("/")
+            name = name if other == group else ""
+        if name and name != "_self_" and not name.endswith("_schema") and "/" not in name:
+            out.append(name)
+    return out
+
+
+def global_package(text: str) -> bool:
+    """Whether a config file's header puts it at the config's root
+    (``# @package _global_``: it sets ``scenario.name`` under ``scenario:``)."""
+    return re.search(r"^#\s*@package\s+_global_\s*$", text, flags=re.M) is not None
+
+
+def names_itself(dirs: Iterable[Path], group: str, option: str, key: str,
+                 _seen: frozenset = frozenset()) -> bool | None:
+    """Whether the file of ``group=option`` (:func:`option_file`) sets ``group.key``,
+    itself or through an option of its group that it builds on (:func:`option_bases`);
+    None where no such file is found or read (a config of another source: not checked
+    here)."""
+    dirs = list(dirs)
+    path = option_file(dirs, group, option)
+    if path is None or option in _seen:
+        return None
+    try:
+        text = path.read_text()
+        data = yaml.safe_load(text)
+    except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        return None
+    if data is None:
+        return False
+    if not isinstance(data, dict):
+        return None
+    node = data.get(group) if global_package(text) else data
+    if isinstance(node, dict) and key in node:
+        return True
+    return any(names_itself(dirs, group, base, key, _seen | {option})
+               for base in option_bases(data, group))
+
+
+def check_group_choices(choices: Mapping[str, Any], cfg: Any, dirs: Iterable[Path],
                         overrides: Iterable[str] = ()) -> None:
-    """Refuse a group option whose file does not name itself: a ``conf/masking/
-    cautious.yaml`` without ``mode: cautious`` leaves the schema's ``rank``, and
-    ``masking=cautious`` would train rank masks in a folder, under labels, that say
-    cautious. ``choices``: each group's option (Hydra's ``runtime.choices``); ``cfg``:
-    the composed config; ``overrides``: the command line's, where ``masking.mode=flat``
-    typed beside the default ``masking=rank`` is the user's own choice."""
+    """Refuse a group option whose file does not name itself: a ``masking/careful.yaml``
+    without ``mode: careful`` (nor an option it builds on with a mode) leaves the
+    schema's ``rank``, and ``masking=careful`` would train rank masks in a folder, under
+    labels, that say careful. A file that sets the key is the user's choice, whatever its
+    value (``masking/rank_boundary.yaml`` with ``mode: rank``: a variant of rank), as is
+    the key typed on the command line, and a preset's value over a file's. ``choices``:
+    each group's option (Hydra's ``runtime.choices``); ``cfg``: the composed config (the
+    value that would run, for the message); ``dirs``: the config folders, in Hydra's
+    order; ``overrides``: the command line's. A resumed run's settings are its own (made
+    before this check, perhaps): not checked. The :class:`ConfigError`'s ``key`` is the
+    group."""
     typed = {override_key(o) for o in overrides}
+    if "resume" in typed:
+        return
+    dirs = list(dirs)
     for group, key in SELF_NAMES.items():
         option = choices.get(group)
-        section = getattr(cfg, group, None) if not isinstance(cfg, Mapping) else cfg.get(group)
-        if option is None or section is None or f"{group}.{key}" in typed:
+        if option is None or f"{group}.{key}" in typed:
             continue
-        value = (section.get(key) if isinstance(section, Mapping)
-                 else getattr(section, key, None))
-        value = getattr(value, "value", value)  # an enum member (masking.mode)
-        option = str(option).rsplit("/", 1)[-1]
-        if value is not None and str(value) != option:
-            raise ConfigError(
-                f"{group}={option} composes {group}.{key}={value}, not {option}: its file "
-                f"({group}/{option}.yaml, in conf/ or your --config-dir) must name its "
-                f"option, else it runs {value} under {option}'s name. Add the line "
-                f"'{key}: {option}' to it (under '{group}:' in a file of "
-                f"'# @package _global_').")
+        option = str(option)
+        if names_itself(dirs, group, option, key) is False:
+            section = cfg.get(group) if isinstance(cfg, Mapping) else getattr(cfg, group)
+            value = (section.get(key) if isinstance(section, Mapping)
+                     else getattr(section, key, None))
+            value = getattr(value, "value", value)  # an enum member (masking.mode)
+            leaf = option.rsplit("/", 1)[-1]
+            err = ConfigError(
+                f"{group}={option}: its file ({option_file(dirs, group, option)}) sets no "
+                f"{key}, nor does an option it builds on, so it would run {value} under "
+                f"{option}'s name. Add the line '{key}: {leaf}' to it (under '{group}:' "
+                f"in a file of '# @package _global_').")
+            err.key = group
+            raise err

@@ -30,7 +30,9 @@ from uabs_rl.config import (
     check_config_dirs,
     check_group_choices,
     check_moved_overrides,
+    global_package,
     keys_with_role,
+    option_bases,
     override_key,
     sections_with_role,
     to_container,
@@ -132,17 +134,10 @@ def with_overrides(cfg: RunConfig, overrides: list[str],
             dotted.append(f"{key}={value}")
             continue
         safe_component(value, key)  # a config file's name in the group's folder
-        path = _group_file(key, value, list(config_dirs or []))
-        body = _load_yaml(path, o)
-        if "defaults" in body:  # a schema reference: the section starts from it anyway
-            body.pop("defaults")
-        others = {}
-        if "@package _global_" in path.read_text():  # scenario=city: it sizes traces too
-            others = {k: v for k, v in body.items() if k in EVAL_GROUPS and k != key}
-            body = body.get(key, {})  # its train settings belong to the trained policy
+        body, others = _option_sections(key, value, list(config_dirs or []), o)
         try:
-            conf[key] = OmegaConf.merge(OmegaConf.structured(section_types[key]), body)
-            for k, v in others.items():
+            conf[key] = OmegaConf.merge(OmegaConf.structured(section_types[key]), *body)
+            for k, v in others:
                 conf[k] = OmegaConf.merge(conf[k], v)
         except OmegaConfBaseException as e:
             raise ConfigError(f"{key}={value}: {str(e).splitlines()[0]}") from None
@@ -155,10 +150,37 @@ def with_overrides(cfg: RunConfig, overrides: list[str],
     check_group_choices({o.partition("=")[0].lstrip("+"): o.partition("=")[2]
                          for o in overrides if "." not in o.partition("=")[0]
                          and o.partition("=")[0].lstrip("+") in EVAL_GROUPS},
-                        conf, overrides)
+                        conf, [*(config_dirs or []), CONF_DIR], overrides)
     new = to_container(conf)
     validate_world(new)
     return new
+
+
+def _option_sections(group: str, option: str, config_dirs: list[Path], override: str,
+                     seen: frozenset = frozenset()) -> tuple[list[Any], list[tuple[str, Any]]]:
+    """What the file of ``group=option`` sets, as ``uabs-train`` composes it: the
+    group's section (after those of the options of its group it builds on, its
+    ``defaults``; a schema there is where the section starts anyway) and, for a file of
+    ``# @package _global_`` (``scenario=city`` sizes the traces too), the other sections
+    of ``EVAL_GROUPS`` it sets, in merge order (its train settings belong to the trained
+    policy)."""
+    path = _group_file(group, option, config_dirs)
+    body = _load_yaml(path, override)
+    if option in seen:
+        raise ConfigError(f"{override}: {path} builds on itself through its defaults: "
+                          f"fix the file.")
+    sections: list[Any] = []
+    others: list[tuple[str, Any]] = []
+    for base in option_bases(OmegaConf.to_container(body), group):
+        more, also = _option_sections(group, base, config_dirs, override, seen | {option})
+        sections += more
+        others += also
+    if "defaults" in body:
+        body.pop("defaults")
+    if global_package(path.read_text()):
+        others += [(k, v) for k, v in body.items() if k in EVAL_GROUPS and k != group]
+        body = body.get(group, {})
+    return sections + [body], others
 
 
 def _obs_values(cfg: RunConfig) -> dict[str, Any]:

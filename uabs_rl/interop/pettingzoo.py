@@ -21,7 +21,9 @@ action at once, from masks computed before any agent chooses):
   every boundary-legal move of every higher-ranked one. Any joint choice from these
   masks is safe and passes the sequential rank rule unchanged; it contains the
   recoverable flat mask (the top-ranked agent keeps rank's extra freedom) and is
-  contained in the sequential rank mask.
+  contained in the sequential rank mask. A rule of yours built on ``RankRule`` gets it
+  too, from its own ``d_th`` and moves; where its ``choose`` differs from rank's, the
+  repair below applies its choice (a move it refuses is replaced, never executed).
 * ``rank`` with ``masking.recoverable=false`` (the paper's literal rule): there is no
   backup to build a parallel mask on; the mask given is the boundary mask (an upper
   bound of every agent's legal set) and the repair below applies the rank rule.
