@@ -4,6 +4,7 @@ hook, so that a study that read a test trace fails."""
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 import shutil
@@ -182,6 +183,17 @@ def test_bad_study_inputs_are_one_line_naming_the_fix(trace_cache, tmp_path):
     line = run_refused(tmp_path, *study_args(trace_cache, 1, f"hydra.sweeper.storage={shared}",
                                              "hydra.sweeper.study_name=mine"))
     assert "a study named 'mine' is already in" in line and "resume=" in line
+    # a sampler setting added with + (as Hydra's own message suggests) was never read
+    line = run_refused(tmp_path, *study_args(trace_cache, 1,
+                                             "+hydra.sweeper.sampler.n_startup=3"))
+    assert line == ("error: hydra.sweeper.sampler.n_startup is not a setting of the "
+                    "sampler: its settings are name, seed, n_startup_trials "
+                    "(docs/tuning.md).")
+    # an unknown sampler is refused before its sweep folder is made
+    line = run_refused(tmp_path, *(a.replace("=study", "=fresh") for a in study_args(
+        trace_cache, 1, "hydra.sweeper.sampler.name=x")))
+    assert "hydra.sweeper.sampler.name=x is not a sampler" in line
+    assert not (tmp_path / "fresh").exists()
     assert not (tmp_path / "study" / "trial=0").exists()
 
 
@@ -220,8 +232,67 @@ def test_a_study_whose_trials_all_fail_ends_with_an_error_and_its_report_says_so
     text = (tmp_path / "study" / "report" / "study.md").read_text()
     assert "## best" not in text
     assert "## 2 trials: the 0 complete ones, best first, then the pruned and failed" in text
-    assert "Only 0 trials completed" in text
+    assert "No trial completed: the study has no best settings." in text
+    assert "best of 0" not in text and "Only 0 trials" not in text
     assert "No artists with labels" not in r.stderr + r.stdout
+
+
+def test_a_resumed_study_is_its_own_command_and_one_process_runs_it(trace_cache, tmp_path):
+    """A resume= that would mix two studies in one is refused before anything changes
+    (before: a changed choice() left a half-drawn trial and a traceback; another fixed
+    setting ran new trials of another experiment and overwrote multirun.yaml; without
+    the sweeper Hydra ran a grid in the study's folder; a second process beside a
+    running study failed its running trial and crashed the first). n_trials may grow.
+    A trial whose last evaluation the pruner would stop completes (its budget is spent);
+    trials.csv keeps the tuned values exactly."""
+    from uabs_rl.runs.folder import RunLock
+
+    args = study_args(trace_cache, 1, "train.episodes=3", "algo.lr=interval(1e-4,1e-3)",
+                      "hydra.sweeper.pruner.name=threshold",
+                      "hydra.sweeper.pruner.lower=1e9")
+    p = uabs_train_here(tmp_path, *args)
+    assert p.returncode == 0, p.stderr[-3000:]
+    # the threshold stops every trial at its first evaluation, but that is its last
+    assert "1 complete, 0 pruned" in p.stdout + p.stderr
+    study = tmp_path / "study"
+    record = {f: (study / f).read_bytes() for f in ("multirun.yaml", "study.yaml")}
+    resume = f"resume={study}"
+
+    def refused(*argv: str) -> str:
+        return run_refused(tmp_path, *argv)
+
+    line = refused(*[a.replace("choice(16,32)", "choice(16,24)") for a in args], resume)
+    assert line.startswith(f"error: resume={study} continues a study whose trials were "
+                           f"drawn and run otherwise: algo.batch_size (choice(16, 32) then, "
+                           f"choice(16, 24) now)"), line
+    line = refused(*[a.replace("train.episodes=3", "train.episodes=9") for a in args], resume)
+    assert "the settings the trials share (then train.episodes=3; now train.episodes=9)" in line
+    line = refused(*[a for a in args if not a.startswith("hydra/sweeper=optuna")
+                     and not a.startswith("hydra.sweeper.")], resume)
+    assert line == (f"error: resume={study} holds a tuning study (its study.yaml): re-type "
+                    f"the study's own command, hydra/sweeper included, with {resume} "
+                    f"appended. Nothing was changed.")
+    lock = RunLock(study)  # the study's own process, still running
+    assert lock.acquire()
+    try:
+        line = refused(*args, resume)
+    finally:
+        lock.release()
+    assert line.startswith(f"error: the study in {study} is being run by another process "
+                           f"(pid {os.getpid()} on ")
+    assert len(load(tmp_path).trials) == 1 and not (study / "trial=1").exists()
+    assert record == {f: (study / f).read_bytes() for f in record}  # nothing changed
+    more = [a.replace("n_trials=1", "n_trials=2") for a in args]
+    p = uabs_train_here(tmp_path, *more, resume)  # the study's command, more trials
+    assert p.returncode == 0, p.stderr[-3000:]
+    trials = load(tmp_path).trials
+    assert [t.state for t in trials] == [optuna.trial.TrialState.COMPLETE] * 2
+    from uabs_rl.cli.report import main as report
+
+    assert report([str(study)]) == 0
+    with open(study / "report" / "trials.csv") as f:
+        rows = {int(r["trial"]): float(r["algo.lr"]) for r in csv.DictReader(f)}
+    assert rows == {t.number: t.params["algo.lr"] for t in trials}
 
 
 def test_search_space_overrides_as_distributions():

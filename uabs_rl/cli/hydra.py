@@ -136,9 +136,16 @@ _OWN_FLAGS = ("--config-path", "-cp", "--config-name", "-cn",
 _CONFIG_DIR = ("--config-dir", "-cd")
 
 
-def _quoted(value: str) -> str:
+def quoted(value: str) -> str:
     """``value`` as a quoted string of Hydra's override grammar (a path may hold = , [ ')."""
     return "'" + value.replace("\\", "\\\\").replace("'", "\\'") + "'"
+
+
+def search_overrides(dirs: list[Path]) -> list[str]:
+    """The override that adds ``--config-dir``'s folders to a composition's search path
+    (none without them)."""
+    return ([f"hydra.searchpath=[{','.join(quoted(f'file://{d.resolve()}') for d in dirs)}]"]
+            if dirs else [])
 
 
 def config_dirs(argv: list[str]) -> list[Path]:
@@ -186,8 +193,7 @@ def check_composition(config_name: str, argv: list[str],
                              for w in words if w.split("=", 1)[0] in groups
                              for v in w.split("=", 1)[1].split(",")], flag=typed)
     # where Hydra looks beside conf/: the same folders, for this composition
-    search = ([f"hydra.searchpath=[{','.join(_quoted(f'file://{d.resolve()}') for d in dirs)}]"]
-              if dirs else [])
+    search = search_overrides(dirs)
     register_configs()  # the groups' typed bases (idempotent)
     multirun = any(a in ("-m", "--multirun") for a in argv) or "hydra.mode=MULTIRUN" in words
     for w in words:

@@ -36,6 +36,7 @@ from uabs_rl.runs import folder as runfolder
 from uabs_rl.runs.layout import RunFolder
 from uabs_rl.runs.metrics import MetricsError, read_metrics
 from uabs_rl.training.resume import prepare
+from uabs_rl.tuning.sweeper import STUDY_FILE
 from uabs_rl.tuning.trial import evaluation_hook
 
 
@@ -86,11 +87,13 @@ def summary_text(cfg: RunConfig, summary: dict[str, Any], run_dir: Path) -> str:
     # a sweep's job: the report over the whole sweep (it groups the sweep's settings)
     sweep = run_dir.parent if RunFolder(run_dir.parent).sweep_record.is_file() else run_dir
     report_dir = shlex.quote(str(sweep))
+    study = (sweep / STUDY_FILE).is_file()  # a tuning study's trial: its report is the study's
     lines += ["next:",
               f"  {command('uabs-eval')} {q} --policy all   # test traces, beside the "
               f"baselines, with CIs",
-              f"  {command('uabs-report')} {report_dir}   # tables and figures of "
-              f"the runs in that folder"]
+              f"  {command('uabs-report')} {report_dir}   # "
+              + ("the study: its best trials, importances, history" if study else
+                 "tables and figures of the runs in that folder")]
     logger = LoggerKind(cfg.train.logger)
     if logger is LoggerKind.tensorboard:
         tb = shlex.quote(str(RunFolder(run_dir).tb))
@@ -243,12 +246,17 @@ def _check_sweep_command(sweep: Path, argv: list[str]) -> None:
 
     from uabs_rl.config import chooses_study, command_line_overrides
 
+    words = command_line_overrides(argv)
+    if (sweep / STUDY_FILE).is_file() and _sweeper(argv, words) == "basic":
+        # Hydra's own sweeper would run a grid of the search space's values there
+        raise ConfigError(f"resume={sweep} holds a tuning study (its {STUDY_FILE}): re-type "
+                          f"the study's own command, hydra/sweeper included, with "
+                          f"resume={sweep} appended. Nothing was changed.")
     try:
         record = OmegaConf.load(RunFolder(sweep).sweep_record)
         typed = [str(w) for w in record.hydra.overrides.task]
     except Exception:  # no readable record of the command: the jobs' own checks decide
         return
-    words = command_line_overrides(argv)
     if chooses_study([*typed, *words]):
         return
     try:
@@ -269,6 +277,28 @@ def _check_sweep_command(sweep: Path, argv: list[str]) -> None:
                       f"{command}`; this command {said}: re-type that one with "
                       f"resume={sweep} appended (another sweep goes into another "
                       f"folder). Nothing was changed.")
+
+
+def _sweeper(argv: list[str], words: list[str]) -> str | None:
+    """The sweeper a command line chooses (``hydra/sweeper=optuna`` typed, or chosen by
+    a preset), composed as Hydra will; None where it does not compose here."""
+    from hydra import compose, initialize_config_dir
+
+    from uabs_rl.cli.hydra import config_dirs, search_overrides
+    from uabs_rl.config import CONF_DIR, register_configs
+
+    search = search_overrides(config_dirs(argv))
+    # the groups and presets chosen (one value each): the sweeper is among them
+    chosen = [w for w in words if "." not in w.split("=", 1)[0]
+              and not any(c in w.split("=", 1)[-1] for c in ",()")]
+    register_configs()
+    try:
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            c = compose(config_name="config", return_hydra_config=True,
+                        overrides=[*search, *chosen])
+        return str(c.hydra.runtime.choices.get("hydra/sweeper"))
+    except Exception:  # another search path, a value Hydra refuses: its own answer
+        return None
 
 
 def _holds_jobs(sweep: Path) -> bool:

@@ -226,10 +226,10 @@ class Experiment:
         self.saved_episode: int | None = None  # the episode of the last ``last`` saved
         self.identity: dict | None = None  # the run folder's (set by resume.prepare)
         self.run_lock = None  # the run folder's lock, released when fit ends
-        # called after each evaluation with the episode and the members' validation
-        # returns; True stops training there, the checkpoint saved (a tuning study's
-        # pruner, uabs_rl.tuning)
-        self.on_eval: Callable[[int, list[float]], bool] | None = None
+        # called after each evaluation with the episode, the members' validation
+        # returns and whether it is the run's last; True stops training there, the
+        # checkpoint saved (a tuning study's pruner, uabs_rl.tuning)
+        self.on_eval: Callable[[int, list[float], bool], bool] | None = None
         # how a stopped run continues, as its stop line says it (a sweep's job: the
         # sweep re-typed, set by uabs-train; None: resume= of this run's folder)
         self.continue_hint: str | None = None
@@ -407,7 +407,8 @@ class Experiment:
             if reached or self.episode >= tr.episodes:
                 returns = self.evaluate()
                 self.progress.last_eval = sum(returns) / self.n
-                if self.on_eval is not None and self.on_eval(self.episode, returns):
+                if self.on_eval is not None and self.on_eval(
+                        self.episode, returns, self.episode >= tr.episodes):
                     break  # stopped early: fit saves last.pt
             if self.interrupt.asked(more=self.episode < tr.episodes):
                 self.check_weights()

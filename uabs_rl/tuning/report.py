@@ -47,10 +47,15 @@ def load_study(folder: Path, storage: str | None = None):
                           f"folder the study wrote, or its storage with --storage.") from None
 
 
-def _value(v: Any) -> str:
-    if isinstance(v, float):
-        return f"{v:.3g}"
-    return v if isinstance(v, str) else override_text(v)
+def _value(v: Any) -> Any:
+    """A trial's value of a setting as ``trials.csv`` keeps it: a number exactly (the
+    tuned value, to paste), anything else as an override writes it."""
+    return v if isinstance(v, (str, int, float)) else override_text(v)
+
+
+def _shown(v: Any) -> str:
+    """The same in ``study.md``'s table: 3 significant digits."""
+    return f"{v:.3g}" if isinstance(v, float) else str(v)
 
 
 def trial_rows(study) -> list[dict[str, Any]]:
@@ -89,13 +94,14 @@ def markdown(study, rows: list[dict[str, Any]], top: int, importances: dict[str,
              + study.direction.name.lower(),
              "",
              # each value is one run's, and the best of many runs is the luckiest too
-             "The best trial's value is the best of "
-             + (f"{complete} single runs" if complete != 1 else "one single run")
-             + ": selection makes it high. Before relying on its settings, train "
-               "them with several seeds (`uabs-train -m <its settings> "
-               "seed=0,1,2,3,4`) and compare with `uabs-report`."
+             ("The best trial's value is the best of "
+              + (f"{complete} single runs" if complete != 1 else "one single run")
+              + ": selection makes it high. Before relying on its settings, train "
+                "them with several seeds (`uabs-train -m <its settings> "
+                "seed=0,1,2,3,4`) and compare with `uabs-report`." if complete else
+              "No trial completed: the study has no best settings.")
              + (f" Only {complete} trial{'s' * (complete != 1)} completed: too few to "
-                "say which settings matter." if complete < 10 else ""),
+                "say which settings matter." if 0 < complete < 10 else ""),
              "",
              (f"## best {shown} trials" if shown <= complete else
               f"## {shown} trials: the {complete} complete ones, best first, then "
@@ -107,7 +113,7 @@ def markdown(study, rows: list[dict[str, Any]], top: int, importances: dict[str,
         value = "" if r["value"] is None else f"{r['value']:.1f}"
         ep = "" if r["episodes"] is None else str(r["episodes"])
         lines.append(f"| {r['trial']} | {r['state']} | {value} | {ep} | "
-                     + " | ".join(str(r.get(p, "")) for p in params) + " |")
+                     + " | ".join(_shown(r.get(p, "")) for p in params) + " |")
     if importances:
         lines += ["", "## parameter importances (PED-ANOVA)", ""]
         lines += [f"- {k}: {v:.2f}" for k, v in importances.items()]

@@ -17,6 +17,7 @@ from __future__ import annotations
 import importlib.util
 import logging
 import math
+import shutil
 import sys
 from pathlib import Path
 from typing import Any
@@ -24,12 +25,16 @@ from typing import Any
 from omegaconf import OmegaConf
 
 from uabs_rl.config import ConfigError
+from uabs_rl.runs.folder import RunLock
 from uabs_rl.tuning.space import known_keys, search_space, trial_overrides
 from uabs_rl.tuning.trial import TRIAL_ENV, TrialTask, make_pruner
 
 log = logging.getLogger(__name__)
 
 SAMPLERS = ("tpe", "random", "cmaes", "qmc")
+# the settings of hydra.sweeper.sampler and .pruner that the study reads
+SAMPLER_KEYS = ("name", "seed", "n_startup_trials")
+PRUNER_KEYS = ("name", "n_startup_trials", "n_warmup_steps", "percentile", "lower", "upper")
 STUDY_FILE = "study.yaml"  # in the sweep folder: where its study is (for uabs-report)
 
 
@@ -98,14 +103,18 @@ REFUSED_STOP = 3
 def run_study(sweeper, arguments: list[str]) -> list[dict[str, Any]]:
     """Run (or continue) the study of a ``-m hydra/sweeper=optuna`` command line; a bad
     input is one line on stderr and exit status 2."""
+    held: list[RunLock] = []  # the sweep folder's, for the study's life
     try:
-        return _run_study(sweeper, arguments)
+        return _run_study(sweeper, arguments, held)
     except ConfigError as e:
         print(f"error: {e}", file=sys.stderr)
         sys.exit(2)
+    finally:
+        for lock in held:
+            lock.release()
 
 
-def _run_study(sweeper, arguments: list[str]) -> list[dict[str, Any]]:
+def _run_study(sweeper, arguments: list[str], held: list[RunLock]) -> list[dict[str, Any]]:
     import optuna
     from hydra.core.plugins import Plugins
     from optuna.trial import TrialState
@@ -128,53 +137,86 @@ def _run_study(sweeper, arguments: list[str]) -> list[dict[str, Any]]:
     if direction not in ("maximize", "minimize"):
         raise ConfigError(f"hydra.sweeper.direction={direction}: maximize or minimize.")
     pruner = dict(s.get("pruner") or {})
+    for what, spec, known in (("sampler", s.get("sampler") or {}, SAMPLER_KEYS),
+                              ("pruner", pruner, PRUNER_KEYS)):
+        extra = sorted(set(spec) - set(known))
+        if extra:  # added with +, which Hydra's own message suggests: else unread
+            raise ConfigError(f"hydra.sweeper.{what}.{extra[0]} is not a setting of the "
+                              f"{what}: its settings are {', '.join(known)} "
+                              f"(docs/tuning.md).")
     make_pruner(pruner)  # a bad name, before anything is made
+    make_sampler(dict(s.get("sampler") or {}), 0)  # likewise
     sweep_dir = Path(str(config.hydra.sweep.dir)).absolute()
     resumed = any(w.split("=", 1)[0] == "resume" for w in fixed)
-    url = s.get("storage") or f"sqlite:///{sweep_dir / 'study.db'}"
-    # a resumed study is the one its folder records (a folder copied or moved keeps its
-    # study's name, which the default, the folder's name, would not)
-    recorded = None
-    if resumed and not s.get("study_name") and (sweep_dir / STUDY_FILE).is_file():
-        try:
-            recorded = str(OmegaConf.load(sweep_dir / STUDY_FILE).study_name)
-        except Exception:  # an unreadable record: the default name
-            recorded = None
-    name = str(s.get("study_name") or recorded or sweep_dir.name)
-    if not s.get("storage"):  # study.db in the sweep folder
-        sweep_dir.mkdir(parents=True, exist_ok=True)
-    storage = open_storage(url)
-    names = {st.study_name: st for st in optuna.get_all_study_summaries(storage)}
-    if name in names and not resumed:
-        raise ConfigError(f"a study named {name!r} is already in {hidden(url)}: continue "
-                          f"it by re-typing its command with resume=<its sweep folder>, or "
-                          f"name a new one with hydra.sweeper.study_name=<name>. Nothing "
-                          f"was changed.")
-    if resumed and name not in names:
-        raise ConfigError(f"resume={sweep_dir}: {hidden(url)} holds no study named {name!r} "
-                          f"(it holds {', '.join(map(repr, names)) or 'none'}): pass the "
-                          f"study's own folder, or name it with hydra.sweeper.study_name=.")
-    if name in names and names[name].direction.name.lower() != direction:
-        raise ConfigError(f"the study {name!r} in {hidden(url)} was made to "
-                          f"{names[name].direction.name.lower()}, not {direction}: re-type "
-                          f"its own command.")
-    trials = (optuna.load_study(study_name=name, storage=storage).get_trials(deepcopy=False)
-              if name in names else [])
-    finished = [t for t in trials if t.state.is_finished()]
-    study = optuna.create_study(storage=storage, study_name=name, direction=direction,
-                                sampler=make_sampler(dict(s.get("sampler") or {}),
-                                                     len(trials)),
-                                pruner=make_pruner(pruner), load_if_exists=True)
+    # one process runs a study at a time: a second (its command re-typed with resume=
+    # while it runs) would take its running trials for stopped ones and fail them
+    made = not sweep_dir.exists()  # by this command: removed if it is refused
     sweep_dir.mkdir(parents=True, exist_ok=True)
-    OmegaConf.save(config, sweep_dir / "multirun.yaml")
-    OmegaConf.save(OmegaConf.create({"storage": hidden(url), "study_name": name,
-                                     "direction": direction}), sweep_dir / STUDY_FILE)
-    # trials that were running when the study stopped: same number, same values, and
-    # their jobs continue their run folders (resume=)
-    queue = [(t.number, t.params) for t in trials if t.state == TrialState.RUNNING]
-    todo = n_trials - len(finished)
-    log.info("study %s in %s: %d trials done, %d to continue, %d to run", name,
-             hidden(url), len(finished), len(queue), max(todo - len(queue), 0))
+    try:
+        lock = RunLock(sweep_dir)
+        if not lock.acquire():
+            raise ConfigError(f"the study in {sweep_dir} is being run by another process "
+                              f"({lock.holder()}): wait for it to end, or stop it (Ctrl-C there) "
+                              f"and then resume it. Nothing was changed.")
+        held.append(lock)
+        if resumed:
+            check_same_study(sweep_dir, space, fixed)
+        url = s.get("storage") or f"sqlite:///{sweep_dir / 'study.db'}"
+        # a resumed study is the one its folder records (a folder copied or moved keeps its
+        # study's name, which the default, the folder's name, would not)
+        recorded = None
+        if resumed and not s.get("study_name") and (sweep_dir / STUDY_FILE).is_file():
+            try:
+                recorded = str(OmegaConf.load(sweep_dir / STUDY_FILE).study_name)
+            except Exception:  # an unreadable record: the default name
+                recorded = None
+        name = str(s.get("study_name") or recorded or sweep_dir.name)
+        storage = open_storage(url)
+        names = {st.study_name: st for st in optuna.get_all_study_summaries(storage)}
+        if name in names and not resumed:
+            raise ConfigError(f"a study named {name!r} is already in {hidden(url)}: continue "
+                              f"it by re-typing its command with resume=<its sweep folder>, or "
+                              f"name a new one with hydra.sweeper.study_name=<name>. Nothing "
+                              f"was changed.")
+        if resumed and name not in names:
+            raise ConfigError(f"resume={sweep_dir}: {hidden(url)} holds no study named {name!r} "
+                              f"(it holds {', '.join(map(repr, names)) or 'none'}): pass the "
+                              f"study's own folder, or name it with hydra.sweeper.study_name=.")
+        if name in names and names[name].direction.name.lower() != direction:
+            raise ConfigError(f"the study {name!r} in {hidden(url)} was made to "
+                              f"{names[name].direction.name.lower()}, not {direction}: re-type "
+                              f"its own command.")
+        trials = (optuna.load_study(study_name=name, storage=storage).get_trials(deepcopy=False)
+                  if name in names else [])
+        finished = [t for t in trials if t.state.is_finished()]
+        study = optuna.create_study(storage=storage, study_name=name, direction=direction,
+                                    sampler=make_sampler(dict(s.get("sampler") or {}),
+                                                         len(trials)),
+                                    pruner=make_pruner(pruner), load_if_exists=True)
+        OmegaConf.save(config, sweep_dir / "multirun.yaml")
+        OmegaConf.save(OmegaConf.create({"storage": hidden(url), "study_name": name,
+                                         "direction": direction, **study_record(space, fixed)}),
+                       sweep_dir / STUDY_FILE)
+        # trials that were running when the study stopped: same number, same values, and
+        # their jobs continue their run folders (resume=)
+        queue = [(t.number, t.params) for t in trials if t.state == TrialState.RUNNING]
+        todo = n_trials - len(finished)
+        log.info("study %s in %s: %d trials done, %d to continue, %d to run", name,
+                 hidden(url), len(finished), len(queue), max(todo - len(queue), 0))
+    except ConfigError:
+        if made:  # nothing of the study's: its storage refused it, or named another
+            shutil.rmtree(sweep_dir, ignore_errors=True)
+        raise
+    together = OmegaConf.select(config, "hydra.launcher.n_jobs")
+    if n_jobs > 1 and together is None:  # Hydra's basic launcher: one job after another
+        log.warning("hydra.sweeper.n_jobs=%d launches %d trials together, but Hydra's basic "
+                    "launcher runs them one after another in this process: add "
+                    "hydra/launcher=local_parallel hydra.launcher.n_jobs=%d to run them at "
+                    "once", n_jobs, n_jobs, n_jobs)
+    elif n_jobs == 1 and isinstance(together, int) and together != 1:
+        log.warning("hydra.launcher.n_jobs=%s, but the study launches one trial at a time "
+                    "(hydra.sweeper.n_jobs=1): set hydra.sweeper.n_jobs too to run trials "
+                    "at once", together)
     launcher = Plugins.instance().instantiate_launcher(
         hydra_context=sweeper.hydra_context,
         task_function=TrialTask(sweeper.task_function, url, name, pruner), config=config)
@@ -222,6 +264,65 @@ def _run_study(sweeper, arguments: list[str]) -> list[dict[str, Any]]:
     return results
 
 
+def study_record(space: dict[str, Any], fixed: list[str]) -> dict[str, Any]:
+    """What a resumed study must share with its first session, as ``study.yaml`` keeps
+    it: each setting of the search space with its distribution (Optuna's JSON), and the
+    settings its trials share (the command line's others, less ``resume=``, Hydra's
+    and those that cannot change results, as a plain sweep's resume compares them)."""
+    from optuna.distributions import distribution_to_json
+
+    from uabs_rl.config import folder_name_excludes, override_key
+
+    free = set(folder_name_excludes())
+    shared = sorted(w for w in fixed if (key := override_key(w)) is not None
+                    and key != "resume" and key not in free and not key.startswith("hydra"))
+    return {"space": {k: distribution_to_json(d) for k, d in sorted(space.items())},
+            "shared": shared}
+
+
+def check_same_study(sweep_dir: Path, space: dict[str, Any], fixed: list[str]) -> None:
+    """Refuse a resume whose search space or shared settings differ from those the study
+    was started with (``study.yaml``; a study recorded before it kept them is not
+    compared): Optuna fails on a changed choice after asking, leaving a trial half drawn,
+    and other settings would mix two experiments in one study."""
+    try:
+        then = OmegaConf.to_container(OmegaConf.load(sweep_dir / STUDY_FILE))
+    except Exception:  # no readable record: the storage's own checks decide
+        return
+    if not isinstance(then, dict) or "space" not in then or "shared" not in then:
+        return
+    now = study_record(space, fixed)
+    said = []
+    for key in sorted(set(then["space"]) | set(now["space"])):
+        if then["space"].get(key) != now["space"].get(key):
+            said.append(f"{key} ({_dist_text(then['space'].get(key))} then, "
+                        f"{_dist_text(now['space'].get(key))} now)")
+    gone = [w for w in then["shared"] if w not in now["shared"]]
+    new = [w for w in now["shared"] if w not in then["shared"]]
+    if gone or new:
+        said.append("the settings the trials share (" + "; ".join(part for part in (
+            f"then {' '.join(gone)}" if gone else "", f"now {' '.join(new)}" if new else "")
+            if part) + ")")
+    if said:
+        raise ConfigError(f"resume={sweep_dir} continues a study whose trials were drawn "
+                          f"and run otherwise: {'; '.join(said)}. Re-type the study's own "
+                          f"command with resume= appended (its search space and settings; "
+                          f"n_trials, n_jobs and the launcher may change), or start the "
+                          f"new one in another sweep folder. Nothing was changed.")
+
+
+def _dist_text(text: str | None) -> str:
+    """A distribution of ``study.yaml`` as a phrase: its kind and its values or range."""
+    if text is None:
+        return "not searched"
+    from optuna.distributions import json_to_distribution
+
+    d = json_to_distribution(text)
+    if hasattr(d, "choices"):
+        return f"choice({', '.join(map(str, d.choices))})"
+    return f"{'log ' if getattr(d, 'log', False) else ''}interval({d.low:g}, {d.high:g})"
+
+
 def _tell(study, number: int, ret) -> dict[str, Any]:
     """Tell the study how trial ``number``'s job ended."""
     from hydra.core.utils import JobStatus
@@ -256,7 +357,7 @@ def _print_end(study, sweep_dir: Path, url: str) -> None:
         best = study.best_trial
         value = f"{best.value:.1f}" if math.isfinite(best.value) else str(best.value)
         lines += [f"  best: trial {best.number}, validation return {value}",
-                  "  " + " ".join(trial_overrides(best.params)),
+                  "  " + " ".join(shlex.quote(o) for o in trial_overrides(best.params)),
                   f"  run folder: {sweep_dir / f'trial={best.number}'}"]
     else:
         lines.append("  no trial completed: the study has no best settings yet")

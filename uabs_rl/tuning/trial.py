@@ -54,17 +54,19 @@ class Reporter:
             self._trial = optuna.trial.Trial(study, trial_id)
         return self._trial
 
-    def __call__(self, episode: int, returns: list[float]) -> bool:
+    def __call__(self, episode: int, returns: list[float], last: bool = False) -> bool:
         """After an evaluation at ``episode``: report the members' mean validation
         return; True (stop training, the checkpoint is saved) when the pruner stops the
-        trial."""
+        trial. At the run's ``last`` evaluation its budget is spent: nothing is saved
+        by stopping it, and it completes (a pruned trial would leave the best trials
+        and the importances)."""
         import warnings
 
         trial = self.trial()
         with warnings.catch_warnings():  # a resumed trial reports its last step again
             warnings.simplefilter("ignore")
             trial.report(sum(returns) / len(returns), episode)
-        if trial.should_prune():
+        if not last and trial.should_prune():
             self.pruned_at = episode
             log.info("trial %d pruned at episode %d: its validation return is below the "
                      "other trials' at this point; its checkpoint is saved", self.number,
@@ -76,7 +78,7 @@ class Reporter:
 _current: Reporter | None = None
 
 
-def evaluation_hook() -> Callable[[int, list[float]], bool] | None:
+def evaluation_hook() -> Callable[[int, list[float], bool], bool] | None:
     """The per-evaluation callback of this job's trial, or None outside a study."""
     return _current
 
