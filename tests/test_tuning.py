@@ -183,6 +183,16 @@ def test_bad_study_inputs_are_one_line_naming_the_fix(trace_cache, tmp_path):
     line = run_refused(tmp_path, *study_args(trace_cache, 1, f"hydra.sweeper.storage={shared}",
                                              "hydra.sweeper.study_name=mine"))
     assert "a study named 'mine' is already in" in line and "resume=" in line
+    # a refused start leaves no folder it made (its parents included), and a folder that
+    # was there as it was
+    (tmp_path / "had").mkdir()
+    (tmp_path / "had" / "notes.txt").write_text("mine\n")
+    for where in ("new/a/b", "had"):
+        line = run_refused(tmp_path, *(a.replace("=study", f"={where}") for a in study_args(
+            trace_cache, 1, f"hydra.sweeper.storage={shared}", "hydra.sweeper.study_name=mine")))
+        assert "a study named 'mine' is already in" in line
+    assert not (tmp_path / "new").exists()
+    assert sorted(p.name for p in (tmp_path / "had").iterdir()) == ["notes.txt"]
     # a sampler setting added with + (as Hydra's own message suggests) was never read
     line = run_refused(tmp_path, *study_args(trace_cache, 1,
                                              "+hydra.sweeper.sampler.n_startup=3"))
@@ -248,7 +258,7 @@ def test_a_resumed_study_is_its_own_command_and_one_process_runs_it(trace_cache,
     from uabs_rl.runs.folder import RunLock
 
     args = study_args(trace_cache, 1, "train.episodes=3", "algo.lr=interval(1e-4,1e-3)",
-                      "hydra.sweeper.pruner.name=threshold",
+                      "hydra.sweeper.pruner.name=threshold", "algo.hidden=[32,32]",
                       "hydra.sweeper.pruner.lower=1e9")
     p = uabs_train_here(tmp_path, *args)
     assert p.returncode == 0, p.stderr[-3000:]
@@ -281,10 +291,21 @@ def test_a_resumed_study_is_its_own_command_and_one_process_runs_it(trace_cache,
     assert line.startswith(f"error: the study in {study} is being run by another process "
                            f"(pid {os.getpid()} on ")
     assert len(load(tmp_path).trials) == 1 and not (study / "trial=1").exists()
+    # a process that made the folder at the same moment as the study's own, and lost its
+    # lock, leaves the folder to it (before: it removed the folder, study and all)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(RunLock, "acquire", lambda self, record=True: False)
+        line = refused(*(a.replace("=study", "=race") for a in args))
+    assert "is being run by another process" in line and (tmp_path / "race").is_dir()
     assert record == {f: (study / f).read_bytes() for f in record}  # nothing changed
-    more = [a.replace("n_trials=1", "n_trials=2") for a in args]
-    p = uabs_train_here(tmp_path, *more, resume)  # the study's command, more trials
+    # the study's command, with more trials launched two at a time; a setting typed
+    # with other spaces is the same setting
+    more = [a.replace("n_trials=1", "n_trials=2").replace("[32,32]", "[32, 32]")
+            for a in args]
+    p = uabs_train_here(tmp_path, *more, "hydra.sweeper.n_jobs=2", resume)
     assert p.returncode == 0, p.stderr[-3000:]
+    assert ("hydra.sweeper.n_jobs=2 launches 2 trials together, but Hydra's basic launcher "
+            "runs them one after another") in p.stderr + p.stdout
     trials = load(tmp_path).trials
     assert [t.state for t in trials] == [optuna.trial.TrialState.COMPLETE] * 2
     from uabs_rl.cli.report import main as report

@@ -150,11 +150,15 @@ def _run_study(sweeper, arguments: list[str], held: list[RunLock]) -> list[dict[
     resumed = any(w.split("=", 1)[0] == "resume" for w in fixed)
     # one process runs a study at a time: a second (its command re-typed with resume=
     # while it runs) would take its running trials for stopped ones and fail them
-    made = not sweep_dir.exists()  # by this command: removed if it is refused
+    # the highest folder of the sweep's path this command makes: removed with what it
+    # holds if the study is refused before its trials, and only while this process holds
+    # the lock (another that made it at the same moment, and won the lock, keeps it)
+    made = next((p for p in (*reversed(sweep_dir.parents), sweep_dir) if not p.exists()),
+                None)
     sweep_dir.mkdir(parents=True, exist_ok=True)
     try:
         lock = RunLock(sweep_dir)
-        if not lock.acquire():
+        if not lock.acquire(record=False):  # its holder is named once the checks pass
             raise ConfigError(f"the study in {sweep_dir} is being run by another process "
                               f"({lock.holder()}): wait for it to end, or stop it (Ctrl-C there) "
                               f"and then resume it. Nothing was changed.")
@@ -204,11 +208,13 @@ def _run_study(sweeper, arguments: list[str], held: list[RunLock]) -> list[dict[
         log.info("study %s in %s: %d trials done, %d to continue, %d to run", name,
                  hidden(url), len(finished), len(queue), max(todo - len(queue), 0))
     except ConfigError:
-        if made:  # nothing of the study's: its storage refused it, or named another
-            shutil.rmtree(sweep_dir, ignore_errors=True)
+        if made is not None and held:  # nothing of a study's: its storage refused it
+            shutil.rmtree(made, ignore_errors=True)
         raise
+    lock.record()
     together = OmegaConf.select(config, "hydra.launcher.n_jobs")
-    if n_jobs > 1 and together is None:  # Hydra's basic launcher: one job after another
+    choices = OmegaConf.select(config, "hydra.runtime.choices") or {}
+    if n_jobs > 1 and choices.get("hydra/launcher") == "basic":  # one job after another
         log.warning("hydra.sweeper.n_jobs=%d launches %d trials together, but Hydra's basic "
                     "launcher runs them one after another in this process: add "
                     "hydra/launcher=local_parallel hydra.launcher.n_jobs=%d to run them at "
@@ -269,13 +275,17 @@ def study_record(space: dict[str, Any], fixed: list[str]) -> dict[str, Any]:
     it: each setting of the search space with its distribution (Optuna's JSON), and the
     settings its trials share (the command line's others, less ``resume=``, Hydra's
     and those that cannot change results, as a plain sweep's resume compares them)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
     from optuna.distributions import distribution_to_json
 
     from uabs_rl.config import folder_name_excludes, override_key
 
     free = set(folder_name_excludes())
-    shared = sorted(w for w in fixed if (key := override_key(w)) is not None
-                    and key != "resume" and key not in free and not key.startswith("hydra"))
+    words = [w for w in fixed if (key := override_key(w)) is not None
+             and key != "resume" and key not in free and not key.startswith("hydra")]
+    # as Hydra parses them: [32,32] and [32, 32] are one value
+    shared = sorted(f"{o.get_key_element()}={o.get_value_element_as_str()}"
+                    for o in OverridesParser.create().parse_overrides(overrides=words))
     return {"space": {k: distribution_to_json(d) for k, d in sorted(space.items())},
             "shared": shared}
 
