@@ -275,6 +275,14 @@ def test_a_resumed_study_is_its_own_command_and_one_process_runs_it(trace_cache,
     assert line.startswith(f"error: resume={study} continues a study whose trials were "
                            f"drawn and run otherwise: algo.batch_size (choice(16, 32) then, "
                            f"choice(16, 24) now)"), line
+    # a study recorded before study.yaml kept its space: the trials' own distributions
+    old = study / "study.yaml"
+    kept = old.read_text()
+    old.write_text("".join(ln for ln in kept.splitlines(keepends=True)
+                           if ln.startswith(("storage:", "study_name:", "direction:"))))
+    line = refused(*[a.replace("choice(16,32)", "choice(16,24)") for a in args], resume)
+    assert "algo.batch_size (choice(16, 32) then, choice(16, 24) now)" in line, line
+    old.write_text(kept)
     line = refused(*[a.replace("train.episodes=3", "train.episodes=9") for a in args], resume)
     assert "the settings the trials share (then train.episodes=3; now train.episodes=9)" in line
     line = refused(*[a for a in args if not a.startswith("hydra/sweeper=optuna")

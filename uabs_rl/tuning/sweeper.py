@@ -192,6 +192,8 @@ def _run_study(sweeper, arguments: list[str], held: list[RunLock]) -> list[dict[
                               f"its own command.")
         trials = (optuna.load_study(study_name=name, storage=storage).get_trials(deepcopy=False)
                   if name in names else [])
+        if resumed:  # a study recorded before study.yaml kept its space: its trials'
+            check_trial_space(sweep_dir, trials, space)
         finished = [t for t in trials if t.state.is_finished()]
         study = optuna.create_study(storage=storage, study_name=name, direction=direction,
                                     sampler=make_sampler(dict(s.get("sampler") or {}),
@@ -319,6 +321,24 @@ def check_same_study(sweep_dir: Path, space: dict[str, Any], fixed: list[str]) -
                           f"command with resume= appended (its search space and settings; "
                           f"n_trials, n_jobs and the launcher may change), or start the "
                           f"new one in another sweep folder. Nothing was changed.")
+
+
+def check_trial_space(sweep_dir: Path, trials: list, space: dict[str, Any]) -> None:
+    """Refuse a resume whose search space gives a setting another distribution than the
+    study's trials were drawn from (Optuna keeps each trial's): what
+    :func:`check_same_study` says of a study recorded before ``study.yaml`` kept it."""
+    from optuna.distributions import distribution_to_json
+
+    for t in trials:
+        for key, d in t.distributions.items():
+            then, now = distribution_to_json(d), space.get(key)
+            if now is not None and distribution_to_json(now) != then:
+                raise ConfigError(
+                    f"resume={sweep_dir} continues a study whose trials were drawn and run "
+                    f"otherwise: {key} ({_dist_text(then)} then, "
+                    f"{_dist_text(distribution_to_json(now))} now). Re-type the study's own "
+                    f"command with resume= appended, or start the new one in another sweep "
+                    f"folder. Nothing was changed.")
 
 
 def _dist_text(text: str | None) -> str:
