@@ -5,6 +5,7 @@ hook, so that a study that read a test trace fails."""
 from __future__ import annotations
 
 import csv
+import importlib.util
 import json
 import os
 import shutil
@@ -178,6 +179,14 @@ def test_bad_study_inputs_are_one_line_naming_the_fix(trace_cache, tmp_path):
     assert "algo.lrate is not a setting" in line and "did you mean algo.lr" in line
     line = run_refused(tmp_path, *study_args(trace_cache, 1, "hydra.sweeper.storage=nosuch://x"))
     assert "hydra.sweeper.storage=nosuch://x cannot be opened" in line
+    from uabs_rl.config import ConfigError
+    from uabs_rl.tuning.sweeper import open_storage
+
+    if importlib.util.find_spec("psycopg2") is None:  # the database's driver, named
+        with pytest.raises(ConfigError, match=r"^hydra.sweeper.storage=postgresql://u:\*\*\*@"
+                                              r"h/db: the postgresql driver is not installed: "
+                                              r"pip install psycopg2-binary \(or name one"):
+            open_storage("postgresql://u:pw@h/db")
     shared = f"sqlite:///{tmp_path / 'shared.db'}"
     optuna.create_study(study_name="mine", storage=shared)
     line = run_refused(tmp_path, *study_args(trace_cache, 1, f"hydra.sweeper.storage={shared}",

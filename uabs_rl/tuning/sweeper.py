@@ -60,6 +60,11 @@ def make_sampler(spec: dict[str, Any], done: int):
                       f"{', '.join(SAMPLERS)}.")
 
 
+# the Python package of the default SQLAlchemy driver of each database
+DRIVERS = {"postgresql": "psycopg2-binary", "mysql": "mysqlclient", "mariadb": "mysqlclient",
+           "oracle": "oracledb", "mssql": "pyodbc"}
+
+
 def open_storage(url: str):
     """Optuna's RDB storage at ``url``; a URL that names no database it can open is one
     line naming the setting."""
@@ -67,6 +72,14 @@ def open_storage(url: str):
 
     try:
         return optuna.storages.RDBStorage(url)
+    except ImportError:  # the database's driver: SQLAlchemy's dialect names it
+        dialect = url.split(":", 1)[0]
+        base, _, named = dialect.partition("+")  # mysql+pymysql://: the driver named
+        driver = named or DRIVERS.get(base, "its SQLAlchemy driver")
+        raise ConfigError(f"hydra.sweeper.storage={hidden(url)}: the {dialect} driver is not "
+                          f"installed: pip install {driver}"
+                          + ("" if named else f" (or name one in the URL: {base}+<driver>://)")
+                          + ".") from None
     except Exception as e:  # sqlalchemy's and optuna's own errors, of many kinds
         first = (str(e).strip().splitlines() or [type(e).__name__])[0]
         raise ConfigError(f"hydra.sweeper.storage={hidden(url)} cannot be opened ({first}): "
