@@ -33,6 +33,7 @@ from uabs_rl.config import (
     global_package,
     keys_with_role,
     option_bases,
+    option_file,
     override_key,
     sections_with_role,
     to_container,
@@ -83,10 +84,9 @@ OBS_KEYS = ("scenario.n_uabs", "channel.n_beams")
 
 def _group_file(group: str, option: str, config_dirs: list[Path]) -> Path:
     check_config_dirs([Path(d) for d in config_dirs], [(group, option)])
-    for d in (*config_dirs, CONF_DIR):
-        f = Path(d) / group / f"{option}.yaml"
-        if f.is_file():
-            return f
+    found = option_file([*config_dirs, CONF_DIR], group, option)
+    if found is not None:
+        return found
     looked = ", ".join(str(Path(d) / group) for d in (*config_dirs, CONF_DIR))
     options = sorted({f.stem for d in (*config_dirs, CONF_DIR)
                       for f in (Path(d) / group).glob("*.yaml")})
