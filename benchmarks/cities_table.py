@@ -47,6 +47,7 @@ from pathlib import Path
 
 import numpy as np
 
+from uabs_rl.cli import one_line_errors
 from uabs_rl.evaluation.baselines import MPC as MPC_NAME
 from uabs_rl.evaluation.baselines import PLANNER, policy_label
 from uabs_rl.evaluation.stats import paired_difference, paired_over_seeds
@@ -182,9 +183,12 @@ def over_windows(values: list[list[float]] | None, mpc: list[float]) -> str:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("root", type=Path, help="docs/results/planning_vs_learning")
     args = ap.parse_args()
+    if not (args.root / "cities").is_dir():
+        ap.error(f"{args.root} holds no cities/ folder: give the folder of "
+                 f"docs/results/planning_vs_learning's layout (cities/, rounds/)")
     learned_csv = args.root / "cities/table.csv"
     learned = ({(r["city"], int(r["M"])): r for r in csv.DictReader(open(learned_csv))}
                if learned_csv.exists() else {})
@@ -271,4 +275,4 @@ def markdown(title: str, header: list[str], rows: list[list[str]],
 
 
 if __name__ == "__main__":
-    main()
+    one_line_errors(main)

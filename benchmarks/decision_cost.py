@@ -30,11 +30,18 @@ from pathlib import Path
 
 import torch
 
+from uabs_rl.cli import one_line_errors
+from uabs_rl.cli.evaluate import CHOICES
+from uabs_rl.evaluation.baselines import MPC, PLANNER
+from uabs_rl.evaluation.hybrid import HYBRID
+from uabs_rl.evaluation.leaf import LEAF
 from uabs_rl.evaluation.load import evaluate_policies, load_evaluation
+
+SEARCHES = (MPC, PLANNER, HYBRID, LEAF)  # the policies that search: a horizon, beam, rounds
 
 
 def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("run", type=Path, help="a run folder (one member)")
     ap.add_argument("overrides", nargs="*", help="world overrides, as uabs-eval takes them")
     ap.add_argument("--policies", nargs="+", default=["mpc", "leaf", "learned"])
@@ -47,6 +54,11 @@ def main(argv: list[str] | None = None) -> None:
     specs = {}  # name:H[:all][:bB][:rR] -> (name, H, whether the search is cut, beam, rounds)
     for spec in args.policies:
         name, *rest = spec.split(":")
+        if name not in CHOICES:
+            ap.error(f"{spec}: {name!r} is not a policy: one of {', '.join(CHOICES)}")
+        if rest and name not in SEARCHES:
+            ap.error(f"{spec}: {name} searches nothing, so takes no horizon, beam or rounds "
+                     f"(those of {', '.join(SEARCHES)})")
         h = rest.pop(0) if rest else ""
         if h and not (h.isdigit() and int(h) >= 1):
             ap.error(f"{spec}: the horizon after ':' must be an integer >= 1")
@@ -79,4 +91,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    one_line_errors(main)

@@ -40,7 +40,7 @@ def denormal_share(checkpoint: str) -> None:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--members", type=int, default=1, help="stacked networks (population)")
     ap.add_argument("--share", type=float, default=0.25, help="share of denormal moments")
     ap.add_argument("--obs-dim", type=int, default=18)

@@ -91,7 +91,7 @@ def bench_mode(mode: str, n_envs: int, episodes: int, scenario, channel, traces,
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--n-envs", type=int, nargs="+", default=[1, 64, 1024])
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--episodes", type=int, default=5)

@@ -42,6 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
+from uabs_rl.cli import one_line_errors
 from uabs_rl.config import ConfigError
 from uabs_rl.evaluation.baselines import passes_text
 from uabs_rl.evaluation.load import evaluate_policies, load_evaluation
@@ -224,6 +225,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--mpc-rounds", type=int, metavar="R",
                     help=f"with --mpc: its passes over the fleet (default {ROUNDS})")
     args = ap.parse_args(argv)
+    if args.mpc is not None and args.mpc < 1:  # not a table without its mpc, silently
+        ap.error(f"--mpc H must be >= 1, got {args.mpc}")
     if (args.mpc_beam, args.mpc_rounds) != (None, None) and not args.mpc:
         raise SystemExit("--mpc-beam and --mpc-rounds set the search of --mpc H: give "
                          "--mpc H too")
@@ -316,4 +319,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    one_line_errors(main)

@@ -123,7 +123,7 @@ def learned_gap(rows: list[dict]) -> list[dict]:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--modes", nargs="+", default=["flat", "rank"])
     ap.add_argument("--fleets", type=int, nargs="+", default=[3, 6])
     ap.add_argument("--horizons", type=int, nargs="+", default=[5, 10, 20])

@@ -48,13 +48,14 @@ from pathlib import Path
 
 import numpy as np
 
+from uabs_rl.cli import one_line_errors
 from uabs_rl.config import ConfigError
 from uabs_rl.evaluation.baselines import passes_text
 from uabs_rl.evaluation.hybrid import HYBRID
 from uabs_rl.evaluation.leaf import LEAF
 from uabs_rl.evaluation.load import Evaluation, evaluate_policies, load_evaluation
 from uabs_rl.evaluation.planner import BEAM, ROUNDS
-from uabs_rl.evaluation.predict import parse_sees
+from uabs_rl.evaluation.predict import PREDICTORS, parse_sees
 from uabs_rl.evaluation.stats import paired_over_seeds, t_interval, welch_difference
 from uabs_rl.runs.layout import RunFolder
 
@@ -120,7 +121,7 @@ def compare(a: Path, b: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("run", type=Path, nargs="?", help="a run folder or a population's folder")
     ap.add_argument("overrides", nargs="*", help="world overrides, as uabs-eval takes them")
     ap.add_argument("--weights", type=float, nargs="+", default=[0.0, 0.25, 0.5, 1.0, 2.0])
@@ -138,7 +139,7 @@ def main(argv: list[str] | None = None) -> None:
                          f"(default {ROUNDS})")
     ap.add_argument("--hybrid-rounds", type=int,
                     help="the hybrid's own (default: --mpc-rounds)")
-    ap.add_argument("--predictor", default="cv")
+    ap.add_argument("--predictor", default="cv", choices=PREDICTORS)
     ap.add_argument("--sees", default="all")
     ap.add_argument("--eval-windows", type=int, help="validation windows (default: all)")
     ap.add_argument("--leaf", action="store_true",
@@ -155,10 +156,14 @@ def main(argv: list[str] | None = None) -> None:
     args.sees = parse_sees(args.sees)
     if any(not w >= 0 for w in args.weights):
         ap.error("--weights must be >= 0")
+    if args.mpc_horizon < 1:
+        ap.error("--mpc-horizon must be >= 1")
     if args.hybrid_horizon is None:
         args.hybrid_horizon = args.mpc_horizon
     if args.hybrid_horizon < 1:
         ap.error("--hybrid-horizon must be >= 1")
+    if args.eval_windows is not None and args.eval_windows < 1:
+        ap.error("--eval-windows must be >= 1 (or left out: every validation window)")
     if args.hybrid_beam is None:
         args.hybrid_beam = args.mpc_beam
     if min(args.mpc_beam, args.hybrid_beam) < 1:
@@ -168,6 +173,13 @@ def main(argv: list[str] | None = None) -> None:
     if min(args.mpc_rounds, args.hybrid_rounds) < 1:
         ap.error("--mpc-rounds and --hybrid-rounds must be >= 1")
     runs = RunFolder(args.run).members()
+    for run in runs:  # each member loaded (its overrides applied) before --out is made
+        key = (run, "eval", args.eval_windows)
+        try:
+            LOADED[key] = load_evaluation(run, "best", args.eval_windows, "eval",
+                                          args.overrides)
+        except ConfigError as e:  # a setting the run cannot take, in one line
+            sys.exit(f"error: {run}: {e}")
     args.out.mkdir(parents=True, exist_ok=True)
     log = open(args.out / "log.txt", "w")
 
@@ -220,8 +232,11 @@ def main(argv: list[str] | None = None) -> None:
         diffs = {k: paired_over_seeds([r[v] for r in recs], [fixed["mpc"][v]] * len(recs))
                  for k, v in METRICS.items()}
         out["policies"][name]["minus_mpc"] = diffs
-        rows.append((name, t_interval(seed_means["served"]), t_interval(seed_means["pg"]),
-                     diffs["served"], diffs["pg"],
+        # over the members' means; one member's over its windows (not a zero width)
+        spread = {k: seed_means[k] if len(recs) > 1 else recs[0][v]
+                  for k, v in METRICS.items()}
+        rows.append((hybrid if name == "hybrid" else name, t_interval(spread["served"]),
+                     t_interval(spread["pg"]), diffs["served"], diffs["pg"],
                      float(np.mean([r["ms_per_decision"] for r in recs]))))
     n = len(runs)
     say("")
@@ -243,13 +258,14 @@ def main(argv: list[str] | None = None) -> None:
         say(f"| {name} | {cell(served)} | {cell(pg)} | {ci(ds) if ds else '—'} | "
             f"{ci(dp) if dp else '—'} | {ms:.2f} |")
     say("")
-    say("greedy and mpc: CI over the windows; learned and hybrid: over the members' "
+    say(f"greedy and mpc: CI over the windows; learned and {hybrid}: over the members' "
         "means; − mpc: each member's mean paired difference over the windows, Student-t "
-        f"over {n} members" if n > 1 else "over the windows of the one member")
+        f"over {n} members" if n > 1 else f"CIs over the windows (one member: learned and "
+        f"{hybrid} too, and − mpc paired over the windows)")
     say(f"{time.perf_counter() - t0:.0f} s")
     (args.out / "hybrid.json").write_text(json.dumps(out, indent=1))
     log.close()
 
 
 if __name__ == "__main__":
-    main()
+    one_line_errors(main)

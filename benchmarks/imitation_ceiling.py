@@ -103,7 +103,7 @@ def fit(net: torch.nn.Module, obs, mask, best, steps: list[int], seed: int, repo
 
 
 def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("run", type=Path, help="a run folder (a population's member)")
     ap.add_argument("--horizon", type=int, default=5, help="the teacher planner's H")
     ap.add_argument("--windows", type=int, default=96, help="training windows flown")

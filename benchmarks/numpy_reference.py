@@ -146,7 +146,7 @@ def check_equal(env: UABSEnv, twin: UABSEnv, ref: NumpyStep, episodes: int,
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--episodes", type=int, default=3, help="episodes compared for equality")
     ap.add_argument("--repeats", type=int, default=7, help="timed episodes per variant")
     ap.add_argument("--no-compile", dest="compile", action="store_false",

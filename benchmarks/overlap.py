@@ -57,7 +57,7 @@ def flown(ev, policy) -> tuple[float, float]:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("run", type=Path, help="a population's folder (or one run folder)")
     ap.add_argument("--mpc-horizon", type=int, default=5)
     args = ap.parse_args()

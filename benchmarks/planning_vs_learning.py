@@ -66,6 +66,7 @@ from pathlib import Path
 
 import torch
 
+from uabs_rl.cli import one_line_errors
 from uabs_rl.config import compose
 from uabs_rl.evaluation.baselines import (
     MPC,
@@ -240,7 +241,7 @@ def paired_learned(rows: list[dict], hybrid_dir: Path, log) -> None:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--modes", nargs="+", default=["rank"])
     ap.add_argument("--fleets", type=int, nargs="+", default=[3])
     ap.add_argument("--horizons", type=int, nargs="+", default=[1, 5], help="the mpc's")
@@ -268,6 +269,9 @@ def main() -> None:
         ap.error("--learned goes with --paired DIR")
     # each width and number of passes once, the default among them: the others are
     # paired with it
+    for flag in ("horizons", "ceiling"):
+        if min(getattr(args, flag)) < 1:
+            ap.error(f"--{flag} must be >= 1, got {min(getattr(args, flag))}")
     for flag, default in (("beams", BEAM), ("rounds", ROUNDS)):
         values = getattr(args, flag)
         if min(values) < 1:
@@ -318,4 +322,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    one_line_errors(main)

@@ -31,7 +31,7 @@ def step_transitions(n: int, m: int, obs_dim: int) -> dict[str, torch.Tensor]:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--agents", type=int, default=3)
     ap.add_argument("--obs-dim", type=int, default=18)
     ap.add_argument("--n-envs", type=int, default=1)

@@ -42,7 +42,7 @@ def run(m: int, mode: str, recoverable: bool, envs: int, steps: int,
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--fleets", type=int, nargs="+", default=[3, 6, 8])
     ap.add_argument("--modes", nargs="+", default=["flat", "rank"])
     ap.add_argument("--envs", type=int, default=128)

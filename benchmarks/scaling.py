@@ -77,7 +77,7 @@ def training_rate(n_envs: int, device: str, rounds: int) -> tuple[float, float]:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--out", type=Path, default=Path("scaling.png"))
     ap.add_argument("--n-envs", type=int, nargs="+", default=[1, 16, 64, 256, 1024])

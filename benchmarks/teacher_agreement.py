@@ -61,7 +61,7 @@ def agreement(run: Path, horizon: int, split: str) -> tuple[float, int]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("runs", type=Path, nargs="+")
     ap.add_argument("--horizon", type=int, default=5, help="the teacher planner's H")
     ap.add_argument("--split", default="eval", choices=("eval", "test"))

@@ -290,7 +290,7 @@ def compare_threads(overrides: list[str], n_episodes: int, busy: bool, turns: in
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--episodes", type=int, default=30)
     ap.add_argument("--threads", action="store_true",
                     help="compare the default thread count with train.threads=1, 2, ...")

@@ -5,7 +5,11 @@ names, every guarantee kept, and the rows written with their settings."""
 from __future__ import annotations
 
 import json
+import subprocess
 import sys
+from pathlib import Path
+
+import pytest
 
 from tests.conftest import load_benchmark
 
@@ -50,3 +54,33 @@ def test_each_mpc_is_flown_with_the_beam_and_passes_its_row_names(trace_cache, m
     table = (tmp_path / "table.csv").read_text().splitlines()
     assert table[0].startswith("scenario,mode,n_uabs,policy,horizon,beam,rounds,")
     assert table[1].startswith("manhattan,rank,3,greedy,1,,,")
+
+
+@pytest.mark.parametrize("script,args,said", [
+    ("decision_cost", ["RUN", "--policies", "mcp"], "'mcp' is not a policy: one of learned"),
+    ("decision_cost", ["RUN", "--policies", "greedy:5"],
+     "greedy searches nothing, so takes no horizon, beam or rounds"),
+    ("decision_cost", ["NOWHERE", "--policies", "greedy"], "error: no checkpoint at NOWHERE"),
+    ("hybrid", ["RUN", "--out", "OUT", "--predictor", "rod"], "invalid choice: 'rod'"),
+    ("hybrid", ["RUN", "--out", "OUT", "--mpc-horizon", "0"], "--mpc-horizon must be >= 1"),
+    ("hybrid", ["RUN", "--out", "OUT", "--eval-windows", "0"], "--eval-windows must be >= 1"),
+    ("hybrid", ["NOWHERE", "--out", "OUT"], "error: no checkpoint at NOWHERE"),
+    ("planning_vs_learning", ["--horizons", "0"], "--horizons must be >= 1, got 0"),
+    ("generalization", ["RUN", "--mpc", "0", "--at", "grid6:3"], "--mpc H must be >= 1"),
+    ("cities_table", ["NOWHERE"], "NOWHERE holds no cities/ folder"),
+])
+def test_the_benchmarks_answer_bad_inputs_in_one_line(tmp_path, script, args, said):
+    """What a user mistypes in the comparison scripts (before: tracebacks, a wrong flag
+    named, a table silently without its mpc, an empty table with status 0, a log left in
+    --out): one line, status 2, nothing written."""
+    run = tmp_path / "run"
+    run.mkdir()
+    words = [str(run) if a == "RUN" else str(tmp_path / "out") if a == "OUT" else
+             str(tmp_path / "nowhere") if a == "NOWHERE" else a for a in args]
+    said = said.replace("NOWHERE", str(tmp_path / "nowhere"))
+    p = subprocess.run([sys.executable, f"benchmarks/{script}.py", *words],
+                       capture_output=True, text=True, timeout=120,
+                       cwd=Path(__file__).resolve().parents[1])
+    assert p.returncode == 2 and said in p.stderr, p.stderr[-2000:]
+    assert "Traceback" not in p.stderr and said in p.stderr.strip().splitlines()[-1]
+    assert not (tmp_path / "out").exists()
