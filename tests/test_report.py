@@ -268,6 +268,16 @@ def test_planner_places_each_group_on_the_greedy_to_planner_scale(sweep, tmp_pat
             assert r["gap_share"] == "nan"
     md = (out / "learned_vs_baselines.md").read_text()
     assert "learned share of the greedy-to-planner gap" in md
+    assert "(learned − greedy's interval divided by the gap;" in md  # its method named
+    # the summary prints each baseline's level as learned_vs_baselines.md does (the mean
+    # of its per-window values: the record's float32 mean could round to another digit)
+    summary = (out / "summary.md").read_text()
+    for mode in ("penalty", "rank"):
+        block = next(b for b in md.split("\n## ")[1:] if b.startswith(mode))
+        level = next(ln for ln in block.splitlines()
+                     if ln.startswith("| served fraction | greedy |")).split(" | ")[3]
+        row = next(ln for ln in summary.splitlines() if ln.startswith(f"| greedy ({mode} masks)"))
+        assert row.split(" | ")[5] == level, (row, level)
     assert "planner H=2 on" in capsys.readouterr().err  # its cost, per panel
     with pytest.raises(SystemExit) as refused:  # the planner needs the test evaluation
         report_main([str(sweep), "--no-baselines", "--planner", "2"])

@@ -136,9 +136,13 @@ def baselines_section(grouping: Grouping, baselines: dict[str, dict],
              "",
              f"| policy | R | collisions | proximity | fallbacks | served | {pg} |",
              "|---|---|---|---|---|---|---|"]
+    # the mean of the per-window values, as learned_vs_baselines.md computes it (the
+    # record's own float32 mean may round to the other side of a printed digit)
+    level = {n: {k: float(np.nanmean(b[f"{k}s"])) if f"{k}s" in b else b[k]
+                 for k in ("served_fraction", "pg")} for n, b in baselines.items()}
     lines += [f"| {n} | {b['return']:.0f} | {b['collisions']:.0f} | {b['proximity']:.0f}"
-              f" | {b['fallbacks']:.0f} | {100 * b['served_fraction']:.1f} % | "
-              f"{100 * b['pg']:.1f} % |" for n, b in baselines.items()]
+              f" | {b['fallbacks']:.0f} | {100 * level[n]['served_fraction']:.1f} % | "
+              f"{100 * level[n]['pg']:.1f} % |" for n, b in baselines.items()]
     sep = ", " if grouping.by_mode_only else "; "
     learned = {m: float(np.mean([learned_record(run, tests)["served_fraction"] for run in runs]))
                for m, runs in grouping.groups.items()}

@@ -135,14 +135,15 @@ def learned_vs_baselines(grouping: Grouping, tests: dict[Path, dict]) -> list[di
                     "mode": runs[0].mode, "algo": runs[0].settings["algo.name"],
                     "n_uabs": int(runs[0].settings["scenario.n_uabs"]),
                     "config": runs[0].label, "metric": metric, "baseline": base,
-                    "learned": float(np.mean([np.mean(r["learned"][k]) for r in per_seed])),
+                    "learned": float(np.mean([np.nanmean(r["learned"][k]) for r in per_seed])),
                     "diff": d["diff"], "ci_low": d["ci_low"], "ci_high": d["ci_high"],
                     "method": d["method"],
-                    "baseline_value": float(np.mean([np.mean(r[base][k]) for r in per_seed])),
+                    "baseline_value": float(np.mean([np.nanmean(r[base][k])
+                                                     for r in per_seed])),
                     "n_seeds": len(per_seed), "group": group,
                     "nhat": int(runs[0].settings["scenario.nhat_s"])})
                 if planner is not None and base == "greedy" and metric != "return":
-                    rows[-1].update(_gap_share(rows[-1], float(np.mean(planner[k]))))
+                    rows[-1].update(_gap_share(rows[-1], float(np.nanmean(planner[k]))))
     return rows
 
 
@@ -204,7 +205,11 @@ def learned_vs_baselines_markdown(rows: list[dict[str, Any]], common: str = "",
         text += "".join(
             f"\n{METRIC_NAMES[r['metric']].format(nhat=r['nhat'])}: planner "
             f"{fmt_level(r['metric'], r['planner_value'])}; learned share of the "
-            f"greedy-to-planner gap {fmt_share(r)}.\n" for r in rs if "gap_share" in r)
+            f"greedy-to-planner gap {fmt_share(r)}"
+            + ("" if np.isnan(r["gap_share"]) else
+               " (learned − greedy's interval divided by the gap; uabs-eval's, over one "
+               "run's windows, is a bootstrap)")
+            + ".\n" for r in rs if "gap_share" in r)
     return text
 
 
