@@ -18,6 +18,7 @@ from pathlib import Path
 
 import torch
 
+from uabs_rl.cli import one_line_errors
 from uabs_rl.env.service import move_scores
 from uabs_rl.env.uabs_env import ACTION, POSITION
 from uabs_rl.evaluation.load import load_evaluation
@@ -53,4 +54,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    one_line_errors(main)

@@ -26,6 +26,7 @@ from pathlib import Path
 import torch
 from tensordict.nn import TensorDictSequential
 
+from uabs_rl.cli import one_line_errors
 from uabs_rl.config import compose
 from uabs_rl.evaluation.baselines import baseline_policy
 from uabs_rl.evaluation.evaluator import Evaluator, make_eval_env
@@ -165,4 +166,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    one_line_errors(main)

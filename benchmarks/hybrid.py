@@ -81,8 +81,8 @@ def flown(run: Path, policies: tuple[str, ...], split: str, windows: int | None,
                                 mpc_horizon=horizon or args.mpc_horizon,
                                 predictor=args.predictor, sees=args.sees, hybrid_weight=weight,
                                 beam=beam or args.mpc_beam, rounds=rounds or args.mpc_rounds)
-    except ConfigError as e:  # a setting the run cannot take, in one line
-        sys.exit(f"error: {run}: {e}")
+    except ConfigError as e:  # a setting the run cannot take: one line, status 2
+        raise ConfigError(f"{run}: {e}") from None
     recs = {name: rec for name, (rec, _) in out.items()}
     for name, rec in recs.items():  # the masks' guarantees, checked for every rollout
         unsafe = rec["collisions"] + rec["proximity"] + rec["fallbacks"]
@@ -90,6 +90,11 @@ def flown(run: Path, policies: tuple[str, ...], split: str, windows: int | None,
             sys.exit(f"{run} {name} on {split}: {rec['collisions']} collisions, "
                      f"{rec['proximity']} proximity events, {rec['fallbacks']} fallbacks")
     return recs
+
+
+def finite(values: list[float]) -> list[float]:
+    """The windows that hold a vehicle (the others are NaN): an interval over windows."""
+    return [x for x in values if not np.isnan(x)]
 
 
 def pct(x: float) -> str:
@@ -178,8 +183,8 @@ def main(argv: list[str] | None = None) -> None:
         try:
             LOADED[key] = load_evaluation(run, "best", args.eval_windows, "eval",
                                           args.overrides)
-        except ConfigError as e:  # a setting the run cannot take, in one line
-            sys.exit(f"error: {run}: {e}")
+        except ConfigError as e:  # a setting the run cannot take: one line, status 2
+            raise ConfigError(f"{run}: {e}") from None
     args.out.mkdir(parents=True, exist_ok=True)
     log = open(args.out / "log.txt", "w")
 
@@ -222,7 +227,7 @@ def main(argv: list[str] | None = None) -> None:
         rec = fixed[name]
         out["policies"][name] = {k: rec[v] for k, v in METRICS.items()} | {
             "ms_per_decision": rec["ms_per_decision"]}
-        rows.append((name, *(t_interval(rec[v]) for v in METRICS.values()),
+        rows.append((name, *(t_interval(finite(rec[v])) for v in METRICS.values()),
                      None, None, rec["ms_per_decision"]))
     for name in ("learned", "hybrid"):
         recs = [m[name] for m in per_member]
@@ -233,7 +238,7 @@ def main(argv: list[str] | None = None) -> None:
                  for k, v in METRICS.items()}
         out["policies"][name]["minus_mpc"] = diffs
         # over the members' means; one member's over its windows (not a zero width)
-        spread = {k: seed_means[k] if len(recs) > 1 else recs[0][v]
+        spread = {k: seed_means[k] if len(recs) > 1 else finite(recs[0][v])
                   for k, v in METRICS.items()}
         rows.append((hybrid if name == "hybrid" else name, t_interval(spread["served"]),
                      t_interval(spread["pg"]), diffs["served"], diffs["pg"],

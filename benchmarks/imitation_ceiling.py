@@ -34,6 +34,7 @@ from pathlib import Path
 import torch
 
 from uabs_rl.algorithms import Dims, algorithm_class
+from uabs_rl.cli import one_line_errors
 from uabs_rl.env.uabs_env import MASK, OBS, window_count
 from uabs_rl.evaluation.evaluator import make_eval_env
 from uabs_rl.evaluation.load import load_evaluation
@@ -150,4 +151,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    one_line_errors(main)

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from uabs_rl.cli import one_line_errors
 from uabs_rl.env.service import vehicles_at
 from uabs_rl.evaluation.baselines import MPC, baseline_policy, policy_label
 from uabs_rl.evaluation.load import load_evaluation
@@ -91,4 +92,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    one_line_errors(main)

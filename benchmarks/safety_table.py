@@ -14,6 +14,7 @@ import argparse
 
 import torch
 
+from uabs_rl.cli import one_line_errors
 from uabs_rl.config import ConfigError, compose
 from uabs_rl.safety.make import make_env, make_selector
 from uabs_rl.traces.build import get_traces
@@ -65,4 +66,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    one_line_errors(main)

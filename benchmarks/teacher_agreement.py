@@ -22,6 +22,7 @@ from pathlib import Path
 
 import torch
 
+from uabs_rl.cli import one_line_errors
 from uabs_rl.env.uabs_env import ACTION, MASK, window_count
 from uabs_rl.evaluation.load import find_checkpoint, load_evaluation
 from uabs_rl.runs.checkpoint import config_from_checkpoint, load_checkpoint
@@ -79,4 +80,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    one_line_errors(main)

@@ -202,6 +202,21 @@ def test_bad_study_inputs_are_one_line_naming_the_fix(trace_cache, tmp_path):
         assert "a study named 'mine' is already in" in line
     assert not (tmp_path / "new").exists()
     assert sorted(p.name for p in (tmp_path / "had").iterdir()) == ["notes.txt"]
+    # a folder another process put beside the sweep's meanwhile stays (before: the
+    # highest folder this command made was removed, with what others had put in it)
+    from uabs_rl.tuning import sweeper
+
+    def beside_then_refuse(url):
+        (tmp_path / "new2" / "a" / "theirs").mkdir(parents=True)
+        raise ConfigError("refused")
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(sweeper, "open_storage", beside_then_refuse)
+        line = run_refused(tmp_path, *(a.replace("=study", "=new2/a/b") for a in study_args(
+            trace_cache, 1)))
+    assert line == "error: refused"
+    assert (tmp_path / "new2" / "a" / "theirs").is_dir()
+    assert not (tmp_path / "new2" / "a" / "b").exists()
     # a sampler setting added with + (as Hydra's own message suggests) was never read
     line = run_refused(tmp_path, *study_args(trace_cache, 1,
                                              "+hydra.sweeper.sampler.n_startup=3"))

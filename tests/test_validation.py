@@ -186,16 +186,21 @@ def test_every_default_and_preset_validates():
                         f"{group}={option}"])))
 
 
-def test_a_group_option_whose_file_does_not_name_itself_is_refused(tmp_path, trace_cache):
-    """A masking (channel, scenario, ...) option of --config-dir's whose file sets no
-    mode (name), nor does an option it builds on, would run rank masks in a folder and
-    under labels that say its own name: uabs-train refuses it before any folder (a
-    sweep: before any job), uabs-eval likewise. A file that sets the key is a variant the
-    user chose (rank's mode with another setting), as is the key typed on the command
-    line, a preset's value over the option's, and a resumed run's own settings."""
+def test_a_group_option_whose_file_does_not_name_itself_is_refused(tmp_path, trace_cache,
+                                                                     monkeypatch):
+    """An option named as a registered channel model (mode, learner) whose file sets no
+    name (nor does an option it builds on) would run uma under that model's name:
+    uabs-train refuses it before any folder (a sweep: before any job), uabs-eval
+    likewise. An option of another name is a variant of what it composes, as it always
+    was (a file with settings alone, or one that sets the key, or builds on an option
+    that does); the key typed on the command line is the user's choice; a resumed run's
+    settings are its own."""
+    from uabs_rl.env import channel as ch
+
     mine = tmp_path / "myconf"
-    for group in ("masking", "scenario", "experiment"):
+    for group in ("masking", "scenario", "channel"):
         (mine / group).mkdir(parents=True)
+    (mine / "channel" / "umi.yaml").write_text("snr_threshold_db: 20\n")
     (mine / "masking" / "careful.yaml").write_text("recoverable: true\n")
     (mine / "masking" / "rank_boundary.yaml").write_text("mode: rank\n"
                                                          "rank_next_mask: boundary\n")
@@ -203,47 +208,49 @@ def test_a_group_option_whose_file_does_not_name_itself_is_refused(tmp_path, tra
     (mine / "scenario" / "mygrid.yaml").write_text("name: mygrid\n")
     (mine / "scenario" / "dense.yaml").write_text("defaults: [mygrid]\n"
                                                   "sumo: {fleet_size: 120}\n")
-    (mine / "experiment" / "wide.yaml").write_text(
-        "# @package _global_\ndefaults: [smoke]\nobs: {name: wide, frame: egocentric}\n")
+    (mine / "scenario" / "hdr.yaml").write_text("# my variant\n# @package _global_\n"
+                                                "name: hdr\n")  # not Hydra's header
+    from uabs_rl.cli.hydra import check_composition
+
+    # not registered: a variant of uma (as at every earlier version)
+    check_composition("config", ["--config-dir", str(mine), "channel=umi"])
+    monkeypatch.setitem(ch.CHANNELS, "umi", ch.UMa)  # the user's new model, registered
     out = tmp_path / "runs"
     base = ["--config-dir", str(mine), f"traces.cache_dir={trace_cache}",
-            "train.progress=false"]
-    said = (f"masking=careful: its file ({mine / 'masking' / 'careful.yaml'}) sets no mode, "
-            f"nor does an option it builds on, so it would run rank under careful's name. "
-            f"Add the line 'mode: careful' to it")
-    for extra in (["experiment=smoke", "masking=careful", f"hydra.run.dir={out / 'one'}"],
-                  ["experiment=smoke", "masking=careful", "seed=0,1",
-                   f"hydra.sweep.dir={out / 'sweep'}"],
-                  ["experiment=smoke", "masking=rank,careful", f"hydra.sweep.dir={out / 's'}"]):
+            "train.progress=false", "experiment=smoke"]
+    said = (f"channel=umi: its file ({mine / 'channel' / 'umi.yaml'}) sets no name, nor "
+            f"does an option it builds on, so it would run uma under the name of the "
+            f"registered umi. Add the line 'name: umi' to it.")
+    for extra in (["channel=umi", f"hydra.run.dir={out / 'one'}"],
+                  ["channel=umi", "seed=0,1", f"hydra.sweep.dir={out / 'sweep'}"],
+                  ["channel=uma,umi", f"hydra.sweep.dir={out / 's'}"]):
         sweep = ["-m"] if any("," in e for e in extra) else []
         r = run_command("train", *sweep, *base, *extra)
         assert r.returncode == 2 and said in r.stderr, r.stderr
         assert not out.exists()  # no folder: nothing written
         # the job named where a sweep's value is at fault, not where a fixed one is
-        assert ("the job masking=careful of this sweep" in r.stderr) == ("masking=rank,careful"
-                                                                          in extra)
-    # variants (a file that sets the key, itself or through the option it builds on), a
-    # preset's value over the chosen option's, the key typed, a resumed run: composed
-    from uabs_rl.cli.hydra import check_composition
-
-    for extra in (["masking=rank_boundary"], ["masking=careful_rank"], ["scenario=dense"],
-                  ["experiment=wide"], ["masking=careful", "masking.mode=flat"],
-                  ["masking=careful", f"resume={tmp_path / 'old_run'}"]):
+        assert ("the job channel=umi of this sweep" in r.stderr) == ("channel=uma,umi" in extra)
+    for extra in (["masking=careful"], ["masking=rank_boundary"], ["masking=careful_rank"],
+                  ["scenario=dense"], ["scenario=hdr"], ["channel=umi", "channel.name=uma"],
+                  ["channel=umi", f"resume={tmp_path / 'old_run'}"]):
         check_composition("config", ["--config-dir", str(mine), *extra])
     assert config.names_itself([CONF_DIR, mine], "scenario", "dense", "name")
-    assert config.names_itself([CONF_DIR, mine], "masking", "careful", "mode") is False
+    assert config.names_itself([CONF_DIR, mine], "channel", "umi", "name") is False
+    assert not config.global_package((mine / "scenario" / "hdr.yaml").read_text())
+    assert config.global_package((CONF_DIR / "scenario" / "city.yaml").read_text())
     # uabs-eval's group options compose the same files (the options they build on too)
     from uabs_rl.evaluation.load import with_overrides
 
     cfg = smoke(trace_cache)
     with pytest.raises(config.ConfigError, match=re.escape(said)):
-        with_overrides(cfg, ["masking=careful"], [mine])
-    assert with_overrides(cfg, ["masking=careful", "masking.mode=flat"],
-                          [mine]).masking.mode == "flat"
+        with_overrides(cfg, ["channel=umi"], [mine])
+    assert with_overrides(cfg, ["channel=umi", "channel.name=uma"],
+                          [mine]).channel.snr_threshold_db == 20
     dense = with_overrides(cfg, ["scenario=dense"], [mine]).scenario
     assert (dense.name, dense.sumo.fleet_size) == ("mygrid", 120)
     assert with_overrides(cfg, ["masking=rank_boundary"],
                           [mine]).masking.rank_next_mask == "boundary"
+    assert with_overrides(cfg, ["masking=careful"], [mine]).masking.mode == "rank"
 
 
 # ----------------------------------------------------------------------------- memory

@@ -25,7 +25,10 @@ def one_line_errors(main: Callable[[], Any]) -> None:
     except (ConfigError, CheckpointError) as e:
         print(f"error: {e}", file=sys.stderr)
         sys.exit(2)
-    except HydraException as e:  # a composition of a scenario or preset typed
-        first = (str(e).strip().splitlines() or [type(e).__name__])[0]
-        print(f"error: {first}", file=sys.stderr)
+    except HydraException as e:  # a composition of a scenario or preset typed: its
+        # message as uabs-train gives it (the options of a group, the closest keys)
+        from uabs_rl.cli.hydra import composition_error
+
+        cause = f"\n{e.__cause__}" if e.__cause__ is not None else ""
+        print(f"error: {composition_error(f'{e}{cause}')}", file=sys.stderr)
         sys.exit(2)

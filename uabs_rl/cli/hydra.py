@@ -269,7 +269,10 @@ def check_composition(config_name: str, argv: list[str],
             with open_dict(composed):
                 del composed["hydra"]
             try:
-                check_group_choices(choices, composed, [CONF_DIR, *dirs], mine)
+                from uabs_rl.training.startup import registered_names  # torch: here
+
+                check_group_choices(choices, composed, [CONF_DIR, *dirs], mine,
+                                    registered_names())
             except ConfigError as e:  # a sweep's value names its job; a fixed one not
                 swept = [j for j in mine if j not in fixed
                          and j.partition("=")[0].lstrip("+") == getattr(e, "key", None)]
@@ -374,9 +377,12 @@ def hydra_main(config_name: str, body: Callable[..., Any],
                 return None
             # a group option whose file does not name itself (where the pre-check
             # above did not compose: another search path)
+            from uabs_rl.training.startup import registered_names
+
             check_group_choices(hc.runtime.choices, dcfg,
                                 [Path(c.path) for c in hc.runtime.config_sources
-                                 if c.schema == "file"], hc.overrides.task)
+                                 if c.schema == "file"], hc.overrides.task,
+                                registered_names())
             return body(to_container(dcfg), out, *extra)
         except (ConfigError, CheckpointError, OSError) as e:
             # only what this invocation made: never a folder or file that was there

@@ -4,7 +4,7 @@ the refusals that need no config (a setting given twice, a setting that moved)."
 from __future__ import annotations
 
 import re
-from collections.abc import Iterable, Mapping
+from collections.abc import Collection, Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -120,8 +120,17 @@ def option_bases(data: Mapping[str, Any], group: str) -> list[str]:
 
 def global_package(text: str) -> bool:
     """Whether a config file's header puts it at the config's root
-    (``# @package _global_``: it sets ``scenario.name`` under ``scenario:``)."""
-    return re.search(r"^#\s*@package\s+_global_\s*$", text, flags=re.M) is not None
+    (``# @package _global_``: it sets ``scenario.name`` under ``scenario:``), read as
+    Hydra reads it: from the ``# @`` lines at the top, up to the first other line."""
+    for line in text.splitlines():
+        line = line.strip()
+        if not line:
+            continue
+        if not re.match(r"#\s*@", line):
+            return False
+        if line.lstrip("#").split() == ["@package", "_global_"]:
+            return True
+    return False
 
 
 def names_itself(dirs: Iterable[Path], group: str, option: str, key: str,
@@ -151,28 +160,33 @@ def names_itself(dirs: Iterable[Path], group: str, option: str, key: str,
 
 
 def check_group_choices(choices: Mapping[str, Any], cfg: Any, dirs: Iterable[Path],
-                        overrides: Iterable[str] = ()) -> None:
-    """Refuse a group option whose file does not name itself: a ``masking/careful.yaml``
-    without ``mode: careful`` (nor an option it builds on with a mode) leaves the
-    schema's ``rank``, and ``masking=careful`` would train rank masks in a folder, under
-    labels, that say careful. A file that sets the key is the user's choice, whatever its
-    value (``masking/rank_boundary.yaml`` with ``mode: rank``: a variant of rank), as is
-    the key typed on the command line, and a preset's value over a file's. ``choices``:
+                        overrides: Iterable[str] = (),
+                        registered: Mapping[str, Collection[str]] | None = None) -> None:
+    """Refuse an option named as a registered mode, learner or channel model whose file
+    does not select it: a ``masking/cautious.yaml`` without ``mode: cautious`` (nor an
+    option it builds on with a mode) leaves the schema's ``rank``, and
+    ``masking=cautious``, after the user added the ``cautious`` mode and its rule, would
+    train rank masks in a folder, under labels, that say cautious. An option of another
+    name is a variant of what its file composes (``masking/rank_literal.yaml`` holding
+    ``recoverable: false`` runs rank masks), as it always was; the key typed on the
+    command line is the user's choice, and a preset's value over the file's. ``choices``:
     each group's option (Hydra's ``runtime.choices``); ``cfg``: the composed config (the
     value that would run, for the message); ``dirs``: the config folders, in Hydra's
-    order; ``overrides``: the command line's. A resumed run's settings are its own (made
-    before this check, perhaps): not checked. The :class:`ConfigError`'s ``key`` is the
-    group."""
+    order; ``overrides``: the command line's; ``registered``: per group, the names its
+    registry holds (``ALGORITHMS``, ``CHANNELS``, the masking modes: the groups it
+    leaves out are not checked). A resumed run's settings are its own (made before this
+    check, perhaps): not checked. The :class:`ConfigError`'s ``key`` is the group."""
     typed = {override_key(o) for o in overrides}
     if "resume" in typed:
         return
     dirs = list(dirs)
     for group, key in SELF_NAMES.items():
         option = choices.get(group)
-        if option is None or f"{group}.{key}" in typed:
+        if option is None or f"{group}.{key}" in typed or group not in (registered or {}):
             continue
         option = str(option)
-        if names_itself(dirs, group, option, key) is False:
+        if (option.rsplit("/", 1)[-1] in registered[group]
+                and names_itself(dirs, group, option, key) is False):
             section = cfg.get(group) if isinstance(cfg, Mapping) else getattr(cfg, group)
             value = (section.get(key) if isinstance(section, Mapping)
                      else getattr(section, key, None))
@@ -181,7 +195,6 @@ def check_group_choices(choices: Mapping[str, Any], cfg: Any, dirs: Iterable[Pat
             err = ConfigError(
                 f"{group}={option}: its file ({option_file(dirs, group, option)}) sets no "
                 f"{key}, nor does an option it builds on, so it would run {value} under "
-                f"{option}'s name. Add the line '{key}: {leaf}' to it (under '{group}:' "
-                f"in a file of '# @package _global_').")
+                f"the name of the registered {leaf}. Add the line '{key}: {leaf}' to it.")
             err.key = group
             raise err

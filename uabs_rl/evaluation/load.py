@@ -25,6 +25,7 @@ from uabs_rl.algorithms import Dims, algorithm_class
 from uabs_rl.config import (
     CONF_DIR,
     ConfigError,
+    MaskingMode,
     Role,
     RunConfig,
     check_config_dirs,
@@ -38,6 +39,7 @@ from uabs_rl.config import (
     sections_with_role,
     to_container,
 )
+from uabs_rl.env.channel import CHANNELS
 from uabs_rl.env.params import EnvParams, validate_world
 from uabs_rl.env.uabs_env import N_ACTIONS
 from uabs_rl.evaluation.baselines import BASELINES, MPC, PLANNER, baseline_policy
@@ -150,7 +152,8 @@ def with_overrides(cfg: RunConfig, overrides: list[str],
     check_group_choices({o.partition("=")[0].lstrip("+"): o.partition("=")[2]
                          for o in overrides if "." not in o.partition("=")[0]
                          and o.partition("=")[0].lstrip("+") in EVAL_GROUPS},
-                        conf, [*(config_dirs or []), CONF_DIR], overrides)
+                        conf, [*(config_dirs or []), CONF_DIR], overrides,
+                        {"channel": set(CHANNELS), "masking": {m.value for m in MaskingMode}})
     new = to_container(conf)
     validate_world(new)
     return new

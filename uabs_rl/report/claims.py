@@ -127,6 +127,14 @@ def summary(grouping: Grouping, baselines: dict[str, dict], command: str,
     return "\n".join(lines) + "\n"
 
 
+def _level(record: dict, key: str) -> float:
+    """A record's served fraction or P_g as learned_vs_baselines.md computes it: the mean
+    of its per-window values (the record's own float32 mean may round to the other side
+    of a printed digit)."""
+    per_window = record.get(f"{key}s")
+    return float(np.nanmean(per_window)) if per_window else float(record[key])
+
+
 def baselines_section(grouping: Grouping, baselines: dict[str, dict],
                       bounds: dict[str, float], nhat: int | None,
                       tests: dict[Path, dict] | None, where: str) -> list[str]:
@@ -136,16 +144,14 @@ def baselines_section(grouping: Grouping, baselines: dict[str, dict],
              "",
              f"| policy | R | collisions | proximity | fallbacks | served | {pg} |",
              "|---|---|---|---|---|---|---|"]
-    # the mean of the per-window values, as learned_vs_baselines.md computes it (the
-    # record's own float32 mean may round to the other side of a printed digit)
-    level = {n: {k: float(np.nanmean(b[f"{k}s"])) if f"{k}s" in b else b[k]
-                 for k in ("served_fraction", "pg")} for n, b in baselines.items()}
+    level = {n: {k: _level(b, k) for k in ("served_fraction", "pg")}
+             for n, b in baselines.items()}
     lines += [f"| {n} | {b['return']:.0f} | {b['collisions']:.0f} | {b['proximity']:.0f}"
               f" | {b['fallbacks']:.0f} | {100 * level[n]['served_fraction']:.1f} % | "
               f"{100 * level[n]['pg']:.1f} % |" for n, b in baselines.items()]
     sep = ", " if grouping.by_mode_only else "; "
-    learned = {m: float(np.mean([learned_record(run, tests)["served_fraction"] for run in runs]))
-               for m, runs in grouping.groups.items()}
+    learned = {m: float(np.mean([_level(learned_record(run, tests), "served_fraction")
+                                 for run in runs])) for m, runs in grouping.groups.items()}
     cover = {m: [learned_record(run, tests)["coverage"] for run in runs
                  if "coverage" in run.best_eval] for m, runs in grouping.groups.items()}
     bound = (f"{100 * next(iter(bounds.values())):.1f} %" if len(set(bounds.values())) == 1

@@ -31,6 +31,17 @@ from uabs_rl.evaluation.evaluator import eval_window_count
 from uabs_rl.safety.rules import rule_class
 
 
+def registered_names() -> dict[str, set[str]]:
+    """The names the registries hold, per config group: the learners, the channel models
+    and the masking modes (an option so named must select it:
+    :func:`uabs_rl.config.check_group_choices`)."""
+    from uabs_rl.algorithms import ALGORITHMS
+    from uabs_rl.config import MaskingMode
+
+    return {"algo": set(ALGORITHMS), "channel": set(CHANNELS),
+            "masking": {m.value for m in MaskingMode}}
+
+
 def validate_run(cfg: RunConfig) -> None:
     """Every start-up check of ``uabs-train``, each naming the offending key: nothing is
     built or written before they pass."""

@@ -224,7 +224,16 @@ def _run_study(sweeper, arguments: list[str], held: list[RunLock]) -> list[dict[
                  hidden(url), len(finished), len(queue), max(todo - len(queue), 0))
     except ConfigError:
         if made is not None and held:  # nothing of a study's: its storage refused it
-            shutil.rmtree(made, ignore_errors=True)
+            # the sweep folder (locked: this command's), then each parent it made while
+            # empty (another process may have put a folder of its own beside it)
+            shutil.rmtree(sweep_dir, ignore_errors=True)
+            for parent in sweep_dir.parents:
+                if parent == made.parent:
+                    break
+                try:
+                    parent.rmdir()
+                except OSError:  # not empty: no longer this command's alone
+                    break
         raise
     lock.record()
     together = OmegaConf.select(config, "hydra.launcher.n_jobs")
