@@ -232,7 +232,17 @@ def test_the_benchmark_chooses_lambda_on_validation_and_names_the_leaf(ego_run, 
     mpc = evaluate_policies(load_evaluation(ego_run, "best", 2, "eval"), (MPC,))[MPC][0]
     assert sweep[0.0] == pytest.approx(sum(mpc["served_fractions"]) / 2)
     assert set(out["policies"]) == {"greedy", "mpc", "learned", "hybrid"}
-    assert "hybrid (the learned values at the paths' ends)" in (tmp_path / "log.txt").read_text()
+    log = (tmp_path / "log.txt").read_text()
+    assert "hybrid (the learned values at the paths' ends)" in log
+    # its row named as what it is; one member's intervals over its windows, not zero wide
+    row = next(ln for ln in log.splitlines() if ln.startswith("| leaf |"))
+    low, high = map(float, row.split(" | ")[1].split("[")[1].rstrip("]").split(", "))
+    assert low < high
+    # a world setting the run cannot take: a ConfigError (one line, status 2, as a
+    # script), before --out is made
+    with pytest.raises(ConfigError, match=r"scenario=nosuch"):
+        bench.main([str(ego_run), "scenario=nosuch", "--out", str(tmp_path / "no")])
+    assert not (tmp_path / "no").exists()
 
 
 def test_the_benchmark_flies_a_shorter_leaf_beside_the_mpc(ego_run, tmp_path):
