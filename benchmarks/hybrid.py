@@ -73,11 +73,9 @@ def flown(run: Path, policies: tuple[str, ...], split: str, windows: int | None,
     search ``horizon`` steps long keeping ``beam`` paths per first move, in ``rounds``
     passes (defaults ``--mpc-horizon``, ``--mpc-beam``, ``--mpc-rounds``); a member and
     split are loaded once, for every λ."""
-    key = (run, split, windows)
+    ev = loaded(run, split, windows, args.overrides)
     try:
-        if key not in LOADED:
-            LOADED[key] = load_evaluation(run, "best", windows, split, args.overrides)
-        out = evaluate_policies(LOADED[key], policies,
+        out = evaluate_policies(ev, policies,
                                 mpc_horizon=horizon or args.mpc_horizon,
                                 predictor=args.predictor, sees=args.sees, hybrid_weight=weight,
                                 beam=beam or args.mpc_beam, rounds=rounds or args.mpc_rounds)
@@ -90,6 +88,18 @@ def flown(run: Path, policies: tuple[str, ...], split: str, windows: int | None,
             sys.exit(f"{run} {name} on {split}: {rec['collisions']} collisions, "
                      f"{rec['proximity']} proximity events, {rec['fallbacks']} fallbacks")
     return recs
+
+
+def loaded(run: Path, split: str, windows: int | None, overrides: list[str]) -> Evaluation:
+    """A member on a split, loaded once (every λ flies it); a setting the run cannot take
+    is a ConfigError naming the run (one line, status 2)."""
+    key = (run, split, windows)
+    if key not in LOADED:
+        try:
+            LOADED[key] = load_evaluation(run, "best", windows, split, overrides)
+        except ConfigError as e:
+            raise ConfigError(f"{run}: {e}") from None
+    return LOADED[key]
 
 
 def finite(values: list[float]) -> list[float]:
@@ -179,12 +189,7 @@ def main(argv: list[str] | None = None) -> None:
         ap.error("--mpc-rounds and --hybrid-rounds must be >= 1")
     runs = RunFolder(args.run).members()
     for run in runs:  # each member loaded (its overrides applied) before --out is made
-        key = (run, "eval", args.eval_windows)
-        try:
-            LOADED[key] = load_evaluation(run, "best", args.eval_windows, "eval",
-                                          args.overrides)
-        except ConfigError as e:  # a setting the run cannot take: one line, status 2
-            raise ConfigError(f"{run}: {e}") from None
+        loaded(run, "eval", args.eval_windows, args.overrides)
     args.out.mkdir(parents=True, exist_ok=True)
     log = open(args.out / "log.txt", "w")
 

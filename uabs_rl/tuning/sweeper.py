@@ -149,8 +149,8 @@ def _run_study(sweeper, arguments: list[str], held: list[RunLock]) -> list[dict[
     direction = str(s.get("direction", "maximize"))
     if direction not in ("maximize", "minimize"):
         raise ConfigError(f"hydra.sweeper.direction={direction}: maximize or minimize.")
-    pruner = dict(s.get("pruner") or {})
-    for what, spec, known in (("sampler", s.get("sampler") or {}, SAMPLER_KEYS),
+    pruner, sampler = dict(s.get("pruner") or {}), dict(s.get("sampler") or {})
+    for what, spec, known in (("sampler", sampler, SAMPLER_KEYS),
                               ("pruner", pruner, PRUNER_KEYS)):
         extra = sorted(set(spec) - set(known))
         if extra:  # added with +, which Hydra's own message suggests: else unread
@@ -158,11 +158,9 @@ def _run_study(sweeper, arguments: list[str], held: list[RunLock]) -> list[dict[
                               f"{what}: its settings are {', '.join(known)} "
                               f"(docs/tuning.md).")
     make_pruner(pruner)  # a bad name, before anything is made
-    make_sampler(dict(s.get("sampler") or {}), 0)  # likewise
+    make_sampler(sampler, 0)  # likewise
     sweep_dir = Path(str(config.hydra.sweep.dir)).absolute()
     resumed = any(w.split("=", 1)[0] == "resume" for w in fixed)
-    # one process runs a study at a time: a second (its command re-typed with resume=
-    # while it runs) would take its running trials for stopped ones and fail them
     # the highest folder of the sweep's path this command makes: removed with what it
     # holds if the study is refused before its trials, and only while this process holds
     # the lock (another that made it at the same moment, and won the lock, keeps it)
@@ -170,6 +168,8 @@ def _run_study(sweeper, arguments: list[str], held: list[RunLock]) -> list[dict[
                 None)
     sweep_dir.mkdir(parents=True, exist_ok=True)
     try:
+        # one process runs a study at a time: a second (its command re-typed with resume=
+        # while it runs) would take its running trials for stopped ones and fail them
         lock = RunLock(sweep_dir)
         if not lock.acquire(record=False):  # its holder is named once the checks pass
             raise ConfigError(f"the study in {sweep_dir} is being run by another process "
@@ -209,8 +209,7 @@ def _run_study(sweeper, arguments: list[str], held: list[RunLock]) -> list[dict[
             check_trial_space(sweep_dir, trials, space)
         finished = [t for t in trials if t.state.is_finished()]
         study = optuna.create_study(storage=storage, study_name=name, direction=direction,
-                                    sampler=make_sampler(dict(s.get("sampler") or {}),
-                                                         len(trials)),
+                                    sampler=make_sampler(sampler, len(trials)),
                                     pruner=make_pruner(pruner), load_if_exists=True)
         OmegaConf.save(config, sweep_dir / "multirun.yaml")
         OmegaConf.save(OmegaConf.create({"storage": hidden(url), "study_name": name,
@@ -338,11 +337,16 @@ def check_same_study(sweep_dir: Path, space: dict[str, Any], fixed: list[str]) -
             f"then {' '.join(gone)}" if gone else "", f"now {' '.join(new)}" if new else "")
             if part) + ")")
     if said:
-        raise ConfigError(f"resume={sweep_dir} continues a study whose trials were drawn "
-                          f"and run otherwise: {'; '.join(said)}. Re-type the study's own "
-                          f"command with resume= appended (its search space and settings; "
-                          f"n_trials, n_jobs and the launcher may change), or start the "
-                          f"new one in another sweep folder. Nothing was changed.")
+        raise other_study(sweep_dir, said)
+
+
+def other_study(sweep_dir: Path, said: list[str]) -> ConfigError:
+    """The refusal of a resume that differs from its study (``said``: what differs)."""
+    return ConfigError(f"resume={sweep_dir} continues a study whose trials were drawn and "
+                       f"run otherwise: {'; '.join(said)}. Re-type the study's own command "
+                       f"with resume= appended (its search space and settings; n_trials, "
+                       f"n_jobs and the launcher may change), or start the new one in "
+                       f"another sweep folder. Nothing was changed.")
 
 
 def check_trial_space(sweep_dir: Path, trials: list, space: dict[str, Any]) -> None:
@@ -351,16 +355,13 @@ def check_trial_space(sweep_dir: Path, trials: list, space: dict[str, Any]) -> N
     :func:`check_same_study` says of a study recorded before ``study.yaml`` kept it."""
     from optuna.distributions import distribution_to_json
 
+    now = {k: distribution_to_json(d) for k, d in space.items()}
     for t in trials:
         for key, d in t.distributions.items():
-            then, now = distribution_to_json(d), space.get(key)
-            if now is not None and distribution_to_json(now) != then:
-                raise ConfigError(
-                    f"resume={sweep_dir} continues a study whose trials were drawn and run "
-                    f"otherwise: {key} ({_dist_text(then)} then, "
-                    f"{_dist_text(distribution_to_json(now))} now). Re-type the study's own "
-                    f"command with resume= appended, or start the new one in another sweep "
-                    f"folder. Nothing was changed.")
+            then = distribution_to_json(d)
+            if key in now and now[key] != then:
+                raise other_study(sweep_dir, [f"{key} ({_dist_text(then)} then, "
+                                              f"{_dist_text(now[key])} now)"])
 
 
 def _dist_text(text: str | None) -> str:
