@@ -35,10 +35,11 @@ PARAM_ATOL = 1e-6
 UPDATES = 100
 
 
-def learner(name: str, members: int, replay: str = "uniform", grad_clip: float | None = None):
+def learner(name: str, members: int, replay: str = "uniform", grad_clip: float | None = None,
+            hidden: tuple[int, ...] = (32, 32)):
     """A small learner (3 agents) whose replay holds 400 random env steps per member
     (``dqfd``: with random teacher labels, some missing)."""
-    algo = algo_schema(name)(name=name, replay=replay, hidden=[32, 32], target_update=20,
+    algo = algo_schema(name)(name=name, replay=replay, hidden=list(hidden), target_update=20,
                              grad_clip=grad_clip)
     m = make_algorithm(algo, Dims(18, 4, 3), list(range(members)), torch.device("cpu"))
     g = torch.Generator().manual_seed(1)
@@ -211,3 +212,32 @@ def test_the_programs_adam_step_is_torchs_fused_adam():
     torch.testing.assert_close(m, st["exp_avg"], rtol=1e-5, atol=1e-8)
     torch.testing.assert_close(v, st["exp_avg_sq"], rtol=1e-5, atol=1e-10)
     torch.testing.assert_close(mine, ref.detach(), rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("compile, every_layer", [(False, False), (True, False), (True, True)])
+def test_grouped_member_products_keep_the_population_update_bit_for_bit(monkeypatch, compile,
+                                                                         every_layer):
+    """Three members on two threads: the paper network's 256 x 256 layer runs two members
+    batched and the third on its own (``member_products``; with ``every_layer``, every
+    layer, heads included). The population's updates, eager and compiled, leave every
+    parameter as the single batched product does, bit for bit: the grouping changes
+    which threads compute a member, not what they add in which order. (Left to autograd,
+    the grouped products' backward compiled to a wrong weight gradient: the compiled
+    case without ``every_layer`` fails on it.)"""
+    from uabs_rl.algorithms import model
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        runs = []
+        for macs in (0 if every_layer else model.OWN_PRODUCT_MACS, math.inf):  # then never
+            monkeypatch.setattr(model, "OWN_PRODUCT_MACS", macs)
+            m = learner("dqn3", 3, hidden=(256, 256))
+            m.compile_update(compile)
+            for _ in range(10):
+                m.update(m.buffer.sample())
+            assert m.compiled == compile
+            runs.append(parameters(m))
+    finally:
+        torch.set_num_threads(threads)
+    for grouped, batched in zip(*runs, strict=True):
+        assert torch.equal(grouped, batched)

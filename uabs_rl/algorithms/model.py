@@ -75,8 +75,8 @@ class StackedQNet(nn.Module):
         # a tenth of a population's training time)
         ws, bs = list(self.weight), list(self.bias)
         for w, b in zip(ws[:-1], bs[:-1], strict=True):
-            z = torch.relu(torch.baddbmm(b[:, None], z, w))
-        h = torch.baddbmm(bs[-1][:, None], z, ws[-1])
+            z = torch.relu(member_products(b, z, w))
+        h = member_products(bs[-1], z, ws[-1])
         v, a = h[..., :1], h[..., 1:]
         q = v + a - a.mean(-1, keepdim=True)
         return q.reshape(*shape[:-1], q.shape[-1])
@@ -115,3 +115,72 @@ class StackedQNet(nn.Module):
     def load_member(self, p: int, state: dict[str, torch.Tensor]) -> None:
         """Set member ``p`` from a ``DuelingQNet`` state dict."""
         self.write_member(list(self.parameters()), p, state)
+
+
+# A member's product of at least this many multiply-adds gets threads of its own when the
+# members do not share out evenly among the threads (``member_products``): the paper
+# network's 256 x 256 layer on a replay batch (8.4M), not its first layer, its heads or
+# the few rows of a decision
+OWN_PRODUCT_MACS = 1 << 22
+
+
+@torch.compiler.assume_constant_result
+def _threads() -> int:
+    # read while tracing and kept in the program as a constant: the programs are compiled
+    # once per thread count (``uabs_rl.env._compile.AheadOfTime``), and the grouping it
+    # sets changes the speed, not the values
+    return torch.get_num_threads()
+
+
+def _grouped(batched: int, members: int, product) -> torch.Tensor:
+    """``product(s)`` over the members ``[:batched]`` at once, then over each one left,
+    concatenated in member order."""
+    parts = [product(slice(0, batched))] if batched else []
+    parts += [product(slice(p, p + 1)) for p in range(batched, members)]
+    return torch.cat(parts)
+
+
+class _MemberProducts(torch.autograd.Function):
+    """``baddbmm(b[:, None], z, w)`` and its gradients, each product grouped by
+    :func:`_grouped`. The backward is written out because, left to autograd (slices and
+    a concatenation), torch 2.13's Inductor compiled a wrong weight gradient for the
+    batched members inside the whole update program (two Adam steps off after one
+    update; eager was right): ``tests/test_model.py`` compares the compiled population
+    update with the ungrouped one bit for bit."""
+
+    @staticmethod
+    def forward(b, z, w, batched):
+        return _grouped(batched, z.shape[0], lambda s: torch.baddbmm(b[s, None], z[s], w[s]))
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        _, z, w, batched = inputs
+        ctx.save_for_backward(z, w)
+        ctx.batched = batched
+
+    @staticmethod
+    def backward(ctx, g):
+        z, w = ctx.saved_tensors
+        n = z.shape[0]
+        gz = (_grouped(ctx.batched, n, lambda s: torch.bmm(g[s], w[s].transpose(1, 2)))
+              if ctx.needs_input_grad[1] else None)
+        gw = _grouped(ctx.batched, n, lambda s: torch.bmm(z[s].transpose(1, 2), g[s]))
+        return g.sum(1), gz, gw, None
+
+
+def member_products(b: torch.Tensor, z: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """``baddbmm(b[:, None], z, w)``: each member's affine layer ``z[p] @ w[p] + b[p]``,
+    the same values and gradients bit for bit, computed so that every thread works.
+
+    PyTorch's CPU batched product gives each thread whole members: three members on two
+    threads take two rounds, as four do (the paper network's 256 x 256 layer on a
+    128-row replay batch: 340 µs for three members, 342 for four, 173 for two). So the
+    largest multiple of the thread count runs batched and each member left over as a
+    product of its own on every thread (267 µs for three). Products under
+    ``OWN_PRODUCT_MACS`` (where the extra calls cost more than the idle thread), one
+    thread, and members that share out evenly run as one batched product, as before."""
+    members, rows, width = z.shape
+    batched = members - members % _threads()
+    if batched == members or rows * width * w.shape[-1] < OWN_PRODUCT_MACS:
+        return torch.baddbmm(b[:, None], z, w)
+    return _MemberProducts.apply(b, z, w, batched)
