@@ -219,18 +219,28 @@ def test_grouped_member_products_keep_the_population_update_bit_for_bit(monkeypa
                                                                          every_layer):
     """Three members on two threads: the paper network's 256 x 256 layer runs two members
     batched and the third on its own (``member_products``; with ``every_layer``, every
-    layer, heads included). The population's updates, eager and compiled, leave every
-    parameter as the single batched product does, bit for bit: the grouping changes
-    which threads compute a member, not what they add in which order. (Left to autograd,
-    the grouped products' backward compiled to a wrong weight gradient: the compiled
-    case without ``every_layer`` fails on it.)"""
+    layer, heads and the 18-wide first layer included, shapes it leaves batched). The
+    population's updates, eager and compiled, leave every parameter as the single
+    batched product does, bit for bit: the grouping changes which threads compute a
+    member, not what they add in which order (measured on this machine's MKL, not
+    promised by it: a CPU where it fails fails here). Left to autograd, the grouped
+    products' backward compiled to a wrong weight gradient: the compiled case without
+    ``every_layer`` fails on it."""
     from uabs_rl.algorithms import model
     threads = torch.get_num_threads()
     torch.set_num_threads(2)
     try:
+        # the replay batch's 128 rows through the 256 x 256 layer: two batched, one alone
+        assert model.batched_members(3, 128, 256, 256) == 2
         runs = []
-        for macs in (0 if every_layer else model.OWN_PRODUCT_MACS, math.inf):  # then never
-            monkeypatch.setattr(model, "OWN_PRODUCT_MACS", macs)
+        for grouped in (True, False):
+            if every_layer and grouped:
+                for limit in ("MACS", "ROWS", "INPUTS"):
+                    monkeypatch.setattr(model, f"OWN_PRODUCT_{limit}", 0)
+                assert model.batched_members(3, 128, 18, 256) == 2
+            if not grouped:
+                monkeypatch.setattr(model, "OWN_PRODUCT_MACS", math.inf)
+                assert model.batched_members(3, 128, 256, 256) == 3
             m = learner("dqn3", 3, hidden=(256, 256))
             m.compile_update(compile)
             for _ in range(10):

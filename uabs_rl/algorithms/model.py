@@ -117,19 +117,37 @@ class StackedQNet(nn.Module):
         self.write_member(list(self.parameters()), p, state)
 
 
-# A member's product of at least this many multiply-adds gets threads of its own when the
-# members do not share out evenly among the threads (``member_products``): the paper
-# network's 256 x 256 layer on a replay batch (8.4M), not its first layer, its heads or
-# the few rows of a decision
+# A member's product gets threads of its own (when the members do not share out evenly
+# among the threads: ``member_products``) from this many multiply-adds, with at least 64
+# rows and 256 inputs: the paper network's 256 x 256 layer on a replay batch (8.4M) or a
+# decision over 64 envs, not its first layer, its heads or a decision's few rows. Within
+# these shapes a member's product alone was measured equal bit for bit to its slice of the
+# batched one (this machine's MKL, 64 to 1024 rows, 2 to 4 threads, 1 to 5 members);
+# outside them it was not always (an 18-wide input's gradient over 1024 rows at 3 threads,
+# a 7-row product)
 OWN_PRODUCT_MACS = 1 << 22
+OWN_PRODUCT_ROWS = 64
+OWN_PRODUCT_INPUTS = 256
 
 
 @torch.compiler.assume_constant_result
 def _threads() -> int:
-    # read while tracing and kept in the program as a constant: the programs are compiled
-    # once per thread count (``uabs_rl.env._compile.AheadOfTime``), and the grouping it
-    # sets changes the speed, not the values
+    # read while tracing and kept in the program as a constant: a program is compiled
+    # once per thread count (``uabs_rl.env._compile.AheadOfTime``'s key; a plain
+    # ``torch.compile`` guards on the count too), and the grouping it sets changes the
+    # speed, not the values
     return torch.get_num_threads()
+
+
+def batched_members(members: int, rows: int, inputs: int, outputs: int) -> int:
+    """How many of ``members`` products of ``[rows, inputs] @ [inputs, outputs]``
+    :func:`member_products` runs as one batched product at this thread count (the rest
+    one by one); ``members`` where it runs them all batched, as ``baddbmm`` does."""
+    batched = members - members % _threads()
+    if (rows < OWN_PRODUCT_ROWS or inputs < OWN_PRODUCT_INPUTS
+            or rows * inputs * outputs < OWN_PRODUCT_MACS):
+        return members
+    return batched
 
 
 def _grouped(batched: int, members: int, product) -> torch.Tensor:
@@ -145,8 +163,9 @@ class _MemberProducts(torch.autograd.Function):
     :func:`_grouped`. The backward is written out because, left to autograd (slices and
     a concatenation), torch 2.13's Inductor compiled a wrong weight gradient for the
     batched members inside the whole update program (two Adam steps off after one
-    update; eager was right): ``tests/test_model.py`` compares the compiled population
-    update with the ungrouped one bit for bit."""
+    update; eager was right, and so was the layer compiled alone):
+    ``tests/test_compiled_update.py`` compares the compiled population update with the
+    ungrouped one bit for bit, and fails on autograd's version."""
 
     @staticmethod
     def forward(b, z, w, batched):
@@ -170,17 +189,20 @@ class _MemberProducts(torch.autograd.Function):
 
 def member_products(b: torch.Tensor, z: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     """``baddbmm(b[:, None], z, w)``: each member's affine layer ``z[p] @ w[p] + b[p]``,
-    the same values and gradients bit for bit, computed so that every thread works.
+    computed so that every thread works.
 
     PyTorch's CPU batched product gives each thread whole members: three members on two
     threads take two rounds, as four do (the paper network's 256 x 256 layer on a
     128-row replay batch: 340 µs for three members, 342 for four, 173 for two). So the
     largest multiple of the thread count runs batched and each member left over as a
-    product of its own on every thread (267 µs for three). Products under
-    ``OWN_PRODUCT_MACS`` (where the extra calls cost more than the idle thread), one
-    thread, and members that share out evenly run as one batched product, as before."""
+    product of its own on every thread (267 µs for three). Small products (where the
+    extra calls cost more than the idle thread, and where a member's product alone may
+    round otherwise: ``OWN_PRODUCT_*``), one thread, and members that share out evenly
+    run as one batched product, as before. Values and gradients are then those of the
+    batched product bit for bit (measured, not guaranteed by MKL: the test of the
+    population's update checks it on the machine that runs it)."""
     members, rows, width = z.shape
-    batched = members - members % _threads()
-    if batched == members or rows * width * w.shape[-1] < OWN_PRODUCT_MACS:
+    batched = batched_members(members, rows, width, w.shape[-1])
+    if batched == members:
         return torch.baddbmm(b[:, None], z, w)
     return _MemberProducts.apply(b, z, w, batched)
