@@ -203,6 +203,7 @@ def member_products(b: torch.Tensor, z: torch.Tensor, w: torch.Tensor) -> torch.
     population's update checks it on the machine that runs it)."""
     members, rows, width = z.shape
     batched = batched_members(members, rows, width, w.shape[-1])
-    if batched == members:
+    # (a GPU's batched product is not shared out by member among CPU threads)
+    if batched == members or z.device.type != "cpu":
         return torch.baddbmm(b[:, None], z, w)
     return _MemberProducts.apply(b, z, w, batched)
