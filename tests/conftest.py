@@ -40,16 +40,22 @@ def load_benchmark(name: str):
 
 
 @contextlib.contextmanager
-def another_thread_count():
-    """torch's thread count changed for the block (1, or 2 where it is 1), as the thread
-    governor changes it on a busy machine; restored after."""
+def thread_count(n: int):
+    """torch's thread count set to ``n`` for the block; restored after."""
     import torch
     threads = torch.get_num_threads()
-    torch.set_num_threads(1 if threads > 1 else 2)
+    torch.set_num_threads(n)
     try:
         yield
     finally:
         torch.set_num_threads(threads)
+
+
+def another_thread_count():
+    """torch's thread count changed for the block (1, or 2 where it is 1), as the thread
+    governor changes it on a busy machine; restored after."""
+    import torch
+    return thread_count(1 if torch.get_num_threads() > 1 else 2)
 
 
 def compose_cfg(config_name: str, overrides: list[str]):

@@ -24,7 +24,7 @@ import math
 import pytest
 import torch
 
-from tests.conftest import another_thread_count
+from tests.conftest import another_thread_count, thread_count
 from uabs_rl.algorithms import Dims, make_algorithm
 from uabs_rl.algorithms.base import Algorithm
 from uabs_rl.algorithms.compiled_update import LossProgram
@@ -227,9 +227,7 @@ def test_grouped_member_products_keep_the_population_update_bit_for_bit(monkeypa
     products' backward compiled to a wrong weight gradient: the compiled case without
     ``every_layer`` fails on it."""
     from uabs_rl.algorithms import model
-    threads = torch.get_num_threads()
-    torch.set_num_threads(2)
-    try:
+    with thread_count(2):
         # the replay batch's 128 rows through the 256 x 256 layer: two batched, one alone
         assert model.batched_members(3, 128, 256, 256) == 2
         runs = []
@@ -247,7 +245,5 @@ def test_grouped_member_products_keep_the_population_update_bit_for_bit(monkeypa
                 m.update(m.buffer.sample())
             assert m.compiled == compile
             runs.append(parameters(m))
-    finally:
-        torch.set_num_threads(threads)
     for grouped, batched in zip(*runs, strict=True):
         assert torch.equal(grouped, batched)
