@@ -16,7 +16,9 @@ the md5 of every metrics file, with the CPU and the torch version it was recorde
 (float rounding depends on both: compare records from the same kind of machine);
 ``--check`` prints each run as ``same`` or ``DIFFERS``. ``benchmarks/equality_record.json``
 is the record of the compiled default (recorded twice, identical), on the machine it
-names.
+names; recorded again (twice, identical) when a population's value and advantage heads
+changed to a faster product that rounds otherwise (``StackedQNet``): the two population
+files changed, the other eight stayed as they were.
 ``--set`` appends overrides to every run (a path kept beside a new default: the eager
 update after ``train.compile_update`` became the default).
 About 3 minutes on 2 cores.
