@@ -18,7 +18,9 @@ the md5 of every metrics file, with the CPU and the torch version it was recorde
 is the record of the compiled default (recorded twice, identical), on the machine it
 names; recorded again (twice, identical) when a population's value and advantage heads
 changed to a faster product that rounds otherwise (``StackedQNet``): the two population
-files changed, the other eight stayed as they were.
+files changed, the other eight stayed as they were (its machine line moved from AVX2 to
+AVX512, torch's capability where it was recorded again; the code before the change gives
+the old population files there too).
 ``--set`` appends overrides to every run (a path kept beside a new default: the eager
 update after ``train.compile_update`` became the default).
 About 3 minutes on 2 cores.

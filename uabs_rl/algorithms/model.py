@@ -56,9 +56,10 @@ class StackedQNet(nn.Module):
         # (train_bench.py, in turns), and bit-identical (MKL's products round the same
         # either way here). The value and advantage heads as one product, out = 1 + A,
         # their weights [P, out, in] as nn.Linear's, read through a transposed view:
-        # MKL's product with 6 outputs is slow from an [in, out] matrix (3 members, 128
-        # rows: 56 µs against 23, and the weights' gradient 67 µs against 18), the
-        # population's whole update 10 % faster (a run 14 %), rounding otherwise
+        # MKL's product with 1 + 4 outputs is slow from an [in, out] matrix (3 members,
+        # 128 rows, 2 threads: 65-67 µs against 21, the weights' gradient 71-72 µs
+        # against 22-24): a population's update about 10 % faster, a whole run about as
+        # much; it rounds otherwise (docs/performance.md, "A population's heads")
         self.weight = nn.ParameterList()
         self.bias = nn.ParameterList()
         for i in range(self.n_trunk):
