@@ -382,3 +382,25 @@ def test_parallel_trials_share_the_storage(trace_cache, tmp_path):
     for t in trials:
         assert t.value == max(eval_returns(tmp_path / "study" / f"trial={t.number}"))
         assert t.intermediate_values  # reported from the worker processes
+
+
+def test_a_study_in_a_shared_storage_resumed_without_it_is_refused_naming_it(
+        trace_cache, tmp_path):
+    """A study kept in a database of its own (hydra.sweeper.storage=) and resumed without
+    it is refused, naming the storage its study.yaml records, and nothing is made (before:
+    an empty study.db appeared in the folder and the error said the study was missing);
+    with the storage re-typed it continues."""
+    shared = f"sqlite:///{tmp_path / 'shared.db'}"
+    args = study_args(trace_cache, 1, "train.episodes=3", "algo.hidden=[32,32]",
+                      f"hydra.sweeper.storage={shared}")
+    finish(uabs_train(tmp_path, *args))
+    study = tmp_path / "study"
+    before = sorted(p.name for p in study.iterdir())
+    line = run_refused(tmp_path, *[a for a in args if not a.startswith("hydra.sweeper.storage")],
+                       f"resume={study}")
+    assert line == (f"error: resume={study}: its study is kept in {shared} (its study.yaml), "
+                    f"not in this folder: re-type its command with hydra.sweeper.storage=<that "
+                    f"URL> and resume= appended. Nothing was changed."), line
+    assert sorted(p.name for p in study.iterdir()) == before and "study.db" not in before
+    err = finish(uabs_train(tmp_path, *args, f"resume={study}"))
+    assert "1 trials done, 0 to continue, 0 to run" in err

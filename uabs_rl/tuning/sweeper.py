@@ -181,12 +181,25 @@ def _run_study(sweeper, arguments: list[str], held: list[RunLock]) -> list[dict[
         url = s.get("storage") or f"sqlite:///{sweep_dir / 'study.db'}"
         # a resumed study is the one its folder records (a folder copied or moved keeps its
         # study's name, which the default, the folder's name, would not)
-        recorded = None
-        if resumed and not s.get("study_name") and (sweep_dir / STUDY_FILE).is_file():
+        record = None
+        if resumed and (sweep_dir / STUDY_FILE).is_file():
             try:
-                recorded = str(OmegaConf.load(sweep_dir / STUDY_FILE).study_name)
-            except Exception:  # an unreadable record: the default name
-                recorded = None
+                record = OmegaConf.load(sweep_dir / STUDY_FILE)
+            except Exception:  # an unreadable record: the defaults
+                record = None
+        recorded = (str(record.study_name) if record is not None and not s.get("study_name")
+                    and "study_name" in record else None)
+        # a study kept in another storage (a shared database), resumed without naming it:
+        # refused before the default storage is opened (before: an empty study.db was made
+        # in the folder and the error said the study was missing)
+        kept = str(record.storage) if record is not None and "storage" in record else None
+        if (resumed and not s.get("storage") and kept is not None
+                and not (sweep_dir / "study.db").exists()):
+            raise ConfigError(f"resume={sweep_dir}: its study is kept in {kept} (its "
+                              f"{STUDY_FILE}), not in this folder: re-type its command with "
+                              f"hydra.sweeper.storage=<that URL"
+                              + (", its password in place of ***" if "***" in kept else "")
+                              + "> and resume= appended. Nothing was changed.")
         name = str(s.get("study_name") or recorded or sweep_dir.name)
         storage = open_storage(url)
         names = {st.study_name: st for st in optuna.get_all_study_summaries(storage)}
