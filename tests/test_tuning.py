@@ -395,12 +395,20 @@ def test_a_study_in_a_shared_storage_resumed_without_it_is_refused_naming_it(
                       f"hydra.sweeper.storage={shared}")
     finish(uabs_train(tmp_path, *args))
     study = tmp_path / "study"
-    before = sorted(p.name for p in study.iterdir())
-    line = run_refused(tmp_path, *[a for a in args if not a.startswith("hydra.sweeper.storage")],
-                       f"resume={study}")
+    before = {p.name: p.read_bytes() for p in study.iterdir() if p.is_file()}
+    without = [a for a in args if not a.startswith("hydra.sweeper.storage")]
+    line = run_refused(tmp_path, *without, f"resume={study}")
+    retype = ("re-type its command with hydra.sweeper.storage=<that URL> and resume= "
+              "appended. Nothing was changed.")
     assert line == (f"error: resume={study}: its study is kept in {shared} (its study.yaml), "
-                    f"not in this folder: re-type its command with hydra.sweeper.storage=<that "
-                    f"URL> and resume= appended. Nothing was changed."), line
-    assert sorted(p.name for p in study.iterdir()) == before and "study.db" not in before
+                    f"not in this folder: {retype}"), line
+    assert {p.name: p.read_bytes() for p in study.iterdir() if p.is_file()} == before
+    assert "study.db" not in before and "multirun.yaml" in before
+    # a folder where the code before this check had left an empty study.db
+    optuna.storages.RDBStorage(f"sqlite:///{study / 'study.db'}")
+    line = run_refused(tmp_path, *without, f"resume={study}")
+    assert line == (f"error: resume={study}: sqlite:///{study / 'study.db'} holds no study "
+                    f"named 'study', and its study.yaml says it is kept in {shared}: "
+                    f"{retype}"), line
     err = finish(uabs_train(tmp_path, *args, f"resume={study}"))
     assert "1 trials done, 0 to continue, 0 to run" in err

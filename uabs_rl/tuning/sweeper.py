@@ -22,7 +22,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from omegaconf import OmegaConf
+from omegaconf import DictConfig, OmegaConf
 
 from uabs_rl.config import ConfigError
 from uabs_rl.runs.folder import RunLock
@@ -181,25 +181,28 @@ def _run_study(sweeper, arguments: list[str], held: list[RunLock]) -> list[dict[
         url = s.get("storage") or f"sqlite:///{sweep_dir / 'study.db'}"
         # a resumed study is the one its folder records (a folder copied or moved keeps its
         # study's name, which the default, the folder's name, would not)
-        record = None
+        recorded = kept = None  # the study's name and storage its study.yaml records
         if resumed and (sweep_dir / STUDY_FILE).is_file():
             try:
                 record = OmegaConf.load(sweep_dir / STUDY_FILE)
+                if isinstance(record, DictConfig):
+                    if record.get("study_name") is not None and not s.get("study_name"):
+                        recorded = str(record.study_name)
+                    if record.get("storage") is not None:
+                        kept = str(record.storage)
             except Exception:  # an unreadable record: the defaults
-                record = None
-        recorded = (str(record.study_name) if record is not None and not s.get("study_name")
-                    and "study_name" in record else None)
+                recorded = kept = None
         # a study kept in another storage (a shared database), resumed without naming it:
         # refused before the default storage is opened (before: an empty study.db was made
         # in the folder and the error said the study was missing)
-        kept = str(record.storage) if record is not None and "storage" in record else None
-        if (resumed and not s.get("storage") and kept is not None
-                and not (sweep_dir / "study.db").exists()):
+        elsewhere = (resumed and not s.get("storage") and kept is not None
+                     and kept != hidden(url))
+        retype = (f"re-type its command with hydra.sweeper.storage=<that URL"
+                  f"{', its password in place of ***' if '***' in str(kept) else ''}> and "
+                  f"resume= appended. Nothing was changed.")
+        if elsewhere and not (sweep_dir / "study.db").exists():
             raise ConfigError(f"resume={sweep_dir}: its study is kept in {kept} (its "
-                              f"{STUDY_FILE}), not in this folder: re-type its command with "
-                              f"hydra.sweeper.storage=<that URL"
-                              + (", its password in place of ***" if "***" in kept else "")
-                              + "> and resume= appended. Nothing was changed.")
+                              f"{STUDY_FILE}), not in this folder: {retype}")
         name = str(s.get("study_name") or recorded or sweep_dir.name)
         storage = open_storage(url)
         names = {st.study_name: st for st in optuna.get_all_study_summaries(storage)}
@@ -209,6 +212,10 @@ def _run_study(sweeper, arguments: list[str], held: list[RunLock]) -> list[dict[
                               f"name a new one with hydra.sweeper.study_name=<name>. Nothing "
                               f"was changed.")
         if resumed and name not in names:
+            if elsewhere:  # a study.db the code before this check made there, empty
+                raise ConfigError(f"resume={sweep_dir}: {hidden(url)} holds no study named "
+                                  f"{name!r}, and its {STUDY_FILE} says it is kept in {kept}: "
+                                  f"{retype}")
             raise ConfigError(f"resume={sweep_dir}: {hidden(url)} holds no study named {name!r} "
                               f"(it holds {', '.join(map(repr, names)) or 'none'}): pass the "
                               f"study's own folder, or name it with hydra.sweeper.study_name=.")
