@@ -412,3 +412,12 @@ def test_a_study_in_a_shared_storage_resumed_without_it_is_refused_naming_it(
                     f"{retype}"), line
     err = finish(uabs_train(tmp_path, *args, f"resume={study}"))
     assert "1 trials done, 0 to continue, 0 to run" in err
+    # a sweep's folder that holds no study (a grid's): refused, nothing made in it
+    grid = tmp_path / "grid"
+    grid.mkdir()
+    shutil.copy(study / "multirun.yaml", grid)
+    line = run_refused(tmp_path, *without, f"resume={grid}")
+    assert line == (f"error: resume={grid}: no study is kept there (neither study.db nor "
+                    f"study.yaml): pass the study's own sweep folder (for a study in another "
+                    f"database, with its hydra.sweeper.storage=). Nothing was changed."), line
+    assert [p.name for p in grid.iterdir()] == ["multirun.yaml"]
