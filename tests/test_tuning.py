@@ -421,3 +421,9 @@ def test_a_study_in_a_shared_storage_resumed_without_it_is_refused_naming_it(
                     f"study.yaml): pass the study's own sweep folder (for a study in another "
                     f"database, with its hydra.sweeper.storage=). Nothing was changed."), line
     assert [p.name for p in grid.iterdir()] == ["multirun.yaml"]
+    # a study in the folder's own study.db, that file gone: refused the same way
+    (grid / "study.yaml").write_text(f"storage: sqlite:///{grid / 'study.db'}\n"
+                                     f"study_name: grid\ndirection: maximize\n")
+    line = run_refused(tmp_path, *without, f"resume={grid}")
+    assert line.startswith(f"error: resume={grid}: no study is kept there (no study.db): "), line
+    assert sorted(p.name for p in grid.iterdir()) == ["multirun.yaml", "study.yaml"]

@@ -203,12 +203,12 @@ def _run_study(sweeper, arguments: list[str], held: list[RunLock]) -> list[dict[
         if elsewhere and not (sweep_dir / "study.db").exists():
             raise ConfigError(f"resume={sweep_dir}: its study is kept in {kept} (its "
                               f"{STUDY_FILE}), not in this folder: {retype}")
-        if (resumed and not s.get("storage") and kept is None
+        if (resumed and not s.get("storage") and not elsewhere
                 and not (sweep_dir / "study.db").exists()):  # (before: an empty study.db)
-            raise ConfigError(f"resume={sweep_dir}: no study is kept there (neither study.db "
-                              f"nor {STUDY_FILE}): pass the study's own sweep folder (for a "
-                              f"study in another database, with its hydra.sweeper.storage=). "
-                              f"Nothing was changed.")
+            what = "no study.db" if kept else f"neither study.db nor {STUDY_FILE}"
+            raise ConfigError(f"resume={sweep_dir}: no study is kept there ({what}): pass the "
+                              f"study's own sweep folder (for a study in another database, "
+                              f"with its hydra.sweeper.storage=). Nothing was changed.")
         name = str(s.get("study_name") or recorded or sweep_dir.name)
         storage = open_storage(url)
         names = {st.study_name: st for st in optuna.get_all_study_summaries(storage)}
