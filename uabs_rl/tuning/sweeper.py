@@ -178,7 +178,8 @@ def _run_study(sweeper, arguments: list[str], held: list[RunLock]) -> list[dict[
         held.append(lock)
         if resumed:
             check_same_study(sweep_dir, space, fixed)
-        url = s.get("storage") or f"sqlite:///{sweep_dir / 'study.db'}"
+        db = sweep_dir / "study.db"  # the default storage
+        url = s.get("storage") or f"sqlite:///{db}"
         # a resumed study is the one its folder records (a folder copied or moved keeps its
         # study's name, which the default, the folder's name, would not)
         recorded = kept = None  # the study's name and storage its study.yaml records
@@ -192,19 +193,19 @@ def _run_study(sweeper, arguments: list[str], held: list[RunLock]) -> list[dict[
                         kept = str(record.storage)
             except Exception:  # an unreadable record: the defaults
                 recorded = kept = None
-        # a study kept in another storage (a shared database), resumed without naming it:
-        # refused before the default storage is opened (before: an empty study.db was made
-        # in the folder and the error said the study was missing)
+        # a study kept in another storage (a shared database), resumed without naming it,
+        # or a folder whose default storage holds no study: refused before that storage is
+        # opened (before: an empty study.db was made in the folder and the error said the
+        # study was missing)
         elsewhere = (resumed and not s.get("storage") and kept is not None
                      and kept != hidden(url))
         retype = (f"re-type its command with hydra.sweeper.storage=<that URL"
                   f"{', its password in place of ***' if '***' in str(kept) else ''}> and "
                   f"resume= appended. Nothing was changed.")
-        if elsewhere and not (sweep_dir / "study.db").exists():
-            raise ConfigError(f"resume={sweep_dir}: its study is kept in {kept} (its "
-                              f"{STUDY_FILE}), not in this folder: {retype}")
-        if (resumed and not s.get("storage") and not elsewhere
-                and not (sweep_dir / "study.db").exists()):  # (before: an empty study.db)
+        if resumed and not s.get("storage") and not db.exists():
+            if elsewhere:
+                raise ConfigError(f"resume={sweep_dir}: its study is kept in {kept} (its "
+                                  f"{STUDY_FILE}), not in this folder: {retype}")
             what = "no study.db" if kept else f"neither study.db nor {STUDY_FILE}"
             raise ConfigError(f"resume={sweep_dir}: no study is kept there ({what}): pass the "
                               f"study's own sweep folder (for a study in another database, "
