@@ -197,12 +197,12 @@ def _run_study(sweeper, arguments: list[str], held: list[RunLock]) -> list[dict[
         # or a folder whose default storage holds no study: refused before that storage is
         # opened (before: an empty study.db was made in the folder and the error said the
         # study was missing)
-        elsewhere = (resumed and not s.get("storage") and kept is not None
-                     and kept != hidden(url))
+        bare = resumed and not s.get("storage")  # resumed without naming a storage
+        elsewhere = bare and kept is not None and kept != hidden(url)
         retype = (f"re-type its command with hydra.sweeper.storage=<that URL"
                   f"{', its password in place of ***' if '***' in str(kept) else ''}> and "
                   f"resume= appended. Nothing was changed.")
-        if resumed and not s.get("storage") and not db.exists():
+        if bare and not db.exists():
             if elsewhere:
                 raise ConfigError(f"resume={sweep_dir}: its study is kept in {kept} (its "
                                   f"{STUDY_FILE}), not in this folder: {retype}")
