@@ -123,10 +123,12 @@ def test_sigterm_to_every_process_of_a_parallel_sweep_saves_each_job_once(trace_
         except OSError:
             pass
     _, err = p.communicate(timeout=300)
+    # the whole of stderr on a failure: which process printed what, in which order (a
+    # second signal reached a job or the launcher once in a CI run, from no known sender)
     for j in jobs:
-        assert _saved_each_episode_once(j, err) >= 3
-    assert p.returncode == 143, err[-3000:]
-    assert "stopped at once" not in err
+        assert _saved_each_episode_once(j, err[-20000:]) >= 3
+    assert p.returncode == 143, err[-20000:]
+    assert "stopped at once" not in err, err[-20000:]
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
