@@ -29,6 +29,15 @@ the same FLOPs (square, n = (FLOPs / 2)^(1/3)), at the same threads.
 replay, in turns, and prints the median µs per update of each, their ratio and the
 compile's one-off seconds.
 
+    python benchmarks/train_bench.py --update --profile train.population=3
+
+``--profile`` adds where the compiled update's time goes: its program compiled once more
+with Inductor's kernel profiling, one turn under ``torch.profiler``, and the share of the
+matrix products (the library calls ``mm``, ``addmm``, ``bmm``, ``baddbmm``) with their
+GFLOP/s beside the ``torch.mm`` rate; the rest is the fused loops between them (Adam,
+the loss's elementwise work) and the program's call. The profiler's own cost makes
+this turn a little slower than the timed ones.
+
     python benchmarks/train_bench.py --threads        # default vs train.threads=1, 2
     python benchmarks/train_bench.py --busy --turns 2 # the same beside a busy core
 
@@ -214,7 +223,8 @@ def filled_learner(overrides: list[str]):
     return learner, cfg
 
 
-def compare_update(overrides: list[str], turns: int, per_turn: int = 50) -> None:
+def compare_update(overrides: list[str], turns: int, per_turn: int = 50,
+                   profile: bool = False) -> None:
     """The update alone, eager and compiled, on the same batches, in turns."""
     learners = {}
     for name, compiled in (("eager", False), ("compiled", True)):
@@ -245,6 +255,42 @@ def compare_update(overrides: list[str], turns: int, per_turn: int = 50) -> None
               f"{flops / med / 1e3:6.1f} GFLOP/s, {med / base:.3f}x eager")
     print(json.dumps({"overrides": overrides, "us_per_update": {
         name: statistics.median(times) for name, times in us.items()}}))
+    if profile:
+        products_line(overrides, batches, flops)
+
+
+PRODUCTS = ("mm_out", "addmm_out", "bmm_out", "baddbmm_out")  # the compiled program's calls
+
+
+def products_line(overrides: list[str], batches: list, flops: int) -> None:
+    """The compiled update's matrix products: their share of its time and their rate
+    (``--profile``: a program compiled with Inductor's kernel profiling, so that its
+    library calls show in ``torch.profiler``)."""
+    import torch._inductor.config as inductor
+    from torch.profiler import ProfilerActivity, profile
+
+    with inductor.patch({"cpp.enable_kernel_profile": True}):
+        learner, _ = filled_learner(overrides)
+        learner.compile_update(True)
+        learner.update(learner.buffer.sample())
+        for b in batches:  # warm
+            learner.update(b)
+        with profile(activities=[ProfilerActivity.CPU]) as prof:
+            for b in batches:
+                learner.update(b)
+    events = prof.key_averages()
+    total = sum(e.self_cpu_time_total for e in events)
+    mm = sum(e.self_cpu_time_total for e in events if e.key.endswith(PRODUCTS))
+    if not mm:
+        print("  --profile: no matrix product showed in the profile (another backend?)")
+        return
+    n = len(batches)
+    peak = matmul_peak(flops)
+    rate = flops / (mm / n) / 1e3
+    print(f"  compiled, profiled: {total / n:.0f} µs per update, of which the matrix "
+          f"products {mm / n:.0f} µs ({100 * mm / total:.0f} %) at {rate:.1f} GFLOP/s, "
+          f"{100 * rate / peak:.0f} % of a torch.mm of the same FLOPs ({peak:.1f} GFLOP/s); "
+          f"the rest {(total - mm) / n:.0f} µs")
 
 
 BUSY_LOOP = "while True: pass"
@@ -300,14 +346,18 @@ def main() -> None:
                     help="rounds of --threads / --busy / --update")
     ap.add_argument("--update", action="store_true",
                     help="time the update alone, eager against compiled, in turns")
+    ap.add_argument("--profile", action="store_true",
+                    help="with --update: the compiled update's matrix products' share and rate")
     ap.add_argument("overrides", nargs="*", help="uabs-train overrides")
     args = ap.parse_args()
+    if args.profile and not args.update:
+        ap.error("--profile goes with --update")
     if args.threads or args.busy:
         if any(o.startswith("train.threads=") for o in args.overrides):
             ap.error("--threads and --busy set train.threads themselves")
         compare_threads(args.overrides, args.episodes, args.busy, args.turns)
     elif args.update:
-        compare_update(args.overrides, args.turns)
+        compare_update(args.overrides, args.turns, profile=args.profile)
     else:
         measure(args.overrides, args.episodes)
 
