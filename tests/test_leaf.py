@@ -483,3 +483,50 @@ def test_the_leaf_searching_the_vehicles_in_reach_scores_as_over_every_vehicle(
     steps = env.base_env.params.episode_steps
     assert checked.steps == steps and rec["collisions"] == rec["proximity"] == 0
     assert len(sizes) == steps and sum(k < v for k, v in sizes) > steps // 2
+
+
+def test_mpc_value_returns_are_discounted_to_the_episodes_end():
+    """``benchmarks/mpc_value.py``: G_t = r_t + γ G_{t+1}, nothing after the last step."""
+    bench = load_benchmark("mpc_value")
+    r = torch.tensor([[[1.0], [2.0], [3.0]]])  # [E=1, T=3, M=1]
+    assert bench.returns(r, 0.5)[0, :, 0].tolist() == [1 + 0.5 * 2 + 0.25 * 3, 2 + 0.5 * 3, 3]
+
+
+def test_mpc_value_fit_gives_every_output_the_return_in_its_units():
+    """The fit regresses the return scaled to unit spread and scales the heads back: the
+    network's outputs are the return itself, each move alike."""
+    from uabs_rl.algorithms.model import DuelingQNet
+
+    bench = load_benchmark("mpc_value")
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(4000, 6, generator=g)
+    y = 200 + 60 * x[:, 0] - 30 * x[:, 1]
+    torch.manual_seed(0)
+    net, r2 = bench.fit(DuelingQNet(6, 4, [32]), x, y, seed=0, steps=1500, lr=3e-3, batch=256)
+    assert r2 > 0.97
+    with torch.no_grad():
+        q = net(x[:500])
+    assert (q.mean(-1) - y[:500]).abs().mean() < 0.1 * y.std()
+    assert (q.amax(-1) - q.amin(-1)).mean() < 0.05 * y.std()
+
+
+def test_mpc_value_writes_members_that_fly_as_runs(ego_run, tmp_path):
+    """Each member a copy of the template run whose best.pt holds the fitted network;
+    the template's own files untouched; uabs-eval's loader flies a member."""
+    bench = load_benchmark("mpc_value")
+    before = (ego_run / "checkpoints" / "best.pt").read_bytes()
+    out = tmp_path / "values"
+    bench.main([str(ego_run), "--out", str(out), "--members", "2", "--fleets", "3",
+                "--windows", "2", "--steps", "20", "--batch", "64"])
+    assert (ego_run / "checkpoints" / "best.pt").read_bytes() == before
+    fit = json.loads((out / "fit.json").read_text())
+    assert [m["seed"] for m in fit["members"]] == [0, 1] and fit["samples"] > 0
+    template = torch.load(ego_run / "checkpoints" / "best.pt", weights_only=False)
+    for s in (0, 1):
+        member = out / f"seed={s}"
+        state = torch.load(member / "checkpoints" / "best.pt", weights_only=False)
+        assert state["counters"] == template["counters"]
+        assert not torch.equal(state["learner"]["qnet"]["value.weight"],
+                               template["learner"]["qnet"]["value.weight"])
+        ev = load_evaluation(member, "best", 1, "test")
+        assert ev.cfg.obs.name == "egocentric"
