@@ -59,13 +59,17 @@ def returns(reward: torch.Tensor, gamma: float) -> torch.Tensor:
     return out
 
 
-def mpc_samples(cfg, city, fleet: int, windows: int, horizon: int, gamma: float
-                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """(observations [N, D], returns [N], window index [N]) of the mpc flown on
-    ``windows`` training windows of ``city`` with ``fleet`` UABS."""
+def mpc_samples(cfg, city, fleet: int, windows: int, horizon: int, gamma: float,
+                explore: float = 0.0
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, float]:
+    """(observations [N, D], returns [N], window index [N], served fraction) of the
+    mpc flown on ``windows`` training windows of ``city`` with ``fleet`` UABS, each move
+    replaced with probability ``explore`` by a legal one drawn at random (the masks'
+    ε-greedy choice)."""
     c = replace(cfg, scenario=replace(city, n_uabs=fleet))
     env = make_eval_env(c, windows=windows, split="train")
-    policy = baseline_policy(MPC, env, make_selector(env), 0, horizon=horizon,
+    gen = torch.Generator().manual_seed(0)
+    policy = baseline_policy(MPC, env, make_selector(env, explore, gen), 0, horizon=horizon,
                              predictor=make_predictor("cv", "all", c.scenario))
     ev = Evaluator(env, c.train.eval_seed)
     td = ev.rollout(policy)
@@ -118,6 +122,10 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--windows", type=int, default=96, help="training windows per city")
     ap.add_argument("--horizon", type=int, default=5, help="the mpc's")
     ap.add_argument("--gamma", type=float, default=0.8)
+    ap.add_argument("--explore", type=float, default=0.0,
+                    help="probability of a random legal move in place of the mpc's (the "
+                         "data then holds states beside the mpc's own; the returns are "
+                         "those of that perturbed mpc)")
     ap.add_argument("--steps", type=int, default=4000)
     ap.add_argument("--lr", type=float, default=1e-3)
     ap.add_argument("--batch", type=int, default=512)
@@ -136,7 +144,7 @@ def main(argv: list[str] | None = None) -> None:
         for m in args.fleets:
             try:
                 x, y, w, served = mpc_samples(cfg, city, m, args.windows, args.horizon,
-                                              args.gamma)
+                                              args.gamma, args.explore)
             except ConfigError as e:
                 print(f"{city.name} M={m}: skipped ({str(e).splitlines()[0][:120]})")
                 continue
@@ -172,6 +180,7 @@ def main(argv: list[str] | None = None) -> None:
               flush=True)
     (Path(args.out) / "fit.json").write_text(json.dumps(
         {"template": str(template), "gamma": args.gamma, "horizon": args.horizon,
+         "explore": args.explore,
          "fleets": args.fleets, "windows": args.windows, "steps": args.steps,
          "samples": int(len(y)), "members": fits}, indent=1))
     print(f"{time.perf_counter() - t0:.0f} s")
