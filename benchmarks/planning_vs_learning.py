@@ -93,7 +93,8 @@ def evaluate(mode: str, m: int, horizons: list[int], ceiling: list[int], sees: l
     ev = Evaluator(env, cfg.train.eval_seed)
     if scenario is not None:
         log(f"scenario={scenario}, {mode} masks, M={m}: its test traces")
-    made = {pred: make_predictor(pred, "all", cfg.scenario) for pred in predictors}
+    made = {pred: make_predictor(pred, "all", cfg.scenario, traces=cfg.traces)
+            for pred in predictors}
     default = (BEAM, ROUNDS)
     runs = [("greedy", 1, None, "all", True, *default),
             ("oracle", 1, None, "all", True, *default)]
@@ -110,7 +111,8 @@ def evaluate(mode: str, m: int, horizons: list[int], ceiling: list[int], sees: l
     ev.evaluate(baseline_policy("greedy", env, make_selector(env), 0))
     rows, greedy = [], None
     for name, h, pred, s, coordinated, beam, passes in runs:
-        predictor = ((made.get(pred) or make_predictor(pred, "all", cfg.scenario)
+        predictor = ((made.get(pred) or make_predictor(pred, "all", cfg.scenario,
+                                                       traces=cfg.traces)
                       if s == "all" else Within(made[pred], float(s)))
                      if name == "mpc" else None)
         policy = baseline_policy(name, env, make_selector(env), 0, horizon=h,
@@ -158,7 +160,8 @@ def evaluate(mode: str, m: int, horizons: list[int], ceiling: list[int], sees: l
 
 
 def paired(rows: list[dict], log) -> None:
-    """mpc − planner and mpc (road) − mpc (cv), paired over windows (module docstring)."""
+    """mpc − planner and mpc (road or learned) − mpc (cv), paired over windows (module
+    docstring)."""
     by = {(r["mode"], r["n_uabs"], r["policy"]): r for r in rows}
 
     def line(a: dict, b: dict, what: str) -> None:
@@ -187,8 +190,10 @@ def paired(rows: list[dict], log) -> None:
         ceiling = by.get((mode, m, policy_label(PLANNER, h)))
         if ceiling is not None:
             line(r, ceiling, f"{label} - planner H={h}")
-        if "(road" in label:
-            cv = by.get((mode, m, label.replace("(road", "(cv")))
+        for other in ("(road", "(learned"):  # another predictor against cv
+            if other not in label:
+                continue
+            cv = by.get((mode, m, label.replace(other, "(cv")))
             if cv is not None:
                 line(r, cv, f"{label} - {cv['policy']}")
         if ", beam " in label:  # against the same mpc at the default beam
@@ -248,7 +253,7 @@ def main() -> None:
     ap.add_argument("--ceiling", type=int, nargs="+", default=[5],
                     help="the clairvoyant planner's horizons")
     ap.add_argument("--sees", nargs="+", default=["all"], help="all or radii in metres")
-    ap.add_argument("--predictors", nargs="+", default=["cv"], choices=("cv", "road"),
+    ap.add_argument("--predictors", nargs="+", default=["cv"], choices=("cv", "road", "learned"),
                     help="the mpc's predictors (default cv)")
     ap.add_argument("--beams", type=int, nargs="+", default=[BEAM],
                     help=f"the mpc's beam widths, paths kept per first move (default {BEAM})")

@@ -22,7 +22,9 @@ be given more than once; beyond ``all`` (learned, random, greedy, oracle) it tak
 the vehicles' true future positions ``--horizon`` steps ahead (the clairvoyant ceiling),
 and ``mpc``, the same planner ``--mpc-horizon`` steps ahead over the positions a
 predictor gives (``--predictor cv``: constant velocity from the vehicles' current and
-previous positions, the default; ``road``: along the SUMO network's lanes) seeing every
+previous positions, the default; ``road``: along the SUMO network's lanes; ``learned``:
+a small network fit on the scenario's training traces reads each vehicle's last moves,
+:mod:`uabs_rl.evaluation.motion`) seeing every
 vehicle or only those within ``--sees R`` metres of a UABS: a deployable policy;
 ``hybrid`` adds ``--hybrid-weight`` λ times the learned Q-values to the mpc's scores
 (:mod:`uabs_rl.evaluation.hybrid`; choose λ on
@@ -218,8 +220,10 @@ def parser() -> argparse.ArgumentParser:
                     help="what the mpc plans over: cv, the vehicles' current and previous "
                          "positions extrapolated at constant velocity (default); road, each "
                          "vehicle moved along its lane and the SUMO network's successors "
-                         "(not its route); or true, their true future (then it is the "
-                         "clairvoyant planner)")
+                         "(not its route); learned, as a network fit on the scenario's "
+                         "training traces predicts from each vehicle's last moves (fit "
+                         "once, cached beside the traces); or true, their true future "
+                         "(then it is the clairvoyant planner)")
     ap.add_argument("--sees", default=None, metavar="all|R",
                     help="the vehicles the mpc sees: all (centralised, default) or those "
                          "within R metres of some UABS")

@@ -336,7 +336,7 @@ def evaluate_policies(ev: Evaluation, policies: tuple[str, ...], seed: int = 0,
     def mpc_policy() -> TensorDictSequential:
         if not made:
             made["predictor"] = make_predictor(predictor, sees, ev.cfg.scenario,
-                                               env.base_env.device)
+                                               env.base_env.device, ev.cfg.traces)
         policy = baseline_policy(MPC, env, make_selector(env), seed, horizon=mpc_horizon,
                                  predictor=made["predictor"], beam=beam, rounds=rounds)
         policy[0].cut = cut

@@ -18,10 +18,14 @@ A predictor turns what the controller knows at step t into the world the planner
 * :class:`~uabs_rl.evaluation.roads.RoadAware`: each moving vehicle along its lane of the
   scenario's SUMO network and the straightest successors after it, at its current speed
   (the map and the same two positions; no route).
+* :class:`~uabs_rl.evaluation.motion.LearnedMotion`: each vehicle moved as a small network
+  fit on the scenario's training traces predicts from its last moves (slowing, turning,
+  speeding up; no route, no map).
 * :class:`Within`: any predictor restricted to what the UABS see, the vehicles within
   ``radius`` metres (planar) of some UABS at step t; the others are absent to the plan.
 
-The deployable planner is ``uabs-eval --policy mpc --predictor cv`` (or ``road``;
+The deployable planner is ``uabs-eval --policy mpc --predictor cv`` (or ``road``,
+``learned``;
 optionally ``--sees R``). :func:`prediction_error` measures a predictor's error k steps ahead.
 """
 
@@ -35,8 +39,9 @@ from uabs_rl.env.service import vehicles_at
 from uabs_rl.env.uabs_env import UABSEnv
 
 # --predictor: constant velocity (default), along the roads (the scenario's SUMO network,
-# uabs_rl.evaluation.roads), the true future
-PREDICTORS = ("cv", "road", "true")
+# uabs_rl.evaluation.roads), the true future, learned from the training traces' moves
+# (uabs_rl.evaluation.motion)
+PREDICTORS = ("cv", "road", "true", "learned")
 REACH_M = 400.0  # how far along the roads the road-aware predictor looks (H · speed)
 
 
@@ -113,10 +118,12 @@ class Within(Predictor):
 
 
 def make_predictor(name: str = "cv", sees: str | float = "all", scenario=None,
-                   device: torch.device | str = "cpu") -> Predictor:
+                   device: torch.device | str = "cpu", traces=None) -> Predictor:
     """The predictor ``name`` (one of PREDICTORS) seeing every vehicle (``sees="all"``)
     or those within ``sees`` metres of some UABS. ``road`` reads ``scenario``'s SUMO
-    network (:mod:`uabs_rl.evaluation.roads`), onto ``device``."""
+    network (:mod:`uabs_rl.evaluation.roads`), onto ``device``; ``learned`` its model
+    fit on ``scenario``'s training traces (``traces``: their settings;
+    :func:`uabs_rl.evaluation.motion.learned_motion`)."""
     if name == "cv":
         pred: Predictor = ConstantVelocity()
     elif name == "true":
@@ -127,6 +134,12 @@ def make_predictor(name: str = "cv", sees: str | float = "all", scenario=None,
         if scenario is None:
             raise ValueError("the road-aware predictor needs the scenario (its network)")
         pred = RoadAware(load_network(scenario, REACH_M, device))
+    elif name == "learned":
+        from uabs_rl.evaluation.motion import learned_motion
+
+        if scenario is None:
+            raise ValueError("the learned predictor needs the scenario (its training traces)")
+        pred = learned_motion(scenario, traces, device)
     else:
         raise ValueError(f"unknown predictor {name!r}: choose from {PREDICTORS}")
     if str(sees) == "all":
