@@ -196,6 +196,12 @@ def paired(rows: list[dict], log) -> None:
             cv = by.get((mode, m, label.replace(other, "(cv")))
             if cv is not None:
                 line(r, cv, f"{label} - {cv['policy']}")
+        if "(learned" in label:  # and against the cv mpc at every other horizon
+            same_h = label.replace("(learned", "(cv")
+            for (mode2, m2, label2), cv in by.items():
+                if ((mode2, m2) == (mode, m) and label2.startswith("mpc H=")
+                        and label2.endswith(" (cv)") and label2 != same_h):
+                    line(r, cv, f"{label} - {label2}")
         if ", beam " in label:  # against the same mpc at the default beam
             wide = by.get((mode, m, re.sub(r", beam \d+", "", label)))
             if wide is not None:

@@ -84,3 +84,24 @@ def test_the_benchmarks_answer_bad_inputs_in_one_line(tmp_path, script, args, sa
     assert p.returncode == 2 and said in p.stderr, p.stderr[-2000:]
     assert "Traceback" not in p.stderr and said in p.stderr.strip().splitlines()[-1]
     assert not (tmp_path / "out").exists()
+
+
+def test_a_learned_predictors_mpc_is_paired_with_cv_at_every_horizon():
+    """``--paired``: the mpc over the learned predictor against constant velocity at its
+    own horizon and at each other (is a longer search over it better than the default
+    mpc?); the road predictor's against cv at its own only."""
+    bench = load_benchmark("planning_vs_learning")
+    w = [0.30, 0.32, 0.34, 0.31]
+    rows = [{"mode": "rank", "n_uabs": 3, "policy": label,
+             "served_fractions": [x + shift for x in w], "pgs": [x + shift for x in w]}
+            for label, shift in (("mpc H=5 (cv)", 0.0), ("mpc H=10 (cv)", 0.001),
+                                 ("mpc H=10 (learned)", 0.01), ("mpc H=10 (road)", 0.002))]
+    lines = []
+    bench.paired(rows, lines.append)
+    learned = [ln for ln in lines if ln.startswith("rank M=3 mpc H=10 (learned) - ")]
+    assert sorted(ln.split(" - ")[1].split(":")[0] for ln in learned) == [
+        "mpc H=10 (cv)", "mpc H=5 (cv)"]
+    line = next(ln for ln in learned if " - mpc H=5 (cv):" in ln)
+    assert "served +1.00 [+1.00, +1.00]" in line  # 0.01 above on every window
+    road = [ln for ln in lines if ln.startswith("rank M=3 mpc H=10 (road) - ")]
+    assert [ln.split(" - ")[1].split(":")[0] for ln in road] == ["mpc H=10 (cv)"]
