@@ -16,7 +16,8 @@ H steps instead, so a shorter search with values can be set beside a longer one 
 same moves at the cost of the search before that cut, ``PlannerScore.cut``);
 ``name:H:bB`` keeps B paths per first move in its beam search (``mpc:5:b4``; default
 16, ``uabs-eval --mpc-beam``) and ``name:H:rR`` makes R passes over the fleet
-(``mpc:5:b4:r1``; default 2, ``uabs-eval --mpc-rounds``).
+(``mpc:5:b4:r1``; default 2, ``uabs-eval --mpc-rounds``); ``name:H:learned`` (or ``:road``,
+``:true``) plans over that predictor's positions (``uabs-eval --predictor``; default cv).
 
     python benchmarks/decision_cost.py RUN scenario=city scenario.n_uabs=25 \
         --policies mpc:5:all mpc:5 leaf:3:all leaf:3 leaf:2 --turns 2
@@ -36,6 +37,7 @@ from uabs_rl.evaluation.baselines import MPC, PLANNER
 from uabs_rl.evaluation.hybrid import HYBRID
 from uabs_rl.evaluation.leaf import LEAF
 from uabs_rl.evaluation.load import evaluate_policies, load_evaluation
+from uabs_rl.evaluation.predict import PREDICTORS
 
 SEARCHES = (MPC, PLANNER, HYBRID, LEAF)  # the policies that search: a horizon, beam, rounds
 
@@ -51,7 +53,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
-    specs = {}  # name:H[:all][:bB][:rR] -> (name, H, whether the search is cut, beam, rounds)
+    specs = {}  # name:H[:all][:bB][:rR][:predictor] -> (name, H, cut, beam, rounds, predictor)
     for spec in args.policies:
         name, *rest = spec.split(":")
         if name not in CHOICES:
@@ -60,25 +62,30 @@ def main(argv: list[str] | None = None) -> None:
             ap.error(f"{spec}: {name} searches nothing, so takes no horizon, beam or rounds "
                      f"(those of {', '.join(SEARCHES)})")
         h = rest.pop(0) if rest else ""
+        named = [x for x in rest if x in PREDICTORS]
+        rest = [x for x in rest if x not in PREDICTORS]
         if h and not (h.isdigit() and int(h) >= 1):
             ap.error(f"{spec}: the horizon after ':' must be an integer >= 1")
         given = {k: [x[1:] for x in rest if x.startswith(k)] for k in "br"}
         if (any(x != "all" and x[:1] not in given for x in rest)
                 or any(len(v) > 1 for v in given.values()) or rest.count("all") > 1
+                or len(named) > 1
                 or any(not (x.isdigit() and int(x) >= 1) for v in given.values() for x in v)):
             ap.error(f"{spec}: after the horizon only ':all' (every vehicle), ':bB' (a beam "
-                     f"of B >= 1 paths) and ':rR' (R >= 1 passes over the fleet) are known")
+                     f"of B >= 1 paths), ':rR' (R >= 1 passes over the fleet) and one "
+                     f"predictor ({', '.join(PREDICTORS)}) are known")
         beam, rounds = (int(given[k][0]) if given[k] else None for k in "br")
         specs[spec] = (name, int(h) if h else args.mpc_horizon, "all" not in rest, beam,
-                       rounds)
+                       rounds, named[0] if named else "cv")
     ev = load_evaluation(args.run, "best", None, "test", args.overrides)
     ms: dict[str, list[float]] = {p: [] for p in args.policies}
     for turn in range(args.turns):
         order = args.policies if turn % 2 == 0 else args.policies[::-1]
         for spec in order:
-            name, h, cut, beam, rounds = specs[spec]
+            name, h, cut, beam, rounds, predictor = specs[spec]
             rec = evaluate_policies(ev, (name,), mpc_horizon=h, hybrid_weight=args.weight,
-                                    cut=cut, beam=beam, rounds=rounds)[name][0]
+                                    cut=cut, beam=beam, rounds=rounds,
+                                    predictor=predictor)[name][0]
             ms[spec].append(rec["ms_per_decision"])
             print(f"turn {turn + 1} {spec}: {rec['ms_per_decision']:.2f} ms per decision, "
                   f"served {100 * rec['served_fraction']:.2f} %", flush=True)

@@ -356,21 +356,23 @@ def test_the_observation_from_a_table_over_the_near_vehicles_is_the_full_ones(re
 
 def test_the_cost_benchmark_sets_a_horizon_per_policy(ego_run, capsys, monkeypatch):
     """``benchmarks/decision_cost.py --policies mpc:1 leaf:2``: each entry flown at its own
-    horizon (mpc:1 serves what the 1-step mpc serves), search (``:all``) and beam
-    (``:b4``), a bad horizon refused before any loading."""
+    horizon (mpc:1 serves what the 1-step mpc serves), search (``:all``), beam
+    (``:b4``) and predictor (``:true``), a bad horizon refused before any loading."""
     bench = load_benchmark("decision_cost")
     asked = []
 
     def spy(*args, **kwargs):
-        asked.append((kwargs["mpc_horizon"], kwargs["cut"], kwargs["beam"], kwargs["rounds"]))
+        asked.append((kwargs["mpc_horizon"], kwargs["cut"], kwargs["beam"], kwargs["rounds"],
+                      kwargs["predictor"]))
         return evaluate_policies(*args, **kwargs)
 
     monkeypatch.setattr(bench, "evaluate_policies", spy)
     bench.main([str(ego_run / "checkpoints" / "last.pt"), "--policies", "mpc:1", "leaf:2",
-                "leaf:2:all", "mpc:2:b4", "leaf:2:all:b3", "mpc:2:r1:b4", "--weight", "1",
-                "--turns", "1"])
-    assert asked == [(1, True, None, None), (2, True, None, None), (2, False, None, None),
-                     (2, True, 4, None), (2, False, 3, None), (2, True, 4, 1)]
+                "leaf:2:all", "mpc:2:b4", "leaf:2:all:b3", "mpc:2:r1:b4", "mpc:2:true:b4",
+                "--weight", "1", "--turns", "1"])
+    assert asked == [(1, True, None, None, "cv"), (2, True, None, None, "cv"),
+                     (2, False, None, None, "cv"), (2, True, 4, None, "cv"),
+                     (2, False, 3, None, "cv"), (2, True, 4, 1, "cv"), (2, True, 4, None, "true")]
     out = capsys.readouterr().out
     ev = load_evaluation(ego_run, "last", None, "test")
     one = evaluate_policies(ev, (MPC,), mpc_horizon=1)[MPC][0]["served_fraction"]
@@ -380,8 +382,9 @@ def test_the_cost_benchmark_sets_a_horizon_per_policy(ego_run, capsys, monkeypat
     assert len(served) == 2 and served[0] == served[1]  # every vehicle: the same moves
     for bad, says in (("mpc:0", "the horizon after ':' must be an integer >= 1"),
                       ("mpc:2:some", "only ':all' (every vehicle), ':bB'"),
-                      ("mpc:2:b0", "(a beam of B >= 1 paths) and ':rR'"),
-                      ("mpc:2:r1:r2", "(R >= 1 passes over the fleet) are known")):
+                      ("mpc:2:b0", "(a beam of B >= 1 paths), ':rR'"),
+                      ("mpc:2:r1:r2", "(R >= 1 passes over the fleet) and one predictor"),
+                      ("mpc:2:cv:road", "and one predictor (cv, road, true, learned)")):
         with pytest.raises(SystemExit):
             bench.main([str(ego_run), "--policies", bad])
         assert says in capsys.readouterr().err
