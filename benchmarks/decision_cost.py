@@ -64,6 +64,9 @@ def main(argv: list[str] | None = None) -> None:
         h = rest.pop(0) if rest else ""
         named = [x for x in rest if x in PREDICTORS]
         rest = [x for x in rest if x not in PREDICTORS]
+        if named and name == PLANNER:
+            ap.error(f"{spec}: the planner plans over the true future; a predictor is the "
+                     f"mpc's, the hybrid's or the leaf's")
         if h and not (h.isdigit() and int(h) >= 1):
             ap.error(f"{spec}: the horizon after ':' must be an integer >= 1")
         given = {k: [x[1:] for x in rest if x.startswith(k)] for k in "br"}

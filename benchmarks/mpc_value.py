@@ -39,7 +39,7 @@ import torch
 
 from uabs_rl.cli import one_line_errors
 from uabs_rl.config import ConfigError, family_scenarios
-from uabs_rl.env.uabs_env import OBS, REWARD
+from uabs_rl.env.uabs_env import N_ACTIONS, OBS, REWARD
 from uabs_rl.evaluation.baselines import MPC, baseline_policy
 from uabs_rl.evaluation.evaluator import Evaluator, make_eval_env
 from uabs_rl.evaluation.predict import make_predictor
@@ -89,7 +89,9 @@ def mpc_samples(cfg, city, fleet: int, windows: int, horizon: int, gamma: float,
 def fit(net: torch.nn.Module, x: torch.Tensor, y: torch.Tensor, seed: int, steps: int,
         lr: float, batch: int) -> tuple[torch.nn.Module, float]:
     """Every output of ``net`` regressed on ``y`` (scaled to unit spread, the heads
-    scaled back after); returns the net and its R² on a held-out tenth."""
+    scaled back after); returns the net and its R² on a held-out tenth of the rows
+    (rows of the same windows, and copies of a row a bootstrap drew twice, lie on both
+    sides: optimistic; :func:`r2_on` over whole windows left out is the honest one)."""
     gen = torch.Generator().manual_seed(seed)
     perm = torch.randperm(len(y), generator=gen)
     cut = len(y) // 10
@@ -112,6 +114,13 @@ def fit(net: torch.nn.Module, x: torch.Tensor, y: torch.Tensor, seed: int, steps
     return net, r2
 
 
+@torch.no_grad()
+def r2_on(net: torch.nn.Module, x: torch.Tensor, y: torch.Tensor) -> float:
+    """R² of ``net``'s mean output as a prediction of ``y``."""
+    pred = net(x).mean(-1)
+    return 1 - float(((pred - y) ** 2).mean() / y.var())
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("template", type=Path, help="an egocentric run folder (its config, "
@@ -132,6 +141,9 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     template = RunFolder(args.template).members()[0]
+    if Path(args.out).resolve().is_relative_to(Path(template).resolve()):
+        ap.error(f"--out {args.out} lies inside the template run {template}: the members "
+                 f"are copies of it")
     ckpt = RunFolder(template).checkpoint("best")
     state = load_checkpoint(ckpt)
     cfg = config_from_checkpoint(state, ckpt)
@@ -148,7 +160,7 @@ def main(argv: list[str] | None = None) -> None:
             except ConfigError as e:
                 print(f"{city.name} M={m}: skipped ({str(e).splitlines()[0][:120]})")
                 continue
-            groups.append(len(groups) * 10_000 + w)  # a window of one (city, M)
+            groups.append(len(groups) * args.windows + w)  # a window of one (city, M)
             xs.append(x)
             ys.append(y)
             print(f"{city.name} M={m}: {len(y)} samples, mpc served {100 * served:.2f} %, "
@@ -166,7 +178,7 @@ def main(argv: list[str] | None = None) -> None:
         counts = torch.bincount(torch.searchsorted(ids, drawn), minlength=len(ids))
         rows = counts[torch.searchsorted(ids, group)]
         sel = torch.repeat_interleave(torch.arange(len(y)), rows)
-        net = DuelingQNet(x.shape[1], 4, list(cfg.algo.hidden))
+        net = DuelingQNet(x.shape[1], N_ACTIONS, list(cfg.algo.hidden))
         net, r2 = fit(net, x[sel], y[sel], s, args.steps, args.lr, args.batch)
         dest = RunFolder(args.out).member(s).path
         if dest.exists():
@@ -175,8 +187,14 @@ def main(argv: list[str] | None = None) -> None:
         new = load_checkpoint(RunFolder(dest).checkpoint("best"))
         new["learner"]["qnet"] = net.state_dict()
         torch.save(new, RunFolder(dest).checkpoint("best"))
-        fits.append({"seed": s, "r2_held_out": r2, "rows": int(len(sel))})
-        print(f"member {s}: R² {r2:.3f} on a held-out tenth ({time.perf_counter() - t0:.0f} s)",
+        left = ~torch.isin(group, drawn)  # the windows this member's bootstrap left out
+        oob = r2_on(net, x[left], y[left]) if bool(left.any()) else float("nan")
+        n_left = int((~torch.isin(ids, drawn)).sum())
+        fits.append({"seed": s, "r2_held_out": r2, "r2_windows_left_out": oob,
+                     "windows_left_out": n_left, "rows": int(len(sel))})
+        print(f"member {s}: R² {r2:.3f} on a held-out tenth of its rows (optimistic), "
+              f"{oob:.3f} on the {n_left} windows its bootstrap left out "
+              f"({time.perf_counter() - t0:.0f} s)",
               flush=True)
     (Path(args.out) / "fit.json").write_text(json.dumps(
         {"template": str(template), "gamma": args.gamma, "horizon": args.horizon,

@@ -24,14 +24,17 @@ blank for greedy and the oracle), ``per_window.json`` (each policy's per-window 
 with its scenario, masks, fleet, label, horizon, beam, passes, predictor and
 visibility) and
 ``prediction_error.csv`` (each predictor's error k steps ahead on the same windows;
-``--predictors``: constant velocity, ``road`` along the SUMO network's lanes). One
+``--predictors``: constant velocity, ``road`` along the SUMO network's lanes, ``learned``
+a network fit on the scenario's training traces, :mod:`uabs_rl.evaluation.motion`). One
 process, one torch thread. No trained checkpoint is read.
 
 At the end (or alone, ``--paired DIR`` on a folder it wrote) it prints the paired
 differences over the same windows that say what prediction costs and what the road
 network adds: each mpc against the clairvoyant planner at the same horizon, the road
-predictor against constant velocity at the same horizon and visibility, and each
-horizon against the shorter ones (above 1) of the same policy.
+and learned predictors against constant velocity at the same horizon, beam, passes and
+visibility, the learned predictor's also against the plain constant-velocity mpc (every
+vehicle seen, default beam and passes) at every other horizon, and each horizon against
+the shorter ones (above 1) of the same policy.
 
 ``--uncoordinated`` adds each mpc (constant velocity, seeing every vehicle) and each
 clairvoyant planner of horizon above 1 with its UABS planning alone
@@ -196,7 +199,7 @@ def paired(rows: list[dict], log) -> None:
             cv = by.get((mode, m, label.replace(other, "(cv")))
             if cv is not None:
                 line(r, cv, f"{label} - {cv['policy']}")
-        if "(learned" in label:  # and against the cv mpc at every other horizon
+        if "(learned" in label:  # and against the plain cv mpc at every other horizon
             same_h = label.replace("(learned", "(cv")
             for (mode2, m2, label2), cv in by.items():
                 if ((mode2, m2) == (mode, m) and label2.startswith("mpc H=")

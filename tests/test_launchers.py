@@ -66,9 +66,9 @@ def _wait_until(proc: subprocess.Popen, ready, timeout: float = 300) -> None:
 def _saved_each_episode_once(job: Path, err: str = "") -> int:
     """The episodes a stopped job logged, each once, its last.pt at the last of them."""
     episodes = _train_episodes(job)
-    assert episodes == list(range(1, len(episodes) + 1)), err[-3000:]
+    assert episodes == list(range(1, len(episodes) + 1)), err
     last = torch.load(job / "checkpoints" / "last.pt", weights_only=False)
-    assert last["counters"]["episode"] == len(episodes), err[-3000:]
+    assert last["counters"]["episode"] == len(episodes), err
     return len(episodes)
 
 
@@ -87,7 +87,7 @@ def test_ctrl_c_stops_a_parallel_sweep_with_every_running_job_saved(trace_cache,
         os.killpg(p.pid, signal.SIGINT)  # Ctrl-C as a terminal sends it: the whole group
         _, err = p.communicate(timeout=300)
         for j in jobs[:2]:
-            n = _saved_each_episode_once(j, err)  # none lost
+            n = _saved_each_episode_once(j, err[-3000:])  # none lost
             assert n > saved.get(j, 0)
             saved[j] = n
         assert p.returncode == 130, err[-3000:]

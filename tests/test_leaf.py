@@ -384,7 +384,8 @@ def test_the_cost_benchmark_sets_a_horizon_per_policy(ego_run, capsys, monkeypat
                       ("mpc:2:some", "only ':all' (every vehicle), ':bB'"),
                       ("mpc:2:b0", "(a beam of B >= 1 paths), ':rR'"),
                       ("mpc:2:r1:r2", "(R >= 1 passes over the fleet) and one predictor"),
-                      ("mpc:2:cv:road", "and one predictor (cv, road, true, learned)")):
+                      ("mpc:2:cv:road", "and one predictor (cv, road, true, learned)"),
+                      ("planner:2:learned", "the planner plans over the true future")):
         with pytest.raises(SystemExit):
             bench.main([str(ego_run), "--policies", bad])
         assert says in capsys.readouterr().err
@@ -513,9 +514,10 @@ def test_mpc_value_fit_gives_every_output_the_return_in_its_units():
     assert (q.amax(-1) - q.amin(-1)).mean() < 0.05 * y.std()
 
 
-def test_mpc_value_writes_members_that_fly_as_runs(ego_run, tmp_path):
+def test_mpc_value_writes_members_that_fly_as_runs(ego_run, tmp_path, capsys):
     """Each member a copy of the template run whose best.pt holds the fitted network;
-    the template's own files untouched; uabs-eval's loader flies a member."""
+    the template's own files untouched; uabs-eval's loader takes a member; an --out
+    inside the template is refused."""
     bench = load_benchmark("mpc_value")
     before = (ego_run / "checkpoints" / "best.pt").read_bytes()
     out = tmp_path / "values"
@@ -533,3 +535,9 @@ def test_mpc_value_writes_members_that_fly_as_runs(ego_run, tmp_path):
                                template["learner"]["qnet"]["value.weight"])
         ev = load_evaluation(member, "best", 1, "test")
         assert ev.cfg.obs.name == "egocentric"
+    for m in fit["members"]:  # R² <= 1 on the windows left out (NaN where none was)
+        r2 = m["r2_windows_left_out"]
+        assert r2 <= 1 if r2 == r2 else m["windows_left_out"] == 0
+    with pytest.raises(SystemExit):
+        bench.main([str(ego_run), "--out", str(ego_run / "values"), "--members", "1"])
+    assert "lies inside the template run" in capsys.readouterr().err

@@ -58,26 +58,22 @@ def test_a_fit_on_constant_velocity_traces_predicts_constant_velocity():
     assert float(err.mean() / span.mean()) < 0.05
 
 
-def cv_model() -> MotionModel:
-    """A model that predicts constant velocity exactly (by hand, no fit): its output is
-    k times the last move."""
+class Scripted(torch.nn.Module):
+    """In place of the fit network: k times the oldest (``oldest``) or the last move."""
+
+    def __init__(self, oldest: bool):
+        super().__init__()
+        self.oldest = oldest
+
+    def forward(self, x):  # x [N, 2·HISTORY] (moves oldest first) -> [N, 2·AHEAD]
+        move = x[:, :2] if self.oldest else x[:, -2:]
+        k = torch.arange(1, AHEAD + 1, dtype=x.dtype)
+        return (k[:, None] * move[:, None, :]).reshape(len(x), -1)
+
+
+def scripted_model(oldest: bool) -> MotionModel:
     m = MotionModel()
-    with torch.no_grad():
-        for layer in m.net:
-            if isinstance(layer, torch.nn.Linear):
-                layer.weight.zero_()
-                layer.bias.zero_()
-    m.net = torch.nn.Sequential(torch.nn.Identity())
-    m.x_scale.fill_(1.0)
-    m.y_scale.fill_(1.0)
-
-    class Last(torch.nn.Module):
-        def forward(self, x):  # x [N, 2·HISTORY] -> [N, 2·AHEAD]
-            last = x[:, -2:]
-            k = torch.arange(1, AHEAD + 1, dtype=x.dtype)
-            return (k[:, None] * last[:, None, :]).reshape(len(x), -1)
-
-    m.net = Last()
+    m.net = Scripted(oldest)  # scales stay 1
     return m
 
 
@@ -102,7 +98,7 @@ def test_a_constant_velocity_model_gives_constant_velocitys_world(trace_cache):
     cfg, env = eval_env(trace_cache, "masking=rank")
     base = env.base_env
     env.reset()
-    learned, cv = LearnedMotion(cv_model()), ConstantVelocity()
+    learned, cv = LearnedMotion(scripted_model(oldest=False)), ConstantVelocity()
     for t in range(0, cfg.scenario.episode_steps, 3):  # before and after HISTORY steps
         base.state["t"] = torch.full_like(base.state["t"], t)
         for h in (3, AHEAD + 4):
@@ -139,5 +135,77 @@ def test_the_model_is_fit_once_per_training_traces_and_cached(trace_cache, monke
     with caplog.at_level(logging.WARNING):
         learned_motion(cfg.scenario, cfg.traces)
     assert len(fits) == 2 and "fitting it again" in caplog.text
+    for f in cache_dir(cfg.traces).glob(f"{cfg.scenario.name}-motion-*.pt"):
+        f.unlink()  # a 20-step fit: no later test of this session should read it
     with pytest.raises(ValueError, match="needs the scenario"):
         make_predictor("learned")
+
+
+def test_the_network_moves_vehicles_with_a_whole_past_and_cv_the_others(trace_cache):
+    """By hand (tests.test_mpc.hand_traces: vehicle 0 at 2 m per step, vehicle 1 at
+    x = 10 + t², vehicle 2 absent until step 3; here vehicle 2 at x = 50 + t²), with a
+    network that predicts k times the *oldest* of the 4 moves it reads: a vehicle
+    present at each of the last 5 steps (t >= 4) moves so, past AHEAD steps too; the
+    others move at constant velocity (one move) or stand (none)."""
+    from tests.test_mpc import hand_traces
+    from tests.test_train import smoke
+    from uabs_rl.env.params import EnvParams
+    from uabs_rl.safety.make import make_env
+
+    cfg = smoke(trace_cache, "masking=penalty", "scenario.n_uabs=1")
+    p = EnvParams.from_config(cfg.scenario, cfg.channel)
+    traces = hand_traces(p, cfg.scenario.episode_steps + 1)
+    steps = torch.arange(traces.steps, dtype=torch.float32)
+    traces.positions[0, :, 2, 0] = 50 + steps * steps  # its past before step 3: unseen
+    env = make_env(cfg.scenario, cfg.channel, cfg.masking, traces, "test", n_envs=1,
+                   n_eval_windows=1, seed=0, spec_mask=False)
+    env.set_seed(0)
+    env.reset()
+    base = env.base_env
+    pred = LearnedMotion(scripted_model(oldest=True))
+    h = AHEAD + 3
+    k = torch.arange(1, h + 1, dtype=torch.float32)
+    for t in range(9):
+        base.state["t"] = torch.full_like(base.state["t"], t)
+        x = pred(base, h)["veh"][:, 0, 0, :]  # [H, V] along x
+        pos = lambda v, s: {0: 5 + 2 * s, 1: 10 + s * s, 2: 50 + s * s}[v]  # noqa: E731
+        for v in range(3):
+            first = 3 if v == 2 else 0  # the first step it is present
+            if t >= 4 and t - 4 >= first:  # a whole past: k x its oldest move
+                move = pos(v, t - 3) - pos(v, t - 4)
+            elif t - 1 >= first:  # one move at least: constant velocity
+                move = pos(v, t) - pos(v, t - 1)
+            else:
+                move = 0.0
+            want = pos(v, t) + k * move
+            assert torch.allclose(x[:, v], want, atol=1e-4), (t, v, x[:, v], want)
+
+
+def test_traces_too_small_are_a_config_error_and_an_unwritable_cache_only_a_warning(
+        trace_cache, monkeypatch, caplog):
+    import uabs_rl.paths
+    from uabs_rl.config import ConfigError
+    from uabs_rl.traces.cache import cache_dir
+
+    cfg, _ = eval_env(trace_cache, "masking=rank")
+    for f in cache_dir(cfg.traces).glob(f"{cfg.scenario.name}-motion-*.pt"):
+        f.unlink()
+
+    def too_small(*a, **k):
+        raise ValueError("the traces hold 3 spans")
+
+    monkeypatch.setattr(motion, "fit_motion", too_small)
+    with pytest.raises(ConfigError, match=r"traces.train.n_sims, traces.train.duration_s"):
+        learned_motion(cfg.scenario, cfg.traces)
+    real = fit_motion
+    monkeypatch.setattr(motion, "fit_motion", lambda traces: real(
+        traces, samples=2000, steps=5, batch=256))
+
+    def unwritable(path, mode="wb"):
+        raise PermissionError(13, "Permission denied", str(path))
+
+    monkeypatch.setattr(uabs_rl.paths, "atomic_file", unwritable)
+    with caplog.at_level(logging.WARNING):
+        pred = learned_motion(cfg.scenario, cfg.traces)
+    assert isinstance(pred, LearnedMotion) and "not cached" in caplog.text
+    assert not list(cache_dir(cfg.traces).glob(f"{cfg.scenario.name}-motion-*.pt"))

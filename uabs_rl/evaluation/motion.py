@@ -92,7 +92,7 @@ def fit_motion(traces: list[tuple[torch.Tensor, torch.Tensor]], samples: int = F
         raise ValueError(f"the traces hold {len(x)} spans of {HISTORY + AHEAD + 1} steps "
                          f"with a vehicle present throughout: too few to fit the motion model")
     x, y = x.reshape(len(x), -1), y.reshape(len(y), -1)
-    with torch.random.fork_rng():
+    with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
         model = MotionModel()
     model.x_scale.copy_(x.std(0) + 1e-3)
@@ -160,14 +160,15 @@ def learned_motion(scenario, traces_cfg, device: torch.device | str = "cpu") -> 
     """The learned predictor of ``scenario``: its model fit on the scenario's training
     traces (built with SUMO if not cached yet), read from the traces' cache folder when
     fit before (``<scenario>-motion-<key>.pt``), else fit (seconds) and written there."""
-    from uabs_rl.config import resolved_split
-    from uabs_rl.paths import atomic_file, inside
+    from uabs_rl.config import ConfigError, resolved_split
+    from uabs_rl.paths import atomic_file, inside, safe_component
     from uabs_rl.traces.build import get_traces
     from uabs_rl.traces.cache import cache_dir, split_key
 
     if traces_cfg is None:
         raise ValueError("the learned predictor needs the traces' settings (its training "
                          "traces)")
+    safe_component(scenario.name, "scenario.name")  # it names the cache file
     key, _ = split_key(scenario, resolved_split(scenario, traces_cfg, "train"), "train")
     d = cache_dir(traces_cfg)
     path = inside(d / f"{scenario.name}-motion-{model_key(key)}.pt", d, "scenario.name")
@@ -181,8 +182,17 @@ def learned_motion(scenario, traces_cfg, device: torch.device | str = "cpu") -> 
                         str(e).splitlines()[0])
     ts = get_traces(scenario, traces_cfg, "train")
     log.info("fitting the learned predictor's motion model on %s's training traces", scenario.name)
-    model = fit_motion([(ts.positions, ts.present)])
-    d.mkdir(parents=True, exist_ok=True)
-    with atomic_file(path) as f:
-        torch.save(model.state_dict(), f)
+    try:
+        model = fit_motion([(ts.positions, ts.present)])
+    except ValueError as e:  # traces too short or too sparse for one span
+        raise ConfigError(f"--predictor learned: {e}; the scenario's training traces "
+                          f"(traces.train.n_sims, traces.train.duration_s) are too small "
+                          f"to fit the motion model on") from None
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+        with atomic_file(path) as f:
+            torch.save(model.state_dict(), f)
+    except OSError as e:  # only a cache: fly the model, fit it again next time
+        log.warning("motion model not cached at %s (%s): it will be fit again next time",
+                    path, e)
     return LearnedMotion(model.to(device))
