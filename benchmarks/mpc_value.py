@@ -109,9 +109,7 @@ def fit(net: torch.nn.Module, x: torch.Tensor, y: torch.Tensor, seed: int, steps
         for head in (net.value, net.advantage):
             head.weight.mul_(scale)
             head.bias.mul_(scale)
-        pred = net(x[test]).mean(-1)
-        r2 = 1 - float(((pred - y[test]) ** 2).mean() / y[test].var())
-    return net, r2
+    return net, r2_on(net, x[test], y[test])
 
 
 @torch.no_grad()

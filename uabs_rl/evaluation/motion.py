@@ -29,7 +29,7 @@ import torch
 from torch import nn
 
 from uabs_rl.env.uabs_env import UABSEnv
-from uabs_rl.evaluation.predict import Predictor, observed, schedule
+from uabs_rl.evaluation.predict import ConstantVelocity, Predictor, observed
 
 log = logging.getLogger(__name__)
 
@@ -119,19 +119,15 @@ class LearnedMotion(Predictor):
 
     @torch.no_grad()
     def __call__(self, env: UABSEnv, horizon: int) -> dict[str, torch.Tensor]:
+        world = ConstantVelocity()(env, horizon)  # the others' world, and the presence
         h = self.model.history
         past = [observed(env, b) for b in range(h + 1)]  # now, one step before, ...
         now, present = past[0]
-        t = env.state["t"]
         seen = present.clone()
         for _, there in past[1:]:
             seen &= there
-        full = seen & (t >= h)[:, None]  # h distinct steps back inside the window
-        prev, prev_present = past[1]
-        v = torch.where((present & prev_present & (t >= 1)[:, None])[:, None, :],
-                        now - prev, 0.0)  # constant velocity for the others
-        k = torch.arange(1, horizon + 1, device=now.device, dtype=now.dtype)
-        veh = now[None] + k[:, None, None, None] * v[None]  # [H, E, 2, V]
+        full = seen & (env.state["t"] >= h)[:, None]  # h distinct steps back in the window
+        veh = world["veh"]  # [H, E, 2, V]
         if bool(full.any()):
             e_i, v_i = full.nonzero(as_tuple=True)
             pos = torch.stack([p[e_i, :, v_i] for p, _ in reversed(past)], 1)  # [N, h+1, 2]
@@ -143,9 +139,7 @@ class LearnedMotion(Predictor):
                 disp = torch.cat([disp, disp[:, -1:] + extra[None, :, None] * last[:, None]], 1)
             # (the indices apart from each other: the result's rows lead, [N, H, 2])
             veh[:, e_i, :, v_i] = now[e_i, :, v_i][:, None] + disp[:, :horizon]
-        return {"veh": veh,
-                "present": torch.stack([env.state["prev_present"], *([present] * horizon)]),
-                **schedule(env, horizon)}
+        return world
 
 
 def model_key(trace_key: str) -> str:
