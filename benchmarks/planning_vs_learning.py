@@ -13,6 +13,9 @@ with Student-t 95 % CIs over the windows and the compute per decision.
     python benchmarks/planning_vs_learning.py --scenario city --fleets 25 --horizons 1 5
     python benchmarks/planning_vs_learning.py --horizons 5 --beams 16 8 4 --ceiling 5
     python benchmarks/planning_vs_learning.py --horizons 5 --beams 16 4 --rounds 2 1
+    python benchmarks/planning_vs_learning.py --split eval --horizons 5 10 --beams 16 4 \
+        --rounds 2 1 3 --predictors cv learned --out VAL_DIR     # and --split test: TEST_DIR
+    python benchmarks/planning_vs_learning.py --paired TEST_DIR --chosen-on VAL_DIR
 
 ``--scenario NAME`` flies a preset of ``conf/scenario`` (a held-out grid, the city)
 instead of the default grid: its test traces, its network for ``--predictors road``.
@@ -49,6 +52,15 @@ likewise flies each with each number of passes over the fleet (``PlannerScore.ro
 ``uabs-eval --mpc-rounds``), each other one paired with the same mpc at the default 2,
 and an mpc off the default in both with the default mpc too.
 
+``--split eval`` flies every window of the validation traces instead of the test
+traces (14 on a grid), so that a setting can be chosen where no reported figure comes
+from. ``--paired TEST_DIR --chosen-on VAL_DIR`` then chooses, per (city, masks, M) and
+predictor, the mpc setting that served most on validation among those seeing every
+vehicle, planning the fleet together and costing no more ms per decision than the
+default mpc (H = 5, cv, default beam and passes) in the validation run, and pairs that
+setting with the default mpc on the test windows (and each predictor's choice with
+constant velocity's).
+
 ``--paired DIR --learned HYBRID_DIR`` pairs a population's learned policy, and the
 hybrid or leaf at its λ*, as ``benchmarks/hybrid.py`` flew them on the test windows into
 ``HYBRID_DIR``, with every policy of ``DIR`` flown on the same windows under the same
@@ -71,6 +83,7 @@ import torch
 
 from uabs_rl.cli import one_line_errors
 from uabs_rl.config import compose
+from uabs_rl.env.uabs_env import window_count
 from uabs_rl.evaluation.baselines import (
     MPC,
     PLANNER,
@@ -83,19 +96,24 @@ from uabs_rl.evaluation.planner import BEAM, ROUNDS
 from uabs_rl.evaluation.predict import Within, make_predictor, prediction_error
 from uabs_rl.evaluation.stats import paired_difference, paired_over_seeds, t_interval
 from uabs_rl.safety.make import make_selector
+from uabs_rl.traces import get_traces
 
 
 def evaluate(mode: str, m: int, horizons: list[int], ceiling: list[int], sees: list[str],
              log, predictors: tuple[str, ...] = ("cv",), uncoordinated: bool = False,
              scenario: str | None = None,
              beams: tuple[int, ...] = (BEAM,),
-             rounds: tuple[int, ...] = (ROUNDS,)) -> tuple[list[dict], list[dict]]:
+             rounds: tuple[int, ...] = (ROUNDS,),
+             split: str = "test") -> tuple[list[dict], list[dict]]:
     over = [] if scenario is None else [f"scenario={scenario}"]
     cfg = compose("config", over + [f"masking={mode}", f"scenario.n_uabs={m}"])
-    env = make_eval_env(cfg, split="test")
+    # every window of the split: on "eval" too (not train.eval_windows)
+    env = make_eval_env(cfg, split=split,
+                        windows=None if split == "test" else every_window(cfg, split))
     ev = Evaluator(env, cfg.train.eval_seed)
-    if scenario is not None:
-        log(f"scenario={scenario}, {mode} masks, M={m}: its test traces")
+    if scenario is not None or split != "test":
+        log(f"scenario={cfg.scenario.name}, {mode} masks, M={m}: its "
+            f"{'test' if split == 'test' else 'validation'} traces")
     made = {pred: make_predictor(pred, "all", cfg.scenario, traces=cfg.traces)
             for pred in predictors}
     default = (BEAM, ROUNDS)
@@ -130,7 +148,7 @@ def evaluate(mode: str, m: int, horizons: list[int], ceiling: list[int], sees: l
                "horizon": h,
                "beam": beam if search else None,
                "rounds": (passes if coordinated else 1) if search else None,
-               "predictor": pred or "", "sees": s, "windows": rec["windows"],
+               "predictor": pred or "", "sees": s, "split": split, "windows": rec["windows"],
                "ms_per_decision": 1000 * sec / (rec["windows"] * cfg.scenario.episode_steps),
                "collisions": rec["collisions"], "proximity": rec["proximity"],
                "fallbacks": rec["fallbacks"],
@@ -219,6 +237,76 @@ def paired(rows: list[dict], log) -> None:
                     line(r, plain, f"{label} - {plain['policy']}")
 
 
+def every_window(cfg, split: str) -> int:
+    """How many windows ``split``'s traces hold (what ``make_eval_env`` flies on test)."""
+    traces = get_traces(cfg.scenario, cfg.traces, split)
+    return window_count(traces.n_sims, traces.steps, cfg.scenario.episode_steps)
+
+
+def chosen(val_rows: list[dict], test_rows: list[dict], log) -> None:
+    """Per (scenario, masks, M) and predictor: among the mpc settings of ``val_rows`` (a
+    ``--split eval`` folder) that see every vehicle, plan the fleet together and cost
+    no more ms per decision than the default mpc (H = 5, cv, default beam and passes)
+    in the same run, the one that served most on validation; then that setting on the
+    test windows of ``test_rows``, paired with the default mpc there, and each
+    predictor's choice paired with constant velocity's. A choice made on validation,
+    reported on test."""
+    ref = policy_label(MPC, 5, "cv")
+
+    def rows_of(rows):
+        out = {}
+        for r in rows:
+            key = (r["scenario"], r["mode"], r["n_uabs"])
+            out.setdefault(key, {})[r["policy"]] = r
+        return out
+
+    val, test = rows_of(val_rows), rows_of(test_rows)
+    for key, by in val.items():
+        if ref not in by or key not in test or ref not in test[key]:
+            log(f"{key}: no default mpc ({ref}) on both splits; nothing chosen")
+            continue
+        scen, mode, m = key
+        base = by[ref]
+        picks = {}
+        for r in by.values():
+            if (not r["policy"].startswith("mpc H=") or r["sees"] != "all"
+                    or "uncoordinated" in r["policy"]
+                    or r["ms_per_decision"] > base["ms_per_decision"]):
+                continue
+            best = picks.get(r["predictor"])
+            mean = sum(r["served_fractions"]) / len(r["served_fractions"])
+            if best is None or mean > best["mean"] or (
+                    mean == best["mean"] and r["ms_per_decision"] < best["ms_per_decision"]):
+                picks[r["predictor"]] = {**r, "mean": mean}
+        mean0 = sum(base["served_fractions"]) / len(base["served_fractions"])
+        for pred, r in picks.items():
+            t = test[key].get(r["policy"])
+            if t is None:
+                log(f"{scen} {mode} M={m} {pred}: {r['policy']} not flown on test")
+                continue
+            parts = []
+            for metric, k in (("served", "served_fractions"), ("P_g", "pgs")):
+                d = paired_difference(t[k], test[key][ref][k])
+                parts.append(f"{metric} {100 * d['diff']:+.2f} [{100 * d['ci_low']:+.2f}, "
+                             f"{100 * d['ci_high']:+.2f}]")
+            log(f"{scen} {mode} M={m} {pred}: chosen {r['policy']} (validation "
+                f"{100 * r['mean']:.2f} % against {100 * mean0:.2f} %, "
+                f"{r['ms_per_decision'] / base['ms_per_decision']:.2f}x its ms); test − "
+                f"{ref}: {', '.join(parts)} points "
+                f"({t['ms_per_decision'] / test[key][ref]['ms_per_decision']:.2f}x its ms)")
+        if "cv" in picks:
+            for pred, r in picks.items():
+                if pred == "cv" or r["policy"] not in test[key]:
+                    continue
+                a, b = test[key][r["policy"]], test[key].get(picks["cv"]["policy"])
+                if b is None:
+                    continue
+                d = paired_difference(a["served_fractions"], b["served_fractions"])
+                log(f"{scen} {mode} M={m} {pred}'s choice − cv's choice on test: served "
+                    f"{100 * d['diff']:+.2f} [{100 * d['ci_low']:+.2f}, "
+                    f"{100 * d['ci_high']:+.2f}] points")
+
+
 def paired_learned(rows: list[dict], hybrid_dir: Path, log) -> None:
     """learned − every policy of ``rows`` on the same windows (module docstring)."""
     record = json.loads((hybrid_dir / "hybrid.json").read_text())
@@ -272,15 +360,24 @@ def main() -> None:
                     help="also each mpc (cv) and planner with its UABS planning alone")
     ap.add_argument("--scenario", metavar="NAME",
                     help="a preset of conf/scenario instead of the default grid")
+    ap.add_argument("--split", choices=("test", "eval"), default="test",
+                    help="the traces flown: test (default) or eval, the validation traces "
+                         "(every window of either)")
     ap.add_argument("--out", type=Path)
     ap.add_argument("--paired", type=Path, metavar="DIR",
                     help="only print the paired differences of a folder this script wrote")
     ap.add_argument("--learned", type=Path, metavar="HYBRID_DIR",
                     help="with --paired: also learned − each policy, from a folder "
                          "benchmarks/hybrid.py wrote")
+    ap.add_argument("--chosen-on", type=Path, metavar="VAL_DIR",
+                    help="with --paired TEST_DIR: per predictor, the mpc setting chosen on "
+                         "the validation folder VAL_DIR (--split eval) among those no "
+                         "costlier than the default mpc, paired with it on TEST_DIR")
     args = ap.parse_args()
     if args.learned is not None and args.paired is None:
         ap.error("--learned goes with --paired DIR")
+    if args.chosen_on is not None and args.paired is None:
+        ap.error("--chosen-on goes with --paired TEST_DIR")
     # each width and number of passes once, the default among them: the others are
     # paired with it
     for flag in ("horizons", "ceiling"):
@@ -293,7 +390,20 @@ def main() -> None:
         setattr(args, flag, list(dict.fromkeys(values if default in values
                                                else [default, *values])))
     if args.paired is not None:
+        for d in (args.paired, args.chosen_on):
+            if d is not None and not (d / "per_window.json").is_file():
+                ap.error(f"{d} holds no per_window.json: give a folder this script wrote "
+                         f"(--out)")
         rows = json.loads((args.paired / "per_window.json").read_text())
+        if args.chosen_on is not None:
+            val = json.loads((args.chosen_on / "per_window.json").read_text())
+            for d, split, rs in ((args.chosen_on, "eval", val), (args.paired, "test", rows)):
+                if any(r.get("split") != split or "ms_per_decision" not in r for r in rs):
+                    ap.error(f"{d} was not written by --split {split} of this version of "
+                             f"the script (each row's split and ms per decision); run it "
+                             f"again with --split {split}")
+            chosen(val, rows, print)
+            return
         paired(rows, print)
         if args.learned is not None:
             paired_learned(rows, args.learned, print)
@@ -311,7 +421,7 @@ def main() -> None:
         for m in args.fleets:
             r, e = evaluate(mode, m, args.horizons, args.ceiling, args.sees, log,
                             tuple(args.predictors), args.uncoordinated, args.scenario,
-                            tuple(args.beams), tuple(args.rounds))
+                            tuple(args.beams), tuple(args.rounds), args.split)
             rows += r
             errs += e
     paired(rows, log)
@@ -329,8 +439,9 @@ def main() -> None:
         w.writeheader()
         w.writerows(errs)
     (args.out / "per_window.json").write_text(json.dumps(
-        [{k: r[k] for k in ("scenario", "mode", "n_uabs", "policy", "horizon", "beam", "rounds",
-                            "predictor", "sees", "served_fractions", "pgs")}
+        [{k: r[k] for k in ("scenario", "split", "mode", "n_uabs", "policy", "horizon", "beam",
+                            "rounds", "predictor", "sees", "ms_per_decision",
+                            "served_fractions", "pgs")}
          for r in rows]))
     (args.out / "log.txt").write_text("\n".join(lines) + "\n")
 
