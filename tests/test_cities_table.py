@@ -227,6 +227,9 @@ def test_the_paired_script_pairs_the_learned_policy_and_the_leaf_with_each_plann
     # (0.15 + 0.05) / 2 and (0.16 + 0.06) / 2 above the narrower mpc: 10.5 points
     assert lines[3].startswith("rank M=3 leaf H=2 λ=1 (2 members) - mpc H=5 (cv, beam 4): "
                                "served +10.50 [")
+    # and the members' mean per window paired over the windows: (0.355 - 0.20, 0.455 - 0.40)
+    assert lines[3].endswith("; over the windows: served +10.50 [-53.03, +74.03], above it "
+                             "in 2 of 2")
     # a folder written before --leaf (no "hybrid" key): its hybrid named so
     record = json.loads((folder / "hybrid.json").read_text())
     del record["hybrid"], record["hybrid_horizon"]

@@ -69,6 +69,8 @@ def test_each_mpc_is_flown_with_the_beam_and_passes_its_row_names(trace_cache, m
     ("planning_vs_learning", ["--paired", "RUN"], "RUN holds no per_window.json"),
     ("planning_vs_learning", ["--paired", "OLD", "--chosen-on", "OLD"],
      "OLD was not written by --split eval of this version of the script"),
+    ("planning_vs_learning", ["--paired", "OLD", "--chosen-on", "OLD", "--learned", "RUN"],
+     "--chosen-on and --learned are two readings of --paired: one at a time"),
     ("generalization", ["RUN", "--mpc", "0", "--at", "grid6:3"], "--mpc H must be >= 1"),
     ("cities_table", ["NOWHERE"], "NOWHERE holds no cities/ folder"),
 ])
@@ -149,13 +151,14 @@ def test_a_setting_is_chosen_on_validation_within_the_mpcs_cost_and_reported_on_
                                         ("mpc H=5 (learned, beam 4)", "learned", 1.0),
                                         ("mpc H=5 (learned)", "learned", 2.1),
                                         ("mpc H=5 (learned, uncoordinated)", "learned",
-                                         0.5))]
+                                         0.5),
+                                        ("mpc H=5 (road)", "road", 2.2))]
     val = rows("eval", {"mpc H=5 (cv)": 0.0, "mpc H=5 (cv, beam 4)": -0.001,
                         "mpc H=5 (learned, beam 4)": 0.004, "mpc H=5 (learned)": 0.02,
-                        "mpc H=5 (learned, uncoordinated)": 0.05})
+                        "mpc H=5 (learned, uncoordinated)": 0.05, "mpc H=5 (road)": 0.1})
     test = rows("test", {"mpc H=5 (cv)": 0.0, "mpc H=5 (cv, beam 4)": 0.03,
                          "mpc H=5 (learned, beam 4)": 0.003, "mpc H=5 (learned)": -0.01,
-                         "mpc H=5 (learned, uncoordinated)": 0.05})
+                         "mpc H=5 (learned, uncoordinated)": 0.05, "mpc H=5 (road)": 0.1})
     lines = []
     bench.chosen(val, test, lines.append)
     learned = next(ln for ln in lines if ln.startswith("grid6 rank M=6 learned: chosen"))
@@ -165,3 +168,10 @@ def test_a_setting_is_chosen_on_validation_within_the_mpcs_cost_and_reported_on_
     assert "chosen mpc H=5 (cv) (validation 31.75 % against 31.75 %, 1.00x" in cv
     assert ("grid6 rank M=6 learned's choice − cv's choice on test: served +0.30 "
             "[+0.30, +0.30] points") in lines
+    # for scale, the choice made on the test windows: cv's differs from validation's
+    assert any(ln.startswith("grid6 rank M=6 cv: best on test mpc H=5 (cv, beam 4): − mpc "
+                             "H=5 (cv): served +3.00 [+3.00, +3.00]") for ln in lines)
+    # a predictor whose every setting costs more than the mpc is said, not skipped
+    assert ("grid6 rank M=6 road: no setting costs at most the mpc's 2.00 ms per decision "
+            "on validation") in lines
+    assert not any("road: chosen" in ln for ln in lines)
