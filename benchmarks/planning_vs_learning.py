@@ -16,6 +16,7 @@ with Student-t 95 % CIs over the windows and the compute per decision.
     python benchmarks/planning_vs_learning.py --split eval --horizons 5 10 --beams 16 4 \
         --rounds 2 1 3 --predictors cv learned --out VAL_DIR     # and --split test: TEST_DIR
     python benchmarks/planning_vs_learning.py --paired TEST_DIR --chosen-on VAL_DIR
+    python benchmarks/planning_vs_learning.py traces.eval.n_sims=8 --split eval ...  # 56 windows
 
 ``--scenario NAME`` flies a preset of ``conf/scenario`` (a held-out grid, the city)
 instead of the default grid: its test traces, its network for ``--predictors road``.
@@ -59,7 +60,8 @@ predictor, the mpc setting that served most on validation among those seeing eve
 vehicle, planning the fleet together and costing no more ms per decision than the
 default mpc (H = 5, cv, default beam and passes) in the validation run, and pairs that
 setting with the default mpc on the test windows (and each predictor's choice with
-constant velocity's).
+constant velocity's). ``KEY=VALUE`` overrides (before the options) change the world
+flown, e.g. ``traces.eval.n_sims=8``: 56 validation windows instead of 14.
 
 ``--paired DIR --learned HYBRID_DIR`` pairs a population's learned policy, and the
 hybrid or leaf at its λ*, as ``benchmarks/hybrid.py`` flew them on the test windows into
