@@ -22,7 +22,9 @@ run's folder whose ``best.pt`` holds the fitted network in place of the run's
 (``learner.qnet``): ``uabs-eval`` and ``hybrid.py`` fly it as any run. Members differ
 in the fit's seed (initialisation, batches and a bootstrap draw of the training
 windows). Nothing of the template's own is changed. Prints the data's size, each
-member's held-out R² and the wall time; writes ``fit.json`` into ``--out``.
+member's held-out R² and the wall time; writes ``fit.json`` into ``--out``. An ``--out``
+that holds files without a ``fit.json`` (not written by this script) is refused, since
+its ``seed=<s>`` folders would be replaced.
 """
 
 from __future__ import annotations
@@ -43,7 +45,7 @@ from uabs_rl.env.uabs_env import N_ACTIONS, OBS, REWARD
 from uabs_rl.evaluation.baselines import MPC, baseline_policy
 from uabs_rl.evaluation.evaluator import Evaluator, make_eval_env
 from uabs_rl.evaluation.predict import make_predictor
-from uabs_rl.runs.checkpoint import config_from_checkpoint, load_checkpoint
+from uabs_rl.runs.checkpoint import config_from_checkpoint, load_checkpoint, save_checkpoint
 from uabs_rl.runs.layout import RunFolder
 from uabs_rl.safety.make import make_selector
 
@@ -142,6 +144,11 @@ def main(argv: list[str] | None = None) -> None:
     if Path(args.out).resolve().is_relative_to(Path(template).resolve()):
         ap.error(f"--out {args.out} lies inside the template run {template}: the members "
                  f"are copies of it")
+    out = Path(args.out)
+    if out.exists() and any(out.iterdir()) and not (out / "fit.json").is_file():
+        # its members' folders are replaced: only a folder this script wrote before
+        ap.error(f"--out {out} holds files this script did not write (no fit.json): its "
+                 f"seed=<s> folders would be replaced; give a new or empty folder")
     ckpt = RunFolder(template).checkpoint("best")
     state = load_checkpoint(ckpt)
     cfg = config_from_checkpoint(state, ckpt)
@@ -184,7 +191,7 @@ def main(argv: list[str] | None = None) -> None:
         shutil.copytree(template, dest, ignore=shutil.ignore_patterns("tb", "evaluation"))
         new = load_checkpoint(RunFolder(dest).checkpoint("best"))
         new["learner"]["qnet"] = net.state_dict()
-        torch.save(new, RunFolder(dest).checkpoint("best"))
+        save_checkpoint(new, RunFolder(dest).checkpoint("best"))
         left = ~torch.isin(group, drawn)  # the windows this member's bootstrap left out
         oob = r2_on(net, x[left], y[left]) if bool(left.any()) else float("nan")
         n_left = int((~torch.isin(ids, drawn)).sum())

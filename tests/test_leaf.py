@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 
 import pytest
 import torch
@@ -517,7 +518,7 @@ def test_mpc_value_fit_gives_every_output_the_return_in_its_units():
 def test_mpc_value_writes_members_that_fly_as_runs(ego_run, tmp_path, capsys):
     """Each member a copy of the template run whose best.pt holds the fitted network;
     the template's own files untouched; uabs-eval's loader takes a member; an --out
-    inside the template is refused."""
+    inside the template, or one holding files the script did not write, is refused."""
     bench = load_benchmark("mpc_value")
     before = (ego_run / "checkpoints" / "best.pt").read_bytes()
     out = tmp_path / "values"
@@ -541,3 +542,10 @@ def test_mpc_value_writes_members_that_fly_as_runs(ego_run, tmp_path, capsys):
     with pytest.raises(SystemExit):
         bench.main([str(ego_run), "--out", str(ego_run / "values"), "--members", "1"])
     assert "lies inside the template run" in capsys.readouterr().err
+    # a folder it did not write (a trained population): refused, its members kept
+    other = tmp_path / "population"
+    shutil.copytree(ego_run, other / "seed=0")
+    with pytest.raises(SystemExit):
+        bench.main([str(ego_run), "--out", str(other), "--members", "1"])
+    assert "holds files this script did not write" in capsys.readouterr().err
+    assert (other / "seed=0" / "checkpoints" / "best.pt").read_bytes() == before
